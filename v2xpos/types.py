@@ -1,0 +1,128 @@
+"""Data containers shared along the pipeline: sensor records, datasets, navigation states.
+
+Arrays are column-per-axis numpy arrays; times are GPS seconds since the GPS epoch
+(1980-01-06 00:00:00 GPST, no leap seconds) unless a field says otherwise.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import IntEnum
+from pathlib import Path
+
+import numpy as np
+
+
+class FixStatus(IntEnum):
+    """GNSS solution status, ordered from worst to best."""
+    NONE = 0
+    DEAD_RECKONING = 1
+    SINGLE = 2
+    DGPS = 3
+    FLOAT = 4
+    FIXED = 5
+
+    @classmethod
+    def from_rtklib_q(cls, q: int) -> "FixStatus":
+        """RTKLIB Q flag (1 fix, 2 float, 3 sbas, 4 dgps, 5 single, 6 ppp) -> FixStatus."""
+        return _RTKLIB_Q.get(int(q), cls.NONE)
+
+    @property
+    def is_rtk(self) -> bool:
+        """True for RTK fixed or float: the only statuses a relative pair may be valid on."""
+        return self in (FixStatus.FIXED, FixStatus.FLOAT)
+
+
+_RTKLIB_Q = {1: FixStatus.FIXED, 2: FixStatus.FLOAT, 3: FixStatus.DGPS, 4: FixStatus.DGPS,
+             5: FixStatus.SINGLE, 6: FixStatus.SINGLE}
+
+
+@dataclass
+class ImuData:
+    """IMU samples in the IMU's own axes.
+
+    t_s: GPS time of validity of each sample [s]; acc_mps2: specific force [m/s^2];
+    gyro_rps: angular rate [rad/s]. counter_ms: the device counter when the source has one.
+    """
+    t_s: np.ndarray
+    acc_mps2: np.ndarray
+    gyro_rps: np.ndarray
+    counter_ms: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+
+@dataclass
+class GnssData:
+    """GNSS solutions at the antenna.
+
+    lla: (lat_rad, lon_rad, h_m ellipsoidal); fix: FixStatus values; sd_ned_m: 1-sigma per NED axis;
+    vel_ned_mps / vel_sd_ned_mps: velocity and its 1-sigma when the source gives it (else None).
+    """
+    t_s: np.ndarray
+    lla: np.ndarray
+    fix: np.ndarray
+    sd_ned_m: np.ndarray
+    vel_ned_mps: np.ndarray | None = None
+    vel_sd_ned_mps: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+
+@dataclass
+class WheelSpeedData:
+    """Vehicle forward speed from wheel odometry [m/s] at GPS times t_s."""
+    t_s: np.ndarray
+    speed_mps: np.ndarray
+
+
+@dataclass
+class ReferenceTrajectory:
+    """Independent reference solution: t_s, lla (rad, m); optional v_ned_mps, C_nb (N,3,3)."""
+    t_s: np.ndarray
+    lla: np.ndarray
+    v_ned_mps: np.ndarray | None = None
+    C_nb: np.ndarray | None = None
+
+
+@dataclass
+class Dataset:
+    """One recording with what was declared about it.
+
+    imu_to_body: nominal DCM, ``v_body = imu_to_body @ v_imu`` (body x forward, y right, z down).
+    lever_arm_m: antenna relative to the IMU in the body frame [forward, right, down].
+    malformed_lines: input records skipped by the readers (counted, never fatal).
+    """
+    name: str
+    platform: str
+    imu: ImuData
+    gnss: GnssData
+    imu_to_body: np.ndarray = field(default_factory=lambda: np.eye(3))
+    lever_arm_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    lever_arm_sd_m: float = 0.1
+    wheel: WheelSpeedData | None = None
+    reference: ReferenceTrajectory | None = None
+    malformed_lines: int = 0
+    source: Path | None = None
+    notes: dict = field(default_factory=dict)
+
+
+@dataclass
+class NavState:
+    """Navigation solution of one vehicle at GPS time t_s.
+
+    lla (rad, m) of the vehicle reference point (IMU); v_ned_mps; acc_body_mps2 (kinematic
+    acceleration, gravity removed) and rate_body_rps in body axes; rpy_rad = (roll, pitch, yaw) of
+    C_nb; *_sd are 1-sigma per axis; fix is the GNSS status behind the solution.
+    """
+    t_s: float
+    lla: np.ndarray
+    v_ned_mps: np.ndarray
+    acc_body_mps2: np.ndarray
+    rate_body_rps: np.ndarray
+    rpy_rad: np.ndarray
+    pos_sd_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    vel_sd_mps: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    att_sd_rad: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    fix: FixStatus = FixStatus.NONE
