@@ -58,6 +58,7 @@ class GnssData:
 
     lla: (lat_rad, lon_rad, h_m ellipsoidal); fix: FixStatus values; sd_ned_m: 1-sigma per NED axis;
     vel_ned_mps / vel_sd_ned_mps: velocity and its 1-sigma when the source gives it (else None).
+    height_datum: "ellipsoidal" or "msl" (the source's height is above mean sea level, as given).
     """
     t_s: np.ndarray
     lla: np.ndarray
@@ -65,6 +66,7 @@ class GnssData:
     sd_ned_m: np.ndarray
     vel_ned_mps: np.ndarray | None = None
     vel_sd_ned_mps: np.ndarray | None = None
+    height_datum: str = "ellipsoidal"
 
     def __len__(self) -> int:
         return len(self.t_s)

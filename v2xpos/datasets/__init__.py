@@ -1,0 +1,7 @@
+"""Dataset readers: one module per format, and ``load_dataset`` for descriptors and folders.
+
+See docs/datasets.md for the formats, the time mapping and the conventions.
+"""
+from v2xpos.datasets.loader import load_dataset, load_multi_imu, read_descriptor
+
+__all__ = ["load_dataset", "load_multi_imu", "read_descriptor"]

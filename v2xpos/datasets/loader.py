@@ -1,0 +1,223 @@
+"""``load_dataset``: one entry point from a descriptor or a folder to a :class:`v2xpos.types.Dataset`.
+
+Descriptor (``dataset.toml``; paths relative to the toml file)::
+
+    name = "drive_0708"            # required
+    platform = "car"               # required: car | pedestrian | quadrotor | ...
+    [imu]
+    file = "imu_1934.csv"          # required
+    format = "csv_g_dps_ms"        # required, see IMU_FORMATS
+    timetag = "imu_1934.csv.tag"   # optional RTKLIB TIMETAG of the imu file
+    imu_to_body = [[-1,0,0],[0,1,0],[0,0,-1]]   # optional (identity): v_body = M @ v_imu
+    [gnss]
+    file = "gnss_1934.pos"         # required
+    format = "rtklib_pos"          # required, see GNSS_FORMATS
+    lever_arm_m = [0, 0, 0]        # optional: antenna - IMU in body axes [m]
+    lever_arm_sd_m = 0.1           # optional [m]
+    height_datum = "msl"           # optional (rtklib_pos default "msl", see rtklib_pos)
+    raw = "gnss_1730.ubx"          # optional raw u-blox stream
+    raw_timetag = "gnss_1730.ubx.tag"
+
+A descriptor for a whole-folder layout instead names it: ``layout = "comma2k19"`` or
+``layout = "quadrotor_mimu"`` with ``path = "..."`` (relative to the toml) and optional ``name``.
+
+A folder is accepted too: one holding ``dataset.toml``, a comma2k19 segment (``processed_log`` +
+``global_pose``) or a quadrotor_mimu path folder (``IMU_1.csv`` ... + ``GT.csv``).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from v2xpos.types import Dataset, GnssData
+
+try:
+    import tomllib
+except ImportError:  # Python 3.10
+    import tomli as tomllib  # type: ignore[no-redef]
+
+IMU_FORMATS = ("csv_g_dps_ms",)
+GNSS_FORMATS = ("rtklib_pos", "ubx")
+LAYOUTS = ("comma2k19", "quadrotor_mimu")
+
+
+def _field(table: dict, key: str, where: str, toml_path: Path, kind: type | tuple = str,
+           required: bool = True, default: Any = None) -> Any:
+    if key not in table:
+        if required:
+            raise ValueError(f"{toml_path}: missing field {where}{key}")
+        return default
+    value = table[key]
+    if not isinstance(value, kind) or isinstance(value, bool) and kind is not bool:
+        raise ValueError(f"{toml_path}: field {where}{key} has type {type(value).__name__}, "
+                         f"expected {getattr(kind, '__name__', kind)}")
+    return value
+
+
+def _matrix(value: Any, shape: tuple[int, ...], field_name: str, toml_path: Path) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{toml_path}: field {field_name} is not numeric") from None
+    if arr.shape != shape or not np.all(np.isfinite(arr)):
+        raise ValueError(f"{toml_path}: field {field_name} must be a finite array of shape {shape}, "
+                         f"got shape {arr.shape}")
+    return arr
+
+
+def read_descriptor(toml_path: str | Path) -> dict:
+    """Parse a descriptor toml; ValueError naming the file on a syntax error."""
+    toml_path = Path(toml_path)
+    try:
+        with open(toml_path, "rb") as fh:
+            return tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"{toml_path}: not valid TOML: {exc}") from None
+
+
+def _load_toml(toml_path: Path, read_raw: bool) -> Dataset:
+    from v2xpos.datasets.imu_csv import read_imu_csv
+    from v2xpos.datasets.rtklib_pos import read_rtklib_pos
+
+    desc = read_descriptor(toml_path)
+    base = toml_path.parent
+    if "layout" in desc:
+        layout = _field(desc, "layout", "", toml_path)
+        if layout not in LAYOUTS:
+            raise ValueError(f"{toml_path}: field layout: unknown {layout!r} (known: {LAYOUTS})")
+        folder = base / _field(desc, "path", "", toml_path)
+        ds = _load_layout(layout, folder)
+        ds.name = _field(desc, "name", "", toml_path, required=False, default=ds.name)
+        ds.source = toml_path
+        return ds
+
+    name = _field(desc, "name", "", toml_path)
+    platform = _field(desc, "platform", "", toml_path)
+    imu_t = _field(desc, "imu", "", toml_path, kind=dict)
+    gnss_t = _field(desc, "gnss", "", toml_path, kind=dict)
+
+    imu_format = _field(imu_t, "format", "[imu] ", toml_path)
+    if imu_format not in IMU_FORMATS:
+        raise ValueError(f"{toml_path}: field [imu] format: unknown {imu_format!r} "
+                         f"(known: {IMU_FORMATS})")
+    imu_file = base / _field(imu_t, "file", "[imu] ", toml_path)
+    timetag = _field(imu_t, "timetag", "[imu] ", toml_path, required=False)
+    imu_to_body = _matrix(_field(imu_t, "imu_to_body", "[imu] ", toml_path, kind=list,
+                                 required=False, default=np.eye(3).tolist()),
+                          (3, 3), "[imu] imu_to_body", toml_path)
+    if not np.allclose(imu_to_body @ imu_to_body.T, np.eye(3), atol=1e-6):
+        raise ValueError(f"{toml_path}: field [imu] imu_to_body is not a rotation matrix")
+
+    gnss_format = _field(gnss_t, "format", "[gnss] ", toml_path)
+    if gnss_format not in GNSS_FORMATS:
+        raise ValueError(f"{toml_path}: field [gnss] format: unknown {gnss_format!r} "
+                         f"(known: {GNSS_FORMATS})")
+    gnss_file = base / _field(gnss_t, "file", "[gnss] ", toml_path)
+    lever = _matrix(_field(gnss_t, "lever_arm_m", "[gnss] ", toml_path, kind=list,
+                           required=False, default=[0.0, 0.0, 0.0]),
+                    (3,), "[gnss] lever_arm_m", toml_path)
+    lever_sd = float(_field(gnss_t, "lever_arm_sd_m", "[gnss] ", toml_path, kind=(int, float),
+                            required=False, default=0.1))
+    height_datum = _field(gnss_t, "height_datum", "[gnss] ", toml_path, required=False,
+                          default="msl")
+    if height_datum not in ("msl", "ellipsoidal"):
+        raise ValueError(f"{toml_path}: field [gnss] height_datum must be 'msl' or 'ellipsoidal'")
+    raw = _field(gnss_t, "raw", "[gnss] ", toml_path, required=False)
+    raw_timetag = _field(gnss_t, "raw_timetag", "[gnss] ", toml_path, required=False)
+
+    for label, p in (("[imu] file", imu_file), ("[gnss] file", gnss_file)):
+        if not p.is_file():
+            raise ValueError(f"{toml_path}: field {label}: file {p} not found")
+    if timetag is not None and not (base / timetag).is_file():
+        raise ValueError(f"{toml_path}: field [imu] timetag: file {base / timetag} not found")
+
+    imu_res = read_imu_csv(imu_file, base / timetag if timetag else None)
+    notes: dict[str, Any] = {"imu": imu_res.summary(), "malformed": [imu_res.issues.as_dict()]}
+    malformed = imu_res.issues.count
+    if imu_res.timetag_issues is not None:
+        malformed += imu_res.timetag_issues.count
+        notes["malformed"].append(imu_res.timetag_issues.as_dict())
+    if timetag is None:
+        notes["imu_time"] = "no timetag: t_s is the device counter in seconds, not GPS time"
+
+    if gnss_format == "rtklib_pos":
+        gnss, gnss_issues = read_rtklib_pos(gnss_file, height_datum=height_datum)
+    else:
+        from v2xpos.datasets.ubx import read_ubx
+        ubx_res = read_ubx(gnss_file, None)
+        gnss, gnss_issues = ubx_res.gnss, ubx_res.issues
+    malformed += gnss_issues.count
+    notes["malformed"].append(gnss_issues.as_dict())
+    notes["gnss"] = {"epochs": len(gnss), "height_datum": gnss.height_datum,
+                     "fix_counts": _fix_counts(gnss)}
+    if raw is not None:
+        notes["gnss_raw"] = str(base / raw)
+        if raw_timetag is not None:
+            notes["gnss_raw_timetag"] = str(base / raw_timetag)
+        if read_raw:
+            from v2xpos.datasets.ubx import read_ubx
+            ubx_res = read_ubx(base / raw, base / raw_timetag if raw_timetag else None)
+            notes["ubx"] = ubx_res.summary()
+            notes["ubx_result"] = ubx_res
+    return Dataset(name=name, platform=platform, imu=imu_res.imu, gnss=gnss,
+                   imu_to_body=imu_to_body, lever_arm_m=lever, lever_arm_sd_m=lever_sd,
+                   malformed_lines=malformed, source=toml_path, notes=notes)
+
+
+def _fix_counts(gnss: GnssData) -> dict[str, int]:
+    from v2xpos.types import FixStatus
+    values, counts = np.unique(np.asarray(gnss.fix, dtype=int), return_counts=True)
+    return {FixStatus(int(v)).name: int(c) for v, c in zip(values, counts)}
+
+
+def _detect_layout(folder: Path) -> str | None:
+    if (folder / "processed_log").is_dir() and (folder / "global_pose").is_dir():
+        return "comma2k19"
+    if (folder / "GT.csv").is_file() and any(folder.glob("IMU_*.csv")):
+        return "quadrotor_mimu"
+    return None
+
+
+def _load_layout(layout: str, folder: Path) -> Dataset:
+    if layout == "comma2k19":
+        from v2xpos.datasets.comma2k19 import load_comma2k19
+        return load_comma2k19(folder)
+    from v2xpos.datasets.quadrotor import dataset_from_multi_imu, read_quadrotor_path
+    return dataset_from_multi_imu(read_quadrotor_path(folder))
+
+
+def load_dataset(path: str | Path, read_raw: bool = False) -> Dataset:
+    """Load a recording from a ``dataset.toml`` descriptor or a dataset folder.
+
+    read_raw: also parse the raw GNSS stream named in the descriptor (UBX; slower) and put its
+    summary (message latency) in ``notes["ubx"]``. Raises ValueError naming the file and the
+    field for an unknown format, a missing or mistyped field, or an unrecognised folder.
+    """
+    path = Path(path)
+    if path.is_dir():
+        if (path / "dataset.toml").is_file():
+            return _load_toml(path / "dataset.toml", read_raw)
+        layout = _detect_layout(path)
+        if layout is None:
+            raise ValueError(f"{path}: no dataset.toml and not a known dataset layout {LAYOUTS}")
+        return _load_layout(layout, path)
+    if not path.is_file():
+        raise ValueError(f"{path}: no such dataset file or folder")
+    return _load_toml(path, read_raw)
+
+
+def load_multi_imu(path: str | Path):
+    """Load a multi-IMU recording (a quadrotor_mimu path folder, or a toml with
+    ``layout = "quadrotor_mimu"``) -> :class:`v2xpos.types.MultiImuRecording`."""
+    from v2xpos.datasets.quadrotor import read_quadrotor_path
+    path = Path(path)
+    if path.is_file():
+        desc = read_descriptor(path)
+        if desc.get("layout") != "quadrotor_mimu":
+            raise ValueError(f"{path}: field layout must be 'quadrotor_mimu' for a multi-IMU load")
+        return read_quadrotor_path(path.parent / _field(desc, "path", "", path))
+    if _detect_layout(path) != "quadrotor_mimu":
+        raise ValueError(f"{path}: not a multi-IMU folder (need IMU_k.csv and GT.csv)")
+    return read_quadrotor_path(path)
