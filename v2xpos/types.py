@@ -128,3 +128,35 @@ class NavState:
     vel_sd_mps: np.ndarray = field(default_factory=lambda: np.zeros(3))
     att_sd_rad: np.ndarray = field(default_factory=lambda: np.zeros(3))
     fix: FixStatus = FixStatus.NONE
+
+
+@dataclass
+class LocalReference:
+    """Reference trajectory known only in a local frame (no absolute position).
+
+    t_s: times on the recording's own axis [s]; pos_ned_m: position in a local NED frame about the
+    source's origin [m]; rpy_rad: (roll, pitch, yaw) of C_nb [rad]; speed_mps optional.
+    """
+    t_s: np.ndarray
+    pos_ned_m: np.ndarray
+    rpy_rad: np.ndarray
+    speed_mps: np.ndarray | None = None
+
+
+@dataclass
+class MultiImuRecording:
+    """Several IMU units on one rigid body, for grading them against each other.
+
+    units: name -> ImuData in each unit's own axes; unit_euler_rad: name -> (N,3) Euler angles the
+    unit itself reports (its own convention, see the reader); reference: the platform's reference
+    trajectory when the source has one. Times are on the recording's own axis unless
+    ``time_scale`` says "gps".
+    """
+    name: str
+    units: dict[str, ImuData]
+    unit_euler_rad: dict[str, np.ndarray] = field(default_factory=dict)
+    reference: LocalReference | ReferenceTrajectory | None = None
+    time_scale: str = "recording"
+    malformed_lines: int = 0
+    source: Path | None = None
+    notes: dict = field(default_factory=dict)
