@@ -12,6 +12,7 @@ Descriptor (``dataset.toml``; paths relative to the toml file)::
     [gnss]
     file = "gnss_1934.pos"         # required
     format = "rtklib_pos"          # required, see GNSS_FORMATS
+    timetag = "gnss.ubx.tag"       # optional, format "ubx" only: arrival times of its bytes
     lever_arm_m = [0, 0, 0]        # optional: antenna - IMU in body axes [m]
     lever_arm_sd_m = 0.1           # optional [m]
     height_datum = "msl"           # optional (rtklib_pos default "msl", see rtklib_pos)
@@ -146,7 +147,9 @@ def _load_toml(toml_path: Path, read_raw: bool) -> Dataset:
         gnss, gnss_issues = read_rtklib_pos(gnss_file, height_datum=height_datum)
     else:
         from v2xpos.datasets.ubx import read_ubx
-        ubx_res = read_ubx(gnss_file, None)
+        gnss_tag = _field(gnss_t, "timetag", "[gnss] ", toml_path, required=False)
+        ubx_res = read_ubx(gnss_file, base / gnss_tag if gnss_tag else None)
+        notes["ubx"] = ubx_res.summary()
         gnss, gnss_issues = ubx_res.gnss, ubx_res.issues
     malformed += gnss_issues.count
     notes["malformed"].append(gnss_issues.as_dict())
