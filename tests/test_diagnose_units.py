@@ -1,0 +1,108 @@
+"""diagnose building blocks without the filter: injections/corrections, structure tests, the
+linearised MAP fit and its significance decisions."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from v2xpos.diagnose import identify, inject, structure
+from v2xpos.diagnose.inject import EffectSet
+from v2xpos.rotation import dcm_from_euler
+from v2xpos.types import Dataset, FixStatus, GnssData, ImuData
+
+B_DRIVE = np.array([[-1.0, 0, 0], [0, 1, 0], [0, 0, -1]])
+
+
+def _toy_dataset(n_imu: int = 500, n_gnss: int = 20) -> Dataset:
+    rng = np.random.default_rng(3)
+    t = 1.4e9 + 0.01 * np.arange(n_imu)
+    imu = ImuData(t_s=t, acc_mps2=rng.normal(0, 1, (n_imu, 3)), gyro_rps=rng.normal(0, 0.2, (n_imu, 3)))
+    tg = 1.4e9 + 0.25 * np.arange(n_gnss)
+    lla = np.column_stack([np.radians(40.0) + 1e-7 * np.arange(n_gnss), np.full(n_gnss, np.radians(-105.0)),
+                           np.full(n_gnss, 1600.0)])
+    vel = np.column_stack([np.full(n_gnss, 10.0), np.linspace(0, 3, n_gnss), np.zeros(n_gnss)])
+    gnss = GnssData(t_s=tg, lla=lla, fix=np.full(n_gnss, int(FixStatus.FIXED)), sd_ned_m=np.full((n_gnss, 3), 0.01),
+                    vel_ned_mps=vel, vel_sd_ned_mps=np.full((n_gnss, 3), 0.05))
+    return Dataset(name="toy", platform="car", imu=imu, gnss=gnss, imu_to_body=B_DRIVE.copy())
+
+
+def test_effect_vector_roundtrip():
+    e = EffectSet(0.005, 12.0, 0.02, np.array([0.001, -0.002, 0.003]), np.array([0.1, -0.05, 0.2]),
+                  np.array([0.0, 0.0, 0.003]), np.array([0.001, 0.0, 0.0]))
+    v = e.to_vector()
+    assert v.shape == (inject.N_PARAMS,)
+    assert np.allclose(EffectSet.from_vector(v).to_vector(), v)
+
+
+def test_inject_then_correct_restores_samples_and_declares_mounting():
+    ds = _toy_dataset()
+    e = EffectSet(imu_time_offset_s=0.005, imu_clock_drift_ppm=50.0, gnss_latency_s=0.03,
+                  imu_misalignment_rad=np.radians([0.3, -0.2, 0.5]), gyro_scale=np.array([0.0, 0.0, 0.003]),
+                  accel_scale=np.array([0.002, 0.0, 0.0]))
+    bad = inject.inject(ds, e)
+    assert ds.imu.t_s[0] == 1.4e9  # input untouched
+    assert bad.imu.t_s[0] == pytest.approx(ds.imu.t_s[0] - 0.005, abs=1e-9)
+    assert bad.gnss.t_s[0] == pytest.approx(ds.gnss.t_s[0] + 0.03, abs=1e-9)
+    # vehicle-frame gyro of the injected data: (1 + s) R^T w_vehicle
+    w_veh = (dcm_from_euler(*e.imu_misalignment_rad) @ B_DRIVE @ bad.imu.gyro_rps.T).T
+    w_true = (B_DRIVE @ ds.imu.gyro_rps.T).T
+    R_T = dcm_from_euler(*e.imu_misalignment_rad).T
+    expect = (dcm_from_euler(*e.imu_misalignment_rad) @ (np.diag(1 + e.gyro_scale) @ R_T @ w_true.T)).T
+    assert np.allclose(w_veh, expect, atol=1e-12)
+    fixed = inject.correct(bad, e)
+    assert np.allclose(fixed.imu.t_s, ds.imu.t_s, atol=1e-7)
+    assert np.allclose(fixed.gnss.t_s, ds.gnss.t_s, atol=1e-9)
+    # corrected samples through the declared mounting give the vehicle-frame truth to 2nd order
+    w_back = (fixed.imu_to_body @ fixed.imu.gyro_rps.T).T
+    assert np.max(np.abs(w_back - w_true)) < 1e-4 * np.max(np.abs(w_true)) + 1e-12
+
+
+def test_inject_lever_arm_moves_antenna_along_vehicle_axes():
+    ds = _toy_dataset()
+    from v2xpos import geo
+    bad = inject.inject(ds, EffectSet(gnss_lever_arm_m=np.array([0.1, 0.0, 0.0])))
+    d = geo.lla_to_ned(bad.gnss.lla, ds.gnss.lla[0]) - geo.lla_to_ned(ds.gnss.lla, ds.gnss.lla[0])
+    course = np.arctan2(ds.gnss.vel_ned_mps[:, 1], ds.gnss.vel_ned_mps[:, 0])
+    assert np.allclose(d[:, 0], 0.1 * np.cos(course), atol=1e-4)
+    assert np.allclose(d[:, 1], 0.1 * np.sin(course), atol=1e-4)
+    assert np.allclose(inject.correct(bad, EffectSet(gnss_lever_arm_m=np.array([0.1, 0, 0]))).lever_arm_m, [0.1, 0, 0])
+
+
+def test_structure_tests_detect_what_is_there_and_only_that():
+    rng = np.random.default_rng(0)
+    n = 2000
+    white = rng.normal(0, 1, n)
+    assert not structure.ljung_box(white).significant
+    ar = np.zeros(n)
+    for k in range(1, n):
+        ar[k] = 0.8 * ar[k - 1] + rng.normal()
+    assert structure.ljung_box(ar).significant
+    assert not structure.mean_bias(white).significant
+    assert structure.mean_bias(white + 0.2).significant
+    speed = np.abs(np.cumsum(rng.normal(0, 0.3, n))) + 2.0
+    c = structure.correlation(white + 0.05 * speed, speed)
+    assert c.significant and c.detail["slope"] == pytest.approx(0.05, abs=0.02)
+    assert not structure.correlation(white, speed).significant
+
+
+def test_linear_fit_recovers_parameters_and_rejects_absent_ones():
+    rng = np.random.default_rng(1)
+    m = 4000
+    t = np.linspace(0, 400, m)
+    J = np.zeros((m, inject.N_PARAMS))
+    J[:, 0] = 100 * np.sin(t / 7.0)          # a well observed effect
+    J[:, 5] = 50 * np.cos(t / 3.0) + 20      # another one
+    J[:, 8] = 30 * np.sin(t / 5.0 + 1)       # observable but absent
+    truth = np.zeros(inject.N_PARAMS)
+    truth[0], truth[5] = 0.004, -0.006
+    noise = rng.normal(0, 1, m)
+    r = -(J @ truth) + noise                  # residual of the uncorrected model (theta0 = 0)
+    prob = identify.LinearProblem(r=r, J=J, theta0=np.zeros(inject.N_PARAMS), t_s=t,
+                                  prior_sd=np.full(inject.N_PARAMS, 1.0))
+    f = identify.decide(prob, identify.fit(prob))
+    assert abs(f.theta[0] - 0.004) < 3 * f.sd[0] and abs(f.theta[5] + 0.006) < 3 * f.sd[5]
+    assert f.significant[0] and f.significant[5]
+    assert not f.significant[8]
+    assert not f.significant[[1, 2, 3, 4, 6, 7, 9, 10, 11, 12, 13, 14]].any()
+    a, b = identify.halves(prob)
+    assert np.all(identify.compare(identify.fit(a), identify.fit(b)) < 3.0)
