@@ -1,0 +1,134 @@
+"""Master configuration (TOML). Example (``configs/master.toml``)::
+
+    [service]
+    fleet = "demo"
+    master_id = "ego"
+    timeout_ms = 200                  # staleness limit
+    measurement_point_m = [3.8, 0, 0] # master body frame (front bumper)
+    known_vehicles = []               # accepted target ids; empty = any
+    duration_s = 40                   # stop at scenario epoch + duration (omit: until SIGTERM)
+    status_hz = 2                     # status JSON on v2xpos/<fleet>/master/<id>/status
+    tick_hz = 10                      # NO_DATA / TIMEOUT reports for silent targets
+
+    [link]                            # the master embeds the router by default
+    mode = "router"
+    listen = ["tcp/127.0.0.1:7447"]
+
+    [source]                          # as for a slave (slave.config.SourceConfig)
+    type = "ins"
+    scenario = "convoy"
+    [source.params]
+    vehicles = 4
+
+    [output.can]
+    enabled = true
+    interface = "virtual"             # socketcan on a vehicle
+    channel = "v2xpos"
+    [output.udp]
+    enabled = true
+    host = "127.0.0.1"
+    port = 47001
+    [output.zenoh]
+    enabled = true                    # republish RelativeResult on .../master/<id>/relative
+
+    [scene]
+    geojson = "scene.geojson"         # optional V2L lane lines / points / polygons
+
+    [record]
+    results_npz = "out/master_results.npz"   # per-result rows for the report (optional)
+    summary_json = "out/master_summary.json"
+    evaluate_uncompensated = false
+
+    [security]
+    trust_list = "keys/trust.json"    # optional: require signed messages from listed keys
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from slave.config import ConfigError, SourceConfig, check_keys, link_from_table, load_toml, take
+from v2xpos.link import LinkConfig
+
+
+@dataclass
+class MasterConfig:
+    fleet: str = "demo"
+    master_id: str = "ego"
+    timeout_ms: float = 200.0
+    measurement_point_m: tuple = (0.0, 0.0, 0.0)
+    known_vehicles: tuple = ()
+    duration_s: float | None = None
+    status_hz: float = 2.0
+    tick_hz: float = 10.0
+    link: LinkConfig = field(default_factory=lambda: LinkConfig(mode="router", listen=["tcp/127.0.0.1:7447"]))
+    source: SourceConfig = field(default_factory=SourceConfig)
+    can_enabled: bool = False
+    can_interface: str = "virtual"
+    can_channel: str = "v2xpos"
+    udp_enabled: bool = False
+    udp_host: str = "127.0.0.1"
+    udp_port: int = 47001
+    zenoh_enabled: bool = True
+    geojson: str | None = None
+    results_npz: str | None = None
+    summary_json: str | None = None
+    evaluate_uncompensated: bool = False
+    trust_list: str | None = None
+    path: str = "<defaults>"
+
+    @classmethod
+    def load(cls, path: str | Path) -> "MasterConfig":
+        return cls.from_dict(load_toml(path), str(path))
+
+    @classmethod
+    def from_dict(cls, d: dict, path: str = "<dict>") -> "MasterConfig":
+        check_keys(d, {"service", "link", "source", "output", "scene", "record", "security"}, path)
+        w = f"{path}: [service]"
+        s = take(d, "service", dict, {}, path)
+        check_keys(s, {"fleet", "master_id", "timeout_ms", "measurement_point_m", "known_vehicles",
+                       "duration_s", "status_hz", "tick_hz"}, w)
+        timeout = take(s, "timeout_ms", float, 200.0, w)
+        if not 0 < timeout <= 60000:
+            raise ConfigError(f"{w}.timeout_ms: {timeout} outside (0, 60000]")
+        mp = take(s, "measurement_point_m", list, [0.0, 0.0, 0.0], w)
+        if len(mp) != 3 or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in mp):
+            raise ConfigError(f"{w}.measurement_point_m: expected 3 numbers, got {mp!r}")
+        known = take(s, "known_vehicles", list, [], w)
+        if not all(isinstance(x, str) for x in known):
+            raise ConfigError(f"{w}.known_vehicles: expected a list of strings")
+        out = take(d, "output", dict, {}, path)
+        check_keys(out, {"can", "udp", "zenoh"}, f"{path}: [output]")
+        wc, wu, wz = f"{path}: [output.can]", f"{path}: [output.udp]", f"{path}: [output.zenoh]"
+        can_t = take(out, "can", dict, {}, f"{path}: [output]")
+        udp_t = take(out, "udp", dict, {}, f"{path}: [output]")
+        zen_t = take(out, "zenoh", dict, {}, f"{path}: [output]")
+        check_keys(can_t, {"enabled", "interface", "channel"}, wc)
+        check_keys(udp_t, {"enabled", "host", "port"}, wu)
+        check_keys(zen_t, {"enabled"}, wz)
+        port = take(udp_t, "port", int, 47001, wu)
+        if not 0 < port < 65536:
+            raise ConfigError(f"{wu}.port: {port} outside 1..65535")
+        sc = take(d, "scene", dict, {}, path)
+        check_keys(sc, {"geojson"}, f"{path}: [scene]")
+        rec = take(d, "record", dict, {}, path)
+        wr = f"{path}: [record]"
+        check_keys(rec, {"results_npz", "summary_json", "evaluate_uncompensated"}, wr)
+        sec = take(d, "security", dict, {}, path)
+        check_keys(sec, {"trust_list"}, f"{path}: [security]")
+        return cls(
+            fleet=take(s, "fleet", str, "demo", w), master_id=take(s, "master_id", str, "ego", w),
+            timeout_ms=timeout, measurement_point_m=tuple(float(x) for x in mp), known_vehicles=tuple(known),
+            duration_s=take(s, "duration_s", float, None, w), status_hz=take(s, "status_hz", float, 2.0, w),
+            tick_hz=take(s, "tick_hz", float, 10.0, w),
+            link=link_from_table(take(d, "link", dict, {"mode": "router", "listen": ["tcp/127.0.0.1:7447"]}, path),
+                                 f"{path}: [link]"),
+            source=SourceConfig.from_table(take(d, "source", dict, {}, path), f"{path}: [source]"),
+            can_enabled=take(can_t, "enabled", bool, False, wc), can_interface=take(can_t, "interface", str, "virtual", wc),
+            can_channel=take(can_t, "channel", str, "v2xpos", wc),
+            udp_enabled=take(udp_t, "enabled", bool, False, wu), udp_host=take(udp_t, "host", str, "127.0.0.1", wu),
+            udp_port=port, zenoh_enabled=take(zen_t, "enabled", bool, True, wz),
+            geojson=take(sc, "geojson", str, None, f"{path}: [scene]"),
+            results_npz=take(rec, "results_npz", str, None, wr), summary_json=take(rec, "summary_json", str, None, wr),
+            evaluate_uncompensated=take(rec, "evaluate_uncompensated", bool, False, wr),
+            trust_list=take(sec, "trust_list", str, None, f"{path}: [security]"), path=path)

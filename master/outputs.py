@@ -1,0 +1,64 @@
+"""Output sinks of the master pipeline: each has ``write(result)`` and counts what it sent.
+
+* ``CanSink`` -- ``v2xpos.output.can.CanOutput`` (DBC frames; python-can ``virtual`` or socketcan);
+* ``UdpSink`` -- ``v2xpos.output.udp.UdpOutput``, one datagram per result (layout in docs/protocol.md);
+* ``ZenohSink`` -- ``encode_relative`` republished on ``v2xpos/<fleet>/master/<id>/relative``.
+"""
+from __future__ import annotations
+
+from v2xpos.link import Publisher
+from v2xpos.wire import RelativeResult, encode_relative
+
+
+class CanSink:
+    """Target results as CAN frames (slots assigned per target id by the CanOutput)."""
+
+    def __init__(self, channel: str = "v2xpos", interface: str = "virtual", dbc_path: str | None = None, **bus_kwargs):
+        from v2xpos.output.can import CanOutput
+        self.out = CanOutput(channel=channel, interface=interface, dbc_path=dbc_path, **bus_kwargs)
+
+    @property
+    def frames(self) -> int:
+        return self.out.frames_sent
+
+    def write(self, result: RelativeResult) -> None:
+        self.out.send_result(result)
+
+    def close(self) -> None:
+        self.out.close()
+
+
+class UdpSink:
+    """One UDP datagram per result to a loopback address by default."""
+
+    def __init__(self, host: str = "127.0.0.1", port: int = 47001, allow_remote: bool = False):
+        from v2xpos.output.udp import UdpOutput
+        self.out = UdpOutput(host=host, port=port, allow_remote=allow_remote)
+
+    @property
+    def datagrams(self) -> int:
+        return self.out.datagrams_sent
+
+    def write(self, result: RelativeResult) -> None:
+        self.out.send([result], result.seq, result.t_gps_s)
+
+    def close(self) -> None:
+        self.out.close()
+
+
+class ZenohSink:
+    """Republish results for monitors (msgpack envelope, ``v2xpos.wire.encode_relative``)."""
+
+    def __init__(self, publisher: Publisher, sign=None):
+        self.pub = publisher
+        self.sign = sign
+
+    @property
+    def sent(self) -> int:
+        return self.pub.sent
+
+    def write(self, result: RelativeResult) -> None:
+        self.pub.put(encode_relative(result, self.sign))
+
+    def close(self) -> None:
+        pass

@@ -1,0 +1,289 @@
+"""The master's per-message pipeline as a plain class (no I/O of its own), so that the zenoh service,
+recording replay and fuzzing all drive exactly the same code.
+
+For every received slave payload ``handle(payload, key, master, t_now_gps_s, t_arrival_wall_s)``:
+
+1. validate: ``v2xpos.wire.decode_state`` (schema, ranges, finite numbers), the key's vehicle id
+   equals the body's, the fleet matches, the vehicle is known (``known_vehicles``; empty = any),
+   optional admission control (``authenticator.check(msg, now)``: signatures, replay windows);
+   per vehicle the sequence number must increase (equal = ``duplicate``, lower =
+   ``out_of_order``) and so must the time of validity (``out_of_order``).
+   Rejections are counted by reason, globally and per vehicle (the id is taken from the key when
+   the body cannot be decoded), and never touch another target's state.
+2. staleness: age = master GPS time now - slave time of validity; age > ``timeout_s`` gives
+   TIMEOUT and no kinematics (``v2xpos.relative.check_latency``).
+3. gate + compensate + transform: ``v2xpos.relative.evaluate_target`` with the master's latest
+   filter state (time t_m): fix gate (RTK fixed/float on both sides), CTRA prediction of the slave
+   over t_m - t_slave, operator T into the master body frame, range/bearing/gap/TTC from the
+   configured master measurement point to the target outline.
+4. degrade flag from IMU grading (``degraded_vehicles``), sequence number, fleet/master ids.
+5. outputs: every sink's ``write(result)`` (CAN, UDP, zenoh republish, recorder).
+
+``tick(t_now_gps_s)`` reports targets that went silent: NO_DATA for a known vehicle never heard,
+TIMEOUT once the last message is older than the timeout (status only; never kinematics).
+
+Timing: ``pipeline_ms`` = wall time after the last sink returned minus the arrival stamp;
+``e2e_ms`` = the same instant minus the slave's publish stamp ``t_sent_wall_s`` (same machine).
+"""
+from __future__ import annotations
+
+import math
+import re
+import time
+from collections import Counter, defaultdict
+from dataclasses import dataclass, field
+from typing import Any, Callable, Protocol
+
+import numpy as np
+
+from v2xpos.relative import check_latency, evaluate_target, relative_kinematics
+from v2xpos.wire import FixSide, RelativeResult, StateMessage, TargetStatus, WireError, decode_state
+
+REJECT_MALFORMED = "malformed"
+REJECT_KEY_MISMATCH = "key_mismatch"
+REJECT_WRONG_FLEET = "wrong_fleet"
+REJECT_UNKNOWN_VEHICLE = "unknown_vehicle"
+REJECT_DUPLICATE = "duplicate"
+REJECT_OUT_OF_ORDER = "out_of_order"
+REJECT_SELF = "own_id"
+
+_KEY_RE = re.compile(r"^v2xpos/([^/]+)/vehicle/([^/]+)/state$")
+
+
+class Sink(Protocol):
+    """An output stage: ``write(result)`` sends one RelativeResult somewhere."""
+
+    def write(self, result: RelativeResult) -> None: ...
+
+
+@dataclass
+class PipelineConfig:
+    """Master pipeline settings.
+
+    timeout_s: staleness limit (default 0.2 s). future_tolerance_s: allowed negative age.
+    measurement_point_m: master measurement point in the master body frame (e.g. front bumper).
+    known_vehicles: accepted target ids (empty = any id). evaluate_uncompensated: also transform
+    the unpredicted target (for the demo's comparison; costs one more transform per message).
+    record: keep one row per result for the report (``records``).
+    """
+    fleet: str = "demo"
+    master_id: str = "ego"
+    timeout_s: float = 0.200
+    future_tolerance_s: float = 0.020
+    measurement_point_m: tuple = (0.0, 0.0, 0.0)
+    known_vehicles: tuple = ()
+    evaluate_uncompensated: bool = False
+    record: bool = False
+
+
+@dataclass
+class TargetTrack:
+    """What the master knows of one target."""
+    target_id: str
+    kind: str = "vehicle"
+    last_seq: int = -1
+    last_t_gps_s: float = -math.inf
+    status: TargetStatus = TargetStatus.NO_DATA
+    fix_side: FixSide = FixSide.NONE
+    last_result: RelativeResult | None = None
+    accepted: int = 0
+    results: Counter = field(default_factory=Counter)
+    rejected: Counter = field(default_factory=Counter)
+
+
+RECORD_FIELDS = ("t_gps_s", "t_slave_gps_s", "status", "latency_s", "pipeline_ms", "e2e_ms",
+                 "rel_pos_x", "rel_pos_y", "rel_pos_z", "rel_vel_x", "rel_vel_y", "rel_vel_z",
+                 "range_m", "unc_pos_x", "unc_pos_y", "unc_pos_z", "fix_side", "ttc_s", "gap_m")
+
+
+class MasterPipeline:
+    """validate -> stale -> gate -> compensate -> transform -> outputs (see module docstring)."""
+
+    def __init__(self, config: PipelineConfig, sinks: list[Sink] | None = None,
+                 authenticator: Any = None, clock_wall: Callable[[], float] = time.time):
+        self.config = config
+        self.sinks: list[Sink] = list(sinks or [])
+        self.authenticator = authenticator
+        self.clock_wall = clock_wall
+        self.tracks: dict[str, TargetTrack] = {}
+        self.rejected: Counter = Counter()
+        self.degraded_vehicles: set[str] = set()
+        self.seq = 0
+        self.processed = 0
+        self.pipeline_ms: list[float] = []
+        self.e2e_ms: list[float] = []
+        self.records: dict[str, list] = defaultdict(list)
+        self._mpoint = np.asarray(config.measurement_point_m, dtype=float)
+        self._known = set(config.known_vehicles)
+        for vid in self._known:
+            self.tracks[vid] = TargetTrack(vid)
+
+    # ------------------------------------------------------------------ validation
+    def _reject(self, reason: str, vehicle_id: str | None) -> None:
+        self.rejected[reason] += 1
+        if vehicle_id is not None and vehicle_id in self.tracks:
+            self.tracks[vehicle_id].rejected[reason] += 1
+
+    def _admit(self, payload: bytes, key: str | None, t_now_gps_s: float) -> StateMessage | None:
+        key_id = None
+        key_fleet = None
+        if key is not None:
+            m = _KEY_RE.match(key)
+            if m:
+                key_fleet, key_id = m.group(1), m.group(2)
+        try:
+            msg = decode_state(payload)
+        except WireError:
+            self._reject(REJECT_MALFORMED, key_id)
+            return None
+        vid = msg.vehicle_id
+        if key_id is not None and key_id != vid:
+            self._reject(REJECT_KEY_MISMATCH, key_id)
+            return None
+        if msg.fleet != self.config.fleet or (key_fleet is not None and key_fleet != self.config.fleet):
+            self._reject(REJECT_WRONG_FLEET, None)
+            return None
+        if vid == self.config.master_id:
+            self._reject(REJECT_SELF, None)
+            return None
+        if self._known and vid not in self._known:
+            self._reject(REJECT_UNKNOWN_VEHICLE, None)
+            return None
+        if self.authenticator is not None:
+            reason = self.authenticator.check(msg, t_now_gps_s)
+            if reason is not None:
+                self._reject(reason, vid if vid in self.tracks else None)
+                return None
+        track = self.tracks.get(vid)
+        if track is None:
+            track = self.tracks[vid] = TargetTrack(vid)
+        if msg.seq == track.last_seq:
+            self._reject(REJECT_DUPLICATE, vid)
+            return None
+        if msg.seq < track.last_seq or msg.t_gps_s <= track.last_t_gps_s:
+            self._reject(REJECT_OUT_OF_ORDER, vid)
+            return None
+        track.last_seq = msg.seq
+        track.last_t_gps_s = msg.t_gps_s
+        track.kind = msg.kind
+        track.accepted += 1
+        return msg
+
+    # ------------------------------------------------------------------ main entry
+    def handle(self, payload: bytes, key: str | None, master: Any, t_now_gps_s: float,
+               t_arrival_wall_s: float | None = None) -> RelativeResult | None:
+        """Run one received payload through the pipeline; returns the result sent (None if rejected).
+
+        master: the master's latest filter state (StateMessage or NavState, time t_m <= now).
+        """
+        t_arr = self.clock_wall() if t_arrival_wall_s is None else t_arrival_wall_s
+        msg = self._admit(payload, key, t_now_gps_s)
+        if msg is None:
+            return None
+        return self.handle_message(msg, master, t_now_gps_s, t_arr)
+
+    def handle_message(self, msg: StateMessage, master: Any, t_now_gps_s: float,
+                       t_arrival_wall_s: float) -> RelativeResult:
+        """Stages 2-5 for an admitted message."""
+        cfg = self.config
+        status, age_s = check_latency(t_now_gps_s, msg.t_gps_s, cfg.timeout_s, cfg.future_tolerance_s)
+        if status != TargetStatus.VALID:
+            res = RelativeResult(target_id=msg.vehicle_id, target_kind=msg.kind, status=status,
+                                 source_seq=msg.seq, t_gps_s=float(master.t_s), latency_s=age_s,
+                                 t_sent_wall_s=msg.t_sent_wall_s)
+        else:
+            res = evaluate_target(master, msg, self._mpoint, timeout_s=math.inf,
+                                  future_tolerance_s=math.inf)
+            res.latency_s = age_s
+        unc = None
+        if cfg.evaluate_uncompensated and res.status == TargetStatus.VALID:
+            unc = relative_kinematics(master, msg).rel_pos_body_m
+        return self._emit(res, msg, t_arrival_wall_s, unc)
+
+    def _emit(self, res: RelativeResult, msg: StateMessage | None, t_arr: float,
+              unc: np.ndarray | None = None) -> RelativeResult:
+        cfg = self.config
+        self.seq += 1
+        res.seq = self.seq
+        res.fleet = cfg.fleet
+        res.master_id = cfg.master_id
+        res.degraded = res.target_id in self.degraded_vehicles
+        track = self.tracks.get(res.target_id)
+        if track is not None:
+            track.status = res.status
+            track.fix_side = res.fix_side
+            track.last_result = res
+            track.results[res.status.name.lower()] += 1
+        for sink in self.sinks:
+            sink.write(res)
+        t_done = self.clock_wall()
+        self.processed += 1
+        pipe_ms = (t_done - t_arr) * 1e3
+        e2e = math.nan if res.t_sent_wall_s is None else (t_done - res.t_sent_wall_s) * 1e3
+        if msg is not None:
+            self.pipeline_ms.append(pipe_ms)
+            if not math.isnan(e2e):
+                self.e2e_ms.append(e2e)
+        if cfg.record:
+            self._record(res, msg, pipe_ms, e2e, unc)
+        return res
+
+    def _record(self, res: RelativeResult, msg: StateMessage | None, pipe_ms: float, e2e: float,
+                unc: np.ndarray | None) -> None:
+        rows = self.records[res.target_id]
+        p, v = res.rel_pos_body_m, res.rel_vel_body_mps
+        u = unc if unc is not None else (math.nan, math.nan, math.nan)
+        rows.append((res.t_gps_s, math.nan if msg is None else msg.t_gps_s, int(res.status), res.latency_s,
+                     pipe_ms, e2e, p[0], p[1], p[2], v[0], v[1], v[2], res.range_m, u[0], u[1], u[2],
+                     int(res.fix_side), math.nan if res.ttc_s is None else res.ttc_s, res.gap_m))
+
+    # ------------------------------------------------------------------ silence
+    def tick(self, t_now_gps_s: float, master_t_gps_s: float | None = None) -> list[RelativeResult]:
+        """Status-only results for targets without fresh data: NO_DATA (never heard) or TIMEOUT
+        (last message older than the timeout). Call a few times per second."""
+        out = []
+        t_m = t_now_gps_s if master_t_gps_s is None else master_t_gps_s
+        for track in self.tracks.values():
+            if track.last_seq < 0:
+                status, lat = TargetStatus.NO_DATA, math.nan
+            else:
+                lat = t_now_gps_s - track.last_t_gps_s
+                if lat <= self.config.timeout_s:
+                    continue
+                status = TargetStatus.TIMEOUT
+            res = RelativeResult(target_id=track.target_id, target_kind=track.kind, status=status,
+                                 source_seq=max(track.last_seq, 0), t_gps_s=t_m, latency_s=lat)
+            out.append(self._emit(res, None, self.clock_wall()))
+        return out
+
+    # ------------------------------------------------------------------ summaries
+    def summary(self) -> dict:
+        """Counters and per-target status for monitors (JSON-serialisable)."""
+        def pct(a: list, q: float) -> float | None:
+            return float(np.percentile(a, q)) if a else None
+        return {
+            "processed": self.processed, "rejected": dict(self.rejected),
+            "pipeline_ms_p50": pct(self.pipeline_ms, 50), "pipeline_ms_p99": pct(self.pipeline_ms, 99),
+            "e2e_ms_p50": pct(self.e2e_ms, 50), "e2e_ms_p99": pct(self.e2e_ms, 99),
+            "targets": {vid: {"kind": t.kind, "status": t.status.name.lower(), "fix_side": int(t.fix_side),
+                              "accepted": t.accepted, "results": dict(t.results),
+                              "rejected": dict(t.rejected), "degraded": vid in self.degraded_vehicles,
+                              "last": _result_brief(t.last_result)}
+                        for vid, t in self.tracks.items()},
+        }
+
+    def records_arrays(self) -> dict[str, np.ndarray]:
+        """Recorded rows per target as (N, len(RECORD_FIELDS)) float arrays."""
+        return {vid: np.asarray(rows, dtype=float).reshape(-1, len(RECORD_FIELDS))
+                for vid, rows in self.records.items()}
+
+
+def _result_brief(res: RelativeResult | None) -> dict | None:
+    if res is None:
+        return None
+    valid = res.status == TargetStatus.VALID
+    f = (lambda x: float(x) if valid and x is not None and math.isfinite(x) else None)
+    return {"t_gps_s": res.t_gps_s, "latency_ms": None if not math.isfinite(res.latency_s) else res.latency_s * 1e3,
+            "range_m": f(res.range_m), "bearing_deg": f(math.degrees(res.bearing_rad)) if valid else None,
+            "lon_m": f(res.longitudinal_m), "lat_m": f(res.lateral_m), "gap_m": f(res.gap_m),
+            "ttc_s": f(res.ttc_s), "closing_mps": f(res.closing_speed_mps)}

@@ -1,0 +1,192 @@
+"""``v2xpos master --config FILE``: the hunter vehicle. Runs its own navigation filter, receives every
+slave's StateMessage over zenoh and runs ``master.pipeline.MasterPipeline`` on each, writing CAN,
+UDP and zenoh outputs.
+
+asyncio tasks in one thread (the zenoh callbacks only stamp arrival time and hand over with
+``call_soon_threadsafe``, see ``v2xpos.link.AsyncSubscriber``):
+
+* ``nav``: every 10 ms advance the own source to the current scenario GPS time
+  (``epoch + wall - start``) and keep the latest NavState (time t_m);
+* ``consume``: await the next sample, then drain the queue, running the pipeline on each;
+* ``tick``: ``tick_hz`` status-only results for silent targets (NO_DATA / TIMEOUT);
+* ``status``: ``status_hz`` JSON summary on ``v2xpos/<fleet>/master/<id>/status`` for monitors.
+
+On exit (epoch + duration or SIGTERM/SIGINT) it writes the summary JSON and the per-result rows
+(npz, ``master.pipeline.RECORD_FIELDS``) when configured, closes outputs, then the zenoh session.
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import math
+import signal
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from master.config import MasterConfig
+from master.outputs import CanSink, UdpSink, ZenohSink
+from master.pipeline import RECORD_FIELDS, MasterPipeline, PipelineConfig
+from sim.scenarios import build
+from slave.config import ConfigError
+from slave.source import make_source
+from v2xpos.link import Link, status_key
+from v2xpos.wire import STATE_KEY_ALL, relative_key
+
+WARMUP_S = 1.0
+REJECT_MASTER_NOT_READY = "master_not_ready"
+
+
+class MasterService:
+    """Composition of source, link, pipeline and sinks (constructed from a MasterConfig)."""
+
+    def __init__(self, cfg: MasterConfig, start_unix_s: float | None = None):
+        self.cfg = cfg
+        start = float(cfg.source.start_unix_s if start_unix_s is None else start_unix_s)
+        self.start = start if start > 0 else time.time() + WARMUP_S
+        self.sc = build(cfg.source.scenario, **cfg.source.params)
+        actor_id = cfg.source.actor or cfg.master_id
+        if actor_id not in self.sc.actors:
+            raise ConfigError(f"{cfg.path}: [source].actor {actor_id!r} not in scenario actors {sorted(self.sc.actors)}")
+        self.actor = self.sc.actors[actor_id]
+        self.source = make_source(cfg.source.type, self.sc, self.actor)
+        self.epoch = self.sc.epoch_gps_s
+        self.end_gps = self.epoch + cfg.duration_s if cfg.duration_s is not None else math.inf
+        self.nav = None
+        self.nav_steps = 0
+        self.nav_ms: list[float] = []
+        self.stop_event: asyncio.Event | None = None
+        self.link: Link | None = None
+        self.sinks: list = []
+        self.pipeline: MasterPipeline | None = None
+
+    def gps_now(self) -> float:
+        return self.epoch + (time.time() - self.start)
+
+    def _open(self) -> None:
+        cfg = self.cfg
+        self.link = Link(cfg.link)
+        if cfg.can_enabled:
+            self.can = CanSink(channel=cfg.can_channel, interface=cfg.can_interface)
+            self.sinks.append(self.can)
+        if cfg.udp_enabled:
+            self.udp = UdpSink(cfg.udp_host, cfg.udp_port)
+            self.sinks.append(self.udp)
+        if cfg.zenoh_enabled:
+            self.sinks.append(ZenohSink(self.link.publisher(relative_key(cfg.fleet, cfg.master_id))))
+        auth = None
+        if cfg.trust_list:
+            from v2xpos.security import MessageAuthenticator, load_trust_list
+            auth = MessageAuthenticator(load_trust_list(cfg.trust_list))
+        pcfg = PipelineConfig(fleet=cfg.fleet, master_id=cfg.master_id, timeout_s=cfg.timeout_ms / 1e3,
+                              measurement_point_m=cfg.measurement_point_m, known_vehicles=cfg.known_vehicles,
+                              evaluate_uncompensated=cfg.evaluate_uncompensated,
+                              record=cfg.results_npz is not None)
+        self.pipeline = MasterPipeline(pcfg, self.sinks, authenticator=auth)
+        self.status_pub = self.link.publisher(status_key(cfg.fleet, cfg.master_id), express=False)
+
+    async def _nav_task(self) -> None:
+        while not self.stop_event.is_set():
+            t = self.gps_now()
+            if t >= self.epoch - WARMUP_S:
+                t0 = time.perf_counter()
+                states = self.source.advance(t)
+                if states:
+                    self.nav = states[-1]
+                    self.nav_steps += len(states)
+                    self.nav_ms.append((time.perf_counter() - t0) * 1e3 / len(states))
+            if t > self.end_gps:
+                self.stop_event.set()
+                return
+            await asyncio.sleep(max(0.0, 0.01 - (self.gps_now() % 0.01)))
+
+    async def _consume_task(self, sub) -> None:
+        pipe = self.pipeline
+        while not self.stop_event.is_set():
+            first = await sub.get()
+            for item in [first, *sub.drain()]:
+                if self.nav is None:
+                    pipe.rejected[REJECT_MASTER_NOT_READY] += 1
+                    continue
+                pipe.handle(item.payload, item.key, self.nav, self.gps_now(), item.t_arrival_wall_s)
+
+    async def _tick_task(self) -> None:
+        period = 1.0 / self.cfg.tick_hz
+        while not self.stop_event.is_set():
+            await asyncio.sleep(period)
+            if self.nav is not None:
+                self.pipeline.tick(self.gps_now(), float(self.nav.t_s))
+
+    def status(self) -> dict:
+        s = self.pipeline.summary()
+        s.update({"master_id": self.cfg.master_id, "t_gps_s": self.gps_now(), "t_rel_s": self.gps_now() - self.epoch,
+                  "master_fix": None if self.nav is None else int(self.nav.fix), "nav_steps": self.nav_steps,
+                  "nav_ms_p50": float(np.percentile(self.nav_ms, 50)) if self.nav_ms else None,
+                  "can_frames": self.can.frames if self.cfg.can_enabled else 0,
+                  "udp_datagrams": self.udp.datagrams if self.cfg.udp_enabled else 0,
+                  "source": self.source.name})
+        return s
+
+    async def _status_task(self) -> None:
+        period = 1.0 / self.cfg.status_hz
+        while not self.stop_event.is_set():
+            await asyncio.sleep(period)
+            self.status_pub.put(json.dumps(self.status()).encode())
+
+    async def run(self) -> dict:
+        self.stop_event = asyncio.Event()
+        self._open()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            try:
+                loop.add_signal_handler(sig, self.stop_event.set)
+            except (NotImplementedError, RuntimeError):  # not the main thread (tests)
+                pass
+        sub = self.link.subscribe_async(STATE_KEY_ALL(self.cfg.fleet), loop)
+        tasks = [asyncio.create_task(c) for c in (self._nav_task(), self._consume_task(sub), self._tick_task(),
+                                                  self._status_task())]
+        try:
+            await self.stop_event.wait()
+        finally:
+            for t in tasks:
+                t.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+            final = self.status()
+            final["link_received"] = sub.received
+            self._write_outputs(final)
+            for s in self.sinks:
+                s.close()
+            self.link.close()
+        return final
+
+    def _write_outputs(self, final: dict) -> None:
+        cfg = self.cfg
+        if cfg.results_npz:
+            Path(cfg.results_npz).parent.mkdir(parents=True, exist_ok=True)
+            arrays = {f"target_{vid}": a for vid, a in self.pipeline.records_arrays().items()}
+            np.savez_compressed(cfg.results_npz, fields=np.array(RECORD_FIELDS), **arrays)
+        if cfg.summary_json:
+            Path(cfg.summary_json).parent.mkdir(parents=True, exist_ok=True)
+            Path(cfg.summary_json).write_text(json.dumps(final, indent=1))
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", required=True, help="master TOML file (see configs/master.toml)")
+    parser.add_argument("--start", type=float, default=None,
+                        help="wall time (Unix s) of the scenario epoch, shared by all processes")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        cfg = MasterConfig.load(args.config)
+        svc = MasterService(cfg, args.start)
+    except ConfigError as exc:
+        print(f"v2xpos master: {exc}", file=sys.stderr)
+        return 2
+    final = asyncio.run(svc.run())
+    print(json.dumps({k: final[k] for k in ("processed", "rejected", "pipeline_ms_p99", "e2e_ms_p99",
+                                             "can_frames", "udp_datagrams")}), flush=True)
+    return 0

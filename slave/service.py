@@ -1,0 +1,180 @@
+"""``v2xpos slave --config FILE``: a target vehicle (or pedestrian) that runs its navigation filter
+in real time and publishes its state on zenoh.
+
+Loop (single thread, paced by the wall clock): the scenario GPS time is
+``t_gps = epoch + (time.time() - start_unix_s)``; the source consumes every sensor sample up to
+t_gps; every ``1/rate_hz`` of filter time a StateMessage is queued for sending at
+``validity wall time + injected delay`` (FIFO, see ``sim.scenarios.LinkImpairment``); due messages
+are stamped with ``t_sent_wall_s`` (the publish instant, so end-to-end latency excludes the injected
+delay), optionally signed, and published on ``v2xpos/<fleet>/vehicle/<id>/state`` with
+CongestionControl.BLOCK. Optional decimated IMU samples (``publish_imu``) go to
+``v2xpos/<fleet>/vehicle/<id>/imu`` for the master's IMU grading.
+
+Stops at epoch + duration_s or on SIGTERM/SIGINT, closes the zenoh session, prints one JSON line
+with its counters.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import signal
+import sys
+import time
+from collections import deque
+from pathlib import Path
+
+import msgpack
+import numpy as np
+
+from sim.scenarios import LinkImpairment, build
+from slave.config import ConfigError, SlaveConfig
+from slave.source import make_source
+from v2xpos.link import Link
+from v2xpos.wire import StateMessage, encode_state, imu_key, state_key
+
+WARMUP_S = 1.0
+"""The filter starts this long before the scenario epoch (the states are published from then on)."""
+IMU_DECIMATION = 2
+"""Publish every n-th IMU sample for grading (50 Hz from a 100 Hz IMU)."""
+IMU_BATCH = 25
+"""IMU samples per grading message."""
+
+
+class _Stop:
+    def __init__(self) -> None:
+        self.flag = False
+
+    def __call__(self, *_: object) -> None:
+        self.flag = True
+
+
+def run_slave(cfg: SlaveConfig, start_unix_s: float | None = None, stop: _Stop | None = None,
+              log=sys.stderr) -> dict:
+    """Run until the configured duration ends or ``stop.flag``; returns the counters."""
+    stop = stop or _Stop()
+    start = float(cfg.source.start_unix_s if start_unix_s is None else start_unix_s)
+    if start <= 0:
+        start = time.time() + WARMUP_S
+    sc = build(cfg.source.scenario, **cfg.source.params)
+    actor_id = cfg.source.actor or cfg.vehicle_id
+    if actor_id not in sc.actors:
+        raise ConfigError(f"{cfg.path}: [source].actor {actor_id!r} not in scenario actors {sorted(sc.actors)}")
+    actor = sc.actors[actor_id]
+    source = make_source(cfg.source.type, sc, actor)
+    imp = actor.link
+    if cfg.latency_ms is not None or cfg.jitter_ms is not None:
+        imp = LinkImpairment(cfg.latency_ms if cfg.latency_ms is not None else imp.latency_ms,
+                             cfg.jitter_ms if cfg.jitter_ms is not None else imp.jitter_ms, list(imp.spikes))
+    delay_rng = np.random.default_rng(actor.seed + 12345)
+    signer = None
+    if cfg.key_file:
+        from v2xpos.security import MessageSigner
+        signer = MessageSigner.from_file(cfg.key_file)
+
+    epoch = sc.epoch_gps_s
+    end_gps = epoch + cfg.duration_s if cfg.duration_s is not None else math.inf
+    gps_of = (lambda wall: epoch + (wall - start))
+    wall_of = (lambda t: start + (t - epoch))
+    link = Link(cfg.link)
+    pub = link.publisher(state_key(cfg.fleet, cfg.vehicle_id))
+    imu_pub = link.publisher(imu_key(cfg.fleet, cfg.vehicle_id), express=False) if cfg.publish_imu else None
+    queue: deque = deque()
+    seq = 0
+    last_send_wall = 0.0
+    pub_period = 1.0 / cfg.rate_hz
+    next_pub_t = -math.inf
+    imu_buf: list = []
+    counters = {"vehicle_id": cfg.vehicle_id, "source": source.name, "states": 0, "queued": 0, "sent": 0,
+                "imu_msgs": 0, "late_ms_max": 0.0}
+    try:
+        while not stop.flag:
+            now = time.time()
+            t_gps = gps_of(now)
+            if t_gps < epoch - WARMUP_S:
+                time.sleep(min(0.05, wall_of(epoch - WARMUP_S) - now))
+                continue
+            if t_gps > end_gps and not queue:
+                break
+            if t_gps <= end_gps:
+                for nav in source.advance(t_gps):
+                    counters["states"] += 1
+                    if imu_pub is not None:
+                        _collect_imu(source, imu_buf)
+                    if nav.t_s + 1e-6 < next_pub_t:
+                        continue
+                    behind = not math.isfinite(next_pub_t) or nav.t_s - next_pub_t > pub_period
+                    next_pub_t = nav.t_s + pub_period if behind else next_pub_t + pub_period
+                    seq += 1
+                    msg = StateMessage.from_nav_state(nav, cfg.fleet, cfg.vehicle_id, seq,
+                                                      geometry=actor.geometry, kind=actor.kind)
+                    delay = float(imp.delays_s(np.array([nav.t_s - epoch]), delay_rng)[0])
+                    send_at = max(last_send_wall, wall_of(nav.t_s) + delay)
+                    last_send_wall = send_at
+                    queue.append((send_at, msg))
+                    counters["queued"] += 1
+            now = time.time()
+            while queue and queue[0][0] <= now:
+                send_at, msg = queue.popleft()
+                msg.t_sent_wall_s = time.time()
+                pub.put(encode_state(msg, signer))
+                counters["sent"] += 1
+                counters["late_ms_max"] = max(counters["late_ms_max"], (msg.t_sent_wall_s - send_at) * 1e3)
+            if imu_pub is not None and len(imu_buf) >= IMU_BATCH:
+                imu_pub.put(_imu_payload(cfg, imu_buf))
+                counters["imu_msgs"] += 1
+                imu_buf.clear()
+            now = time.time()
+            t_next = wall_of((math.floor(gps_of(now) * 100.0) + 1) / 100.0)
+            if queue:
+                t_next = min(t_next, queue[0][0])
+            dt = t_next - time.time()
+            if dt > 0:
+                time.sleep(dt)
+    finally:
+        link.close()
+    return counters
+
+
+def _collect_imu(source, buf: list) -> None:
+    sen = getattr(source, "sensors", None)
+    if sen is None:
+        return
+    k = sen.i_imu - 1
+    if k >= 0 and k % IMU_DECIMATION == 0:
+        buf.append((float(sen.imu.t_s[k]), *map(float, sen.imu.acc_mps2[k]), *map(float, sen.imu.gyro_rps[k])))
+
+
+def _imu_payload(cfg: SlaveConfig, buf: list) -> bytes:
+    """Grading message: msgpack map {id, unit, rate_hz, rows: [[t_gps_s, ax, ay, az, gx, gy, gz], ...]}
+    (m/s^2, rad/s, IMU axes; documented in docs/protocol.md)."""
+    return msgpack.packb({"T": "imu", "ver": 1, "fleet": cfg.fleet, "id": cfg.vehicle_id, "unit": "imu0",
+                          "rate_hz": 100.0 / IMU_DECIMATION, "rows": [list(r) for r in buf]}, use_bin_type=True)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", required=True, help="slave TOML file (see configs/slave_*.toml)")
+    parser.add_argument("--start", type=float, default=None,
+                        help="wall time (Unix s) of the scenario epoch, shared by all processes")
+    parser.add_argument("--summary", default=None, help="write the final counters to this JSON file")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        cfg = SlaveConfig.load(args.config)
+    except ConfigError as exc:
+        print(f"v2xpos slave: {exc}", file=sys.stderr)
+        return 2
+    stop = _Stop()
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    try:
+        counters = run_slave(cfg, args.start, stop)
+    except ConfigError as exc:
+        print(f"v2xpos slave: {exc}", file=sys.stderr)
+        return 2
+    line = json.dumps(counters)
+    print(line, flush=True)
+    if args.summary:
+        Path(args.summary).write_text(line + "\n")
+    return 0

@@ -1,0 +1,160 @@
+"""State sources of a slave (and of the master's own vehicle), advanced in real time.
+
+A source turns sensor data into navigation states: ``advance(t_gps_s)`` consumes every sample with
+time of validity <= t_gps_s and returns the NavStates produced (one per IMU epoch), in order.
+
+* ``InsSimSource``: the actor's simulated IMU (100 Hz, error model ``sim.sensors.ImuErrorModel``
+  preset) and RTK GNSS (10 Hz, 1 cm fixed, the scenario's fix schedule, antenna lever arm) run
+  through the navigation filter ``v2xpos.ins.InsFilter`` -- the product path.
+* ``TruthNoiseSource``: truth plus first-order Gauss-Markov position noise scaled by the fix
+  status. No filter: a load generator / fallback for link tests only.
+
+Initialisation of the filter (a vehicle that was aligned before the run starts): position from
+truth + N(0, 1 cm), velocity + N(0, 2 cm/s), roll/pitch + N(0, 0.1 deg), yaw + N(0, 0.3 deg),
+drawn from the actor's seed, at the first IMU epoch of the run.
+"""
+from __future__ import annotations
+
+import math
+from typing import Protocol
+
+import numpy as np
+
+from sim.scenarios import Actor, Scenario
+from sim.sensors import GnssErrorModel, ImuErrorModel, simulate_gnss, simulate_imu
+from v2xpos import geo
+from v2xpos.types import FixStatus, NavState
+
+IMU_RATE_HZ = 100.0
+GNSS_RATE_HZ = 10.0
+
+
+class NavSource(Protocol):
+    """Anything that yields navigation states as time advances."""
+    name: str
+
+    def advance(self, t_gps_s: float) -> list[NavState]: ...
+
+
+class _SimSensors:
+    """Precomputed sensor streams of one actor over its whole truth trajectory."""
+
+    def __init__(self, sc: Scenario, actor: Actor):
+        rng = np.random.default_rng(actor.seed)
+        self.imu = simulate_imu(actor.truth, ImuErrorModel.preset(actor.imu_grade, rng), rate_hz=IMU_RATE_HZ,
+                                rng=rng)
+        sd = GnssErrorModel().sd_h_m
+        sd[FixStatus.FIXED] = actor.gnss_sd_fixed_m
+        gm = GnssErrorModel(rate_hz=GNSS_RATE_HZ, sd_h_m=sd, lever_arm_m=np.asarray(actor.lever_arm_m, float))
+        self.gnss = simulate_gnss(actor.truth, gm, rng=rng, fix_schedule=sc.fix_schedule_abs(actor.actor_id))
+        self.i_imu = 0
+        self.i_gnss = 0
+
+    def seek(self, t_gps_s: float) -> None:
+        """Skip every sample before t_gps_s."""
+        self.i_imu = int(np.searchsorted(self.imu.t_s, t_gps_s - 1e-9))
+        self.i_gnss = int(np.searchsorted(self.gnss.t_s, t_gps_s - 1e-9))
+
+
+class InsSimSource:
+    """Simulated sensors of one actor through the real GNSS/INS filter (see module docstring)."""
+
+    def __init__(self, sc: Scenario, actor: Actor, platform: str | None = None):
+        from v2xpos.ins import InsConfig, InsFilter
+        self.name = "ins"
+        self.actor = actor
+        self.sensors = _SimSensors(sc, actor)
+        plat = platform or ("pedestrian" if actor.kind == "pedestrian" else "car")
+        self.filter = InsFilter(InsConfig(platform=plat, imu_to_body=np.eye(3),
+                                          lever_arm_m=np.asarray(actor.lever_arm_m, float)))
+        self._init_rng = np.random.default_rng(actor.seed + 7)
+        self.initialized = False
+
+    def _initialize(self, t_s: float) -> None:
+        s = self.actor.truth.sample(t_s)
+        rng = self._init_rng
+        r_ned = s["r_ned_m"][0] + rng.normal(0, 0.01, 3)
+        lla = geo.ned_to_lla(r_ned, self.actor.truth.lla0)
+        v = s["v_ned_mps"][0] + rng.normal(0, 0.02, 3)
+        rpy = s["rpy_rad"][0] + rng.normal(0, 1.0, 3) * np.radians([0.1, 0.1, 0.3])
+        self.filter.initialize(t_s, lla, v, rpy)
+        self.initialized = True
+
+    def advance(self, t_gps_s: float) -> list[NavState]:
+        imu, gnss, sen = self.sensors.imu, self.sensors.gnss, self.sensors
+        out: list[NavState] = []
+        n_imu = len(imu.t_s)
+        while sen.i_imu < n_imu and imu.t_s[sen.i_imu] <= t_gps_s:
+            k = sen.i_imu
+            t_k = float(imu.t_s[k])
+            if not self.initialized:
+                sen.seek(t_k)
+                self._initialize(t_k)
+                sen.i_imu = k + 1
+                continue
+            self.filter.process_imu(t_k, imu.acc_mps2[k], imu.gyro_rps[k])
+            while sen.i_gnss < len(gnss.t_s) and gnss.t_s[sen.i_gnss] <= t_k + 1e-6:
+                j = sen.i_gnss
+                self.filter.update_gnss(float(gnss.t_s[j]), gnss.lla[j], gnss.sd_ned_m[j], FixStatus(int(gnss.fix[j])),
+                                        vel_ned_mps=gnss.vel_ned_mps[j], vel_sd_ned_mps=gnss.vel_sd_ned_mps[j])
+                sen.i_gnss += 1
+            sen.i_imu = k + 1
+            out.append(self.filter.nav_state())
+        return out
+
+
+class TruthNoiseSource:
+    """Truth at 100 Hz plus Gauss-Markov position noise (tau 30 s) of the fix status' 1-sigma;
+    fix status from the scenario schedule. Not a navigation filter (see module docstring)."""
+
+    SD_M = {FixStatus.FIXED: 0.01, FixStatus.FLOAT: 0.15, FixStatus.SINGLE: 1.5}
+
+    def __init__(self, sc: Scenario, actor: Actor, rate_hz: float = IMU_RATE_HZ):
+        self.name = "truth_noise"
+        self.actor = actor
+        self.epoch = sc.epoch_gps_s
+        self.schedule = actor.fix_schedule
+        self.dt = 1.0 / rate_hz
+        self.rng = np.random.default_rng(actor.seed)
+        self.gm = np.zeros(3)
+        self.next_t: float | None = None
+
+    def _fix(self, t_s: float) -> FixStatus:
+        rel = t_s - self.epoch
+        for t0, t1, st in self.schedule:
+            if t0 <= rel < t1:
+                return FixStatus(st)
+        return FixStatus.FIXED
+
+    def advance(self, t_gps_s: float) -> list[NavState]:
+        if self.next_t is None:
+            self.next_t = math.ceil(t_gps_s / self.dt) * self.dt
+        times = []
+        while self.next_t <= t_gps_s:
+            times.append(self.next_t)
+            self.next_t += self.dt
+        if not times:
+            return []
+        s = self.actor.truth.sample(np.array(times))
+        phi = math.exp(-self.dt / 30.0)
+        out = []
+        for i, t in enumerate(times):
+            fix = self._fix(t)
+            sd = self.SD_M.get(fix, 5.0)
+            self.gm = phi * self.gm + math.sqrt(1 - phi * phi) * self.rng.normal(0, 1, 3)
+            r = s["r_ned_m"][i] + self.gm * sd
+            out.append(NavState(t_s=t, lla=geo.ned_to_lla(r, self.actor.truth.lla0), v_ned_mps=s["v_ned_mps"][i],
+                                acc_body_mps2=s["acc_body_mps2"][i], rate_body_rps=s["w_nb_b_rps"][i],
+                                rpy_rad=s["rpy_rad"][i], pos_sd_m=np.full(3, sd), vel_sd_mps=np.full(3, 0.02),
+                                att_sd_rad=np.full(3, 0.002), fix=fix))
+        return out
+
+
+SOURCES = {"ins": InsSimSource, "truth_noise": TruthNoiseSource}
+
+
+def make_source(kind: str, sc: Scenario, actor: Actor) -> NavSource:
+    """Source by config name: ``ins`` (default, the real filter) or ``truth_noise``."""
+    if kind not in SOURCES:
+        raise ValueError(f"[source] type {kind!r} is not one of {sorted(SOURCES)}")
+    return SOURCES[kind](sc, actor)

@@ -1,0 +1,236 @@
+"""Zenoh link for the V2V services: loopback-safe configuration, key expressions, publisher and an
+asyncio subscriber bridge.
+
+Configuration (zenoh 1.x JSON5 keys, see the zenoh ``DEFAULT_CONFIG.json5``):
+
+* ``mode``: ``router`` (the master embeds the router by default), ``peer`` or ``client``;
+* ``listen/endpoints`` and ``connect/endpoints``: explicit ``tcp/127.0.0.1:PORT`` locators only
+  by default -- nothing binds a wildcard address and nothing leaves the machine;
+* ``scouting/multicast/enabled = false`` and ``scouting/gossip/enabled = false``: no discovery
+  traffic at all, peers only know the endpoints they are given;
+* ``connect/retry``: reconnection period starts at ``retry_init_ms`` (default 100 ms), grows by
+  ``retry_factor`` up to ``retry_max_ms`` (default 500 ms), so a client whose router restarts
+  resumes delivery within about half a second; ``connect/timeout_ms = -1`` with
+  ``exit_on_failure = false`` keeps trying forever instead of failing ``zenoh.open``.
+
+Key expressions live in ``v2xpos.wire`` (``state_key``, ``relative_key``, ``imu_key``) and are
+re-exported here together with the service keys (``status_key``, ``grades_key``).
+
+Threading: zenoh calls subscriber callbacks on its own threads. ``AsyncSubscriber`` hands each
+sample over to an asyncio loop with ``loop.call_soon_threadsafe`` (the only thread-safe entry
+into a loop), stamping the arrival wall time on the zenoh thread so queueing in the loop counts
+as pipeline latency. ``Link.close()`` undeclares every entity it created, then closes the session
+(deterministic shutdown, no reliance on garbage collection).
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import zenoh
+
+from v2xpos.wire import STATE_KEY_ALL, imu_key, relative_key, state_key  # noqa: F401  (re-exported)
+
+MODES = ("router", "peer", "client")
+
+
+def status_key(fleet: str, master_id: str) -> str:
+    """Key on which a master publishes its periodic status (JSON, for monitors and the demo table)."""
+    return f"v2xpos/{fleet}/master/{master_id}/status"
+
+
+def grades_key(fleet: str, master_id: str) -> str:
+    """Key on which a master publishes IMU grades (JSON)."""
+    return f"v2xpos/{fleet}/master/{master_id}/grades"
+
+
+def relative_key_all(fleet: str) -> str:
+    """Key expression matching every master's relative results in a fleet."""
+    return f"v2xpos/{fleet}/master/*/relative"
+
+
+def loopback_endpoint(port: int, host: str = "127.0.0.1") -> str:
+    """``tcp/HOST:PORT`` locator (loopback by default)."""
+    if not 0 < int(port) < 65536:
+        raise ValueError(f"port {port} out of range 1..65535")
+    return f"tcp/{host}:{int(port)}"
+
+
+@dataclass
+class LinkConfig:
+    """Zenoh session settings of one service.
+
+    mode: router | peer | client. listen / connect: explicit locators (``tcp/127.0.0.1:PORT``).
+    retry_*: reconnection back-off [ms]. extra_json5: further ``key -> JSON value`` insertions
+    applied last (e.g. TLS ``transport/link/tls/...``), for options this class does not name.
+    """
+    mode: str = "peer"
+    listen: list[str] = field(default_factory=list)
+    connect: list[str] = field(default_factory=list)
+    retry_init_ms: int = 100
+    retry_max_ms: int = 500
+    retry_factor: float = 1.5
+    extra_json5: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"link mode {self.mode!r} is not one of {MODES}")
+        for ep in [*self.listen, *self.connect]:
+            if not isinstance(ep, str) or "/" not in ep:
+                raise ValueError(f"link endpoint {ep!r} is not a locator like 'tcp/127.0.0.1:7447'")
+
+    @classmethod
+    def from_dict(cls, d: dict, where: str = "[link]") -> "LinkConfig":
+        """Build from a TOML/JSON table; unknown keys are rejected with their location."""
+        known = {"mode", "listen", "connect", "retry_init_ms", "retry_max_ms", "retry_factor", "extra_json5"}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"{where}: unknown key(s) {sorted(unknown)}; allowed {sorted(known)}")
+        kw = dict(d)
+        for k in ("listen", "connect"):
+            if k in kw and isinstance(kw[k], str):
+                kw[k] = [kw[k]]
+            if k in kw and not isinstance(kw[k], list):
+                raise ValueError(f"{where}.{k}: expected a list of endpoints")
+        try:
+            return cls(**kw)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{where}: {exc}") from None
+
+    def to_zenoh(self) -> zenoh.Config:
+        """The zenoh.Config these settings describe."""
+        c = zenoh.Config()
+        c.insert_json5("mode", json.dumps(self.mode))
+        c.insert_json5("scouting/multicast/enabled", "false")
+        c.insert_json5("scouting/gossip/enabled", "false")
+        c.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
+        c.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
+        c.insert_json5("connect/timeout_ms", "-1")
+        c.insert_json5("connect/exit_on_failure", "false")
+        retry = {"period_init_ms": int(self.retry_init_ms), "period_max_ms": int(self.retry_max_ms),
+                 "period_increase_factor": float(self.retry_factor)}
+        c.insert_json5("connect/retry", json.dumps(retry))
+        for key, value in self.extra_json5.items():
+            c.insert_json5(key, json.dumps(value))
+        return c
+
+
+class Link:
+    """One zenoh session plus the publishers and subscribers declared through it."""
+
+    def __init__(self, config: LinkConfig):
+        self.config = config
+        self.session = zenoh.open(config.to_zenoh())
+        self._entities: list[Any] = []
+        self._closed = False
+
+    def publisher(self, key: str, block: bool = True, express: bool = True) -> "Publisher":
+        """Publisher on ``key``; ``block`` selects CongestionControl.BLOCK (nothing dropped on a
+        full queue), ``express`` sends without batching (lowest latency)."""
+        cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+        pub = self.session.declare_publisher(key, congestion_control=cc, express=express)
+        self._entities.append(pub)
+        return Publisher(pub)
+
+    def subscribe(self, key: str, callback: Callable[[bytes, str, bytes | None, float], None]):
+        """Subscribe with a plain callback ``cb(payload, key, attachment, arrival_wall_s)`` called on
+        a zenoh thread."""
+        def on_sample(sample: zenoh.Sample) -> None:
+            t_arr = time.time()
+            att = sample.attachment
+            callback(sample.payload.to_bytes(), str(sample.key_expr),
+                     None if att is None else att.to_bytes(), t_arr)
+        sub = self.session.declare_subscriber(key, on_sample)
+        self._entities.append(sub)
+        return sub
+
+    def subscribe_async(self, key: str, loop: asyncio.AbstractEventLoop | None = None,
+                        maxsize: int = 0) -> "AsyncSubscriber":
+        """Subscription whose samples arrive in an asyncio.Queue of ``Received`` (see AsyncSubscriber)."""
+        return AsyncSubscriber(self, key, loop or asyncio.get_running_loop(), maxsize)
+
+    def close(self) -> None:
+        """Undeclare everything, then close the session (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        for ent in reversed(self._entities):
+            try:
+                ent.undeclare()
+            except Exception:  # already undeclared by the session; nothing left to release
+                pass
+        self._entities.clear()
+        self.session.close()
+
+    def __enter__(self) -> "Link":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class Publisher:
+    """Thin wrapper: ``put(payload, attachment=None)``; counts what it sent."""
+
+    def __init__(self, pub: zenoh.Publisher):
+        self._pub = pub
+        self.sent = 0
+
+    def put(self, payload: bytes, attachment: bytes | None = None) -> None:
+        if attachment is None:
+            self._pub.put(payload)
+        else:
+            self._pub.put(payload, attachment=attachment)
+        self.sent += 1
+
+
+@dataclass
+class Received:
+    """One sample handed to asyncio: payload bytes, key, attachment, arrival wall time [s]."""
+    payload: bytes
+    key: str
+    attachment: bytes | None
+    t_arrival_wall_s: float
+
+
+class AsyncSubscriber:
+    """Bridge from zenoh callback threads into an asyncio.Queue.
+
+    ``await sub.get()`` returns the next ``Received``; ``sub.drain()`` returns everything queued
+    now without waiting. With ``maxsize > 0`` a full queue drops the newest sample and counts it
+    in ``dropped`` (the loop must never block a zenoh thread).
+    """
+
+    def __init__(self, link: Link, key: str, loop: asyncio.AbstractEventLoop, maxsize: int = 0):
+        self.queue: asyncio.Queue[Received] = asyncio.Queue(maxsize)
+        self.loop = loop
+        self.received = 0
+        self.dropped = 0
+        self._sub = link.subscribe(key, self._on_sample)
+
+    def _on_sample(self, payload: bytes, key: str, attachment: bytes | None, t_arr: float) -> None:
+        self.received += 1
+        try:
+            self.loop.call_soon_threadsafe(self._put, Received(payload, key, attachment, t_arr))
+        except RuntimeError:  # loop already closed during shutdown
+            self.dropped += 1
+
+    def _put(self, item: Received) -> None:
+        try:
+            self.queue.put_nowait(item)
+        except asyncio.QueueFull:
+            self.dropped += 1
+
+    async def get(self) -> Received:
+        return await self.queue.get()
+
+    def drain(self) -> list[Received]:
+        out = []
+        while True:
+            try:
+                out.append(self.queue.get_nowait())
+            except asyncio.QueueEmpty:
+                return out
