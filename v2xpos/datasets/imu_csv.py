@@ -87,6 +87,8 @@ def sample_rate_hz(counter_ms: np.ndarray) -> tuple[float, float]:
 def _line_spans(raw: bytes) -> tuple[np.ndarray, np.ndarray, bool]:
     """Start offsets and end offsets (exclusive, after the LF) of every line; whether the last
     line is complete (ends with LF)."""
+    if not raw:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), True
     nl = np.flatnonzero(np.frombuffer(raw, dtype=np.uint8) == 10)
     ends = nl + 1
     complete = True
