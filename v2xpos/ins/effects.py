@@ -1,0 +1,87 @@
+"""Augmentable error-state effects (issue 3): what each one means, its default prior and how the
+filter applies its correction. The state layout itself is ``ekf.StateLayout``.
+
+Conventions (shared with ``v2xpos calibrate``):
+
+* ``imu_time_offset`` dt [s]: ``t_gps = t_stamp + dt``; the filter labels its state with
+  ``t_stamp + dt_est``. A label error moves the predicted antenna by ``-v dt_err`` (position) and
+  ``-a dt_err`` (velocity) (Li & Mourikis 2014, "Online temporal calibration for camera-aided
+  inertial navigation", IJRR 33(7), adapted to GNSS).
+* ``gnss_latency`` [s]: the GNSS solution stamped t describes t - latency (opposite sign of the
+  above; the two are not separable from GNSS alone: enable one of them).
+* ``lever_arm`` [m]: antenna relative to the IMU in the vehicle/body frame [forward, right, down].
+* ``misalignment`` (roll, pitch, yaw) [rad]: ``v_vehicle = R v_body``, ``R = Rz(y) Ry(p) Rx(r)``;
+  only the vehicle constraints (NHC, odometer) and the reported vehicle attitude see it.
+* ``gyro_scale`` / ``accel_scale``: per body axis, measured = (1 + s) true.
+* ``odometer_scale``: wheel speed measured = (1 + s) true forward speed.
+
+Each effect is a random constant with an optional random walk (``InsConfig.effect_random_walk``).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+DEFAULT_INITIAL_SD = {
+    "imu_time_offset": 0.05,           # s
+    "gnss_latency": 0.05,              # s
+    "misalignment": np.radians(2.0),   # rad per axis
+    "gyro_scale": 0.01,
+    "accel_scale": 0.01,
+    "odometer_scale": 0.05,
+}
+"""Priors for the effect states (1 sigma); the lever-arm prior is the dataset's lever_arm_sd_m."""
+
+DEFAULT_RANDOM_WALK = {
+    "imu_time_offset": 2e-5,           # s/sqrt(s): absorbs a residual clock drift of ~ tens of ppm
+    "gnss_latency": 0.0,
+    "lever_arm": 0.0,
+    "misalignment": 2e-6,              # rad/sqrt(s)
+    "gyro_scale": 0.0,
+    "accel_scale": 0.0,
+    "odometer_scale": 1e-5,
+}
+
+PLATFORM_EFFECTS = {
+    "car": ("lever_arm", "imu_time_offset", "misalignment"),
+    "pedestrian": ("lever_arm", "imu_time_offset"),
+    "generic": ("lever_arm",),
+}
+"""Effects estimated by default per platform (misalignment only matters with vehicle constraints)."""
+
+
+class EffectValues:
+    """Current estimates of the effect parameters (the nominal values the error states correct)."""
+
+    def __init__(self, lever_arm_m: np.ndarray):
+        self.lever_arm_m = np.asarray(lever_arm_m, float).copy()
+        self.imu_time_offset_s = 0.0
+        self.gnss_latency_s = 0.0
+        self.misalignment_rad = np.zeros(3)
+        self.odometer_scale = 0.0
+
+    def apply_correction(self, layout, dx: np.ndarray, corr: np.ndarray) -> None:
+        """value <- value - dx for every enabled effect (errors are estimate minus truth).
+        corr is the mechanization's correction vector (scales live there)."""
+        from .mechanization import COR_SA, COR_SG
+        for name, i in layout.index.items():
+            if name == "lever_arm":
+                self.lever_arm_m -= dx[i:i + 3]
+            elif name == "imu_time_offset":
+                self.imu_time_offset_s -= dx[i]
+            elif name == "gnss_latency":
+                self.gnss_latency_s -= dx[i]
+            elif name == "misalignment":
+                self.misalignment_rad -= dx[i:i + 3]
+            elif name == "gyro_scale":
+                corr[COR_SG:COR_SG + 3] -= dx[i:i + 3]
+            elif name == "accel_scale":
+                corr[COR_SA:COR_SA + 3] -= dx[i:i + 3]
+            elif name == "odometer_scale":
+                self.odometer_scale -= dx[i]
+
+    def as_dict(self, corr: np.ndarray) -> dict:
+        from .mechanization import COR_SA, COR_SG
+        return {"lever_arm_m": self.lever_arm_m.tolist(), "imu_time_offset_s": self.imu_time_offset_s,
+                "gnss_latency_s": self.gnss_latency_s, "misalignment_rad": self.misalignment_rad.tolist(),
+                "gyro_scale": corr[COR_SG:COR_SG + 3].tolist(), "accel_scale": corr[COR_SA:COR_SA + 3].tolist(),
+                "odometer_scale": self.odometer_scale}

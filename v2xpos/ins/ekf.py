@@ -1,0 +1,107 @@
+"""Error-state layout and covariance propagation of the GNSS/INS EKF.
+
+Error state (all errors are *estimate minus truth*), base block of 15:
+
+    POS  0..2   dr^n   position error, NED [m]
+    VEL  3..5   dv^n   velocity error, NED [m/s]
+    ATT  6..8   phi    attitude error, NED [rad], C_nb_est = (I - [phi x]) C_nb
+    BG   9..11  db_g   gyro bias error, body [rad/s]
+    BA  12..14  db_a   accelerometer bias error, body [m/s^2]
+
+followed by the optional effect blocks of ``effects.py`` in the order they are enabled.
+
+Continuous dynamics (Groves 2013 ch. 14.2 / Shin 2001 ch. 3, written for est-minus-truth errors
+and the compensation w = (w~ - b_g)/(1 + s_g), f = (f~ - b_a)/(1 + s_a)):
+
+    d(dr)/dt  = dv
+    d(dv)/dt  = [f^n x] phi - C_nb db_a - C_nb diag(f) ds_a - [(2 w_ie + w_en) x] dv + (2 g / R) dr_D e_D
+    d(phi)/dt = -[w_in x] phi + C_nb db_g + C_nb diag(w) ds_g
+    d(db)/dt  = -db / tau + w_b         (first-order Gauss-Markov)
+    effects:   random constants with a small random walk
+
+Covariance propagation: ``mechanization.strapdown_batch`` accumulates A = sum F_k dt_k; every
+``cov_every`` samples (and before every update) P <- Phi P Phi^T + Q with Phi = I + A + A^2/2,
+Q = Q_c dt_total, split half before and half after the transition (trapezoid).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+POS, VEL, ATT, BG, BA = 0, 3, 6, 9, 12
+BASE_STATES = 15
+
+EFFECT_SIZES: dict[str, int] = {
+    "lever_arm": 3,          # GNSS antenna relative to the IMU, body [m]
+    "imu_time_offset": 1,    # t_gps = t_stamp + dt [s]
+    "misalignment": 3,       # vehicle <- filter body small rotation (roll, pitch, yaw) [rad]
+    "gyro_scale": 3,         # per axis, measured = (1 + s) true
+    "accel_scale": 3,
+    "gnss_latency": 1,       # the GNSS solution stamped t describes t - latency [s]
+    "odometer_scale": 1,     # wheel speed measured = (1 + s) true
+}
+
+
+@dataclass
+class StateLayout:
+    """Indices of the error-state blocks; ``index[name]`` for effects, -1 when absent."""
+    effects: tuple = ()
+    index: dict = field(default_factory=dict)
+    n: int = BASE_STATES
+
+    @classmethod
+    def build(cls, effects: tuple | list) -> "StateLayout":
+        idx, n = {}, BASE_STATES
+        for name in effects:
+            if name not in EFFECT_SIZES:
+                raise ValueError(f"unknown effect {name!r}; choose from {sorted(EFFECT_SIZES)}")
+            if name in idx:
+                continue
+            idx[name] = n
+            n += EFFECT_SIZES[name]
+        return cls(effects=tuple(idx), index=idx, n=n)
+
+    def at(self, name: str) -> int:
+        return self.index.get(name, -1)
+
+    def kernel_index(self) -> np.ndarray:
+        """Block offsets in the order expected by ``mechanization.strapdown_batch``."""
+        return np.array([POS, VEL, ATT, BG, BA, self.at("gyro_scale"), self.at("accel_scale")], dtype=np.int64)
+
+    def names(self) -> list[str]:
+        out = [f"{b}_{a}" for b in ("pos", "vel", "att", "bg", "ba") for a in "xyz"]
+        for name in self.effects:
+            k = EFFECT_SIZES[name]
+            out += [name] if k == 1 else [f"{name}_{a}" for a in "xyz"[:k]]
+        return out
+
+
+def process_noise_density(layout: StateLayout, cfg) -> np.ndarray:
+    """Diagonal of the continuous process noise Q_c (per second) from the IMU figures in cfg.
+
+    Velocity: accelerometer white noise (VRW) density^2; attitude: gyro white noise (ARW)
+    density^2; biases: 2 sigma^2 / tau (stationary Gauss-Markov); effects: their random walk^2.
+    """
+    q = np.zeros(layout.n)
+    q[VEL:VEL + 3] = cfg.accel_noise_mps2_rthz ** 2
+    q[ATT:ATT + 3] = cfg.gyro_noise_rps_rthz ** 2
+    q[BG:BG + 3] = 2.0 * cfg.gyro_bias_sd_rps ** 2 / cfg.gyro_bias_tau_s
+    q[BA:BA + 3] = 2.0 * cfg.accel_bias_sd_mps2 ** 2 / cfg.accel_bias_tau_s
+    for name in layout.effects:
+        i, k = layout.index[name], EFFECT_SIZES[name]
+        q[i:i + k] = cfg.effect_random_walk.get(name, 0.0) ** 2
+    return q
+
+
+def propagate_covariance(P: np.ndarray, A: np.ndarray, q_c: np.ndarray, dt_s: float) -> np.ndarray:
+    """P <- Phi (P + Q/2) Phi^T + Q/2 with Phi = I + A + A^2/2 and Q = diag(q_c) dt (in place on A: reset)."""
+    n = P.shape[0]
+    Phi = np.eye(n) + A + 0.5 * (A @ A)
+    Qh = 0.5 * q_c * dt_s
+    P1 = P.copy()
+    P1[np.diag_indices(n)] += Qh
+    P_new = Phi @ P1 @ Phi.T
+    P_new[np.diag_indices(n)] += Qh
+    A[:] = 0.0
+    return 0.5 * (P_new + P_new.T)

@@ -1,0 +1,619 @@
+"""``InsFilter``: loosely coupled GNSS/INS error-state EKF with vehicle constraints and effect states.
+
+Flow per IMU chunk of ``cov_every`` samples: jitted strapdown (``mechanization``) that also sums
+the error dynamics -> covariance propagation (``ekf``) -> stop detection -> ZUPT/ZARU when static,
+NHC for cars when moving (``updates``) -> seed 001 static calibration (``static_calibration``).
+GNSS and wheel-speed updates come from the caller. Corrections are fed back into the nominal state
+after every update (closed loop), so the error state is zero between updates.
+The equations are in docs/ins.md.
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.stats import chi2
+
+from v2xpos import geo
+from v2xpos.rotation import dcm_from_euler, euler_from_dcm, exp_so3, orthonormalize
+from v2xpos.types import FixStatus, NavState
+
+from . import ekf
+from .alignment import CoarseAligner
+from .ekf import ATT, BA, BG, POS, VEL, StateLayout
+from .effects import DEFAULT_INITIAL_SD, DEFAULT_RANDOM_WALK, PLATFORM_EFFECTS, EffectValues
+from .mechanization import (COR_BA, COR_BG, MEM_AN, MEM_F, MEM_SIZE, MEM_VALID, MEM_W, NAV_H, NAV_LAT,
+                            NAV_LON, NAV_VEL, strapdown_batch)
+from .static_calibration import StaticBiasEstimate, StaticCalibrationConfig, StaticCalibrator
+from .updates import UpdateResult, kalman_update, skew
+
+DEFAULT_FIX_SD_SCALE = {FixStatus.FIXED: 1.0, FixStatus.FLOAT: 2.0, FixStatus.DGPS: 2.0,
+                        FixStatus.SINGLE: 2.0, FixStatus.DEAD_RECKONING: 10.0, FixStatus.NONE: 10.0}
+
+
+@dataclass
+class InsConfig:
+    """Filter configuration. Units in the names; defaults are for an automotive MEMS IMU
+    (e.g. ARW ~0.2 deg/sqrt(s) including vehicle vibration, bias instability ~10 deg/h) and an RTK
+    receiver; docs/ins.md gives the reasoning.
+
+    platform: "car" (NHC on), "pedestrian" or "generic" (no vehicle constraints).
+    imu_to_body: v_body = imu_to_body @ v_imu (declared nominal mounting).
+    lever_arm_m: antenna relative to the IMU in body axes [m]; lever_arm_sd_m its prior 1-sigma.
+    effects: extra error states (``ekf.EFFECT_SIZES``); None = the platform default.
+    """
+    platform: str = "car"
+    imu_to_body: np.ndarray = field(default_factory=lambda: np.eye(3))
+    lever_arm_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    lever_arm_sd_m: float = 0.1
+    effects: tuple | None = None
+    # IMU stochastic model
+    gyro_noise_rps_rthz: float = 3e-3
+    accel_noise_mps2_rthz: float = 3e-2
+    gyro_bias_sd_rps: float = 1e-4
+    gyro_bias_tau_s: float = 600.0
+    accel_bias_sd_mps2: float = 5e-3
+    accel_bias_tau_s: float = 600.0
+    gyro_bias_init_sd_rps: float = 0.01
+    accel_bias_init_sd_mps2: float = 0.2
+    effect_initial_sd: dict = field(default_factory=dict)
+    effect_random_walk: dict = field(default_factory=dict)
+    # initial state uncertainty
+    init_vel_sd_mps: float = 0.3
+    init_level_sd_rad: float = math.radians(2.0)
+    init_yaw_sd_rad: float | None = None          # None: 5 deg car, 20 deg otherwise
+    align_min_speed_mps: float | None = None      # None: 3 m/s car, 0.8 m/s otherwise
+    # GNSS measurement model
+    fix_sd_scale: dict = field(default_factory=lambda: dict(DEFAULT_FIX_SD_SCALE))
+    gnss_pos_sd_floor_m: float = 0.01
+    gnss_vel_sd_floor_mps: float = 0.03
+    gnss_vel_sd_scale: float = 1.0
+    use_gnss_velocity: bool = True
+    gate_probability: float = 0.9999
+    gnss_max_consecutive_rejections: int = 8
+    # vehicle constraints and stops
+    constraint_rate_hz: float = 10.0
+    nhc_sd_mps: tuple = (0.1, 0.1)                # lateral, vertical
+    nhc_sd_per_yaw_rate_m: float = 1.0            # adds |yaw rate| x 1 m to the lateral sd (IMU off the rear axle)
+    nhc_min_speed_mps: float = 0.5
+    odometer_sd_mps: float = 0.05
+    zupt_sd_mps: float = 0.02
+    zaru_sd_rps: float = 2e-3
+    static_window_s: float = 0.5
+    static_acc_std_max_mps2: float = 0.18
+    static_gyro_mean_max_rps: float = 0.005
+    static_max_speed_mps: float = 1.0
+    static_acc_h_max_mps2: float = 0.2           # horizontal specific force in NED (a stop has none)
+    static_max_gnss_speed_mps: float = 0.2
+    static_calibration: StaticCalibrationConfig = field(default_factory=StaticCalibrationConfig)
+    apply_static_calibration: bool = True
+    # numerics
+    cov_every: int = 10
+    coast_after_s: float = 1.0
+    log_residuals: bool = True
+
+    def __post_init__(self) -> None:
+        if self.platform not in PLATFORM_EFFECTS:
+            raise ValueError(f"platform {self.platform!r} not one of {sorted(PLATFORM_EFFECTS)}")
+        self.imu_to_body = np.asarray(self.imu_to_body, float).reshape(3, 3)
+        self.lever_arm_m = np.asarray(self.lever_arm_m, float).reshape(3)
+        if self.effects is None:
+            self.effects = PLATFORM_EFFECTS[self.platform]
+        self.effect_initial_sd = {**DEFAULT_INITIAL_SD, "lever_arm": self.lever_arm_sd_m, **self.effect_initial_sd}
+        self.effect_random_walk = {**DEFAULT_RANDOM_WALK, **self.effect_random_walk}
+        if self.init_yaw_sd_rad is None:
+            self.init_yaw_sd_rad = math.radians(5.0 if self.platform == "car" else 20.0)
+        if self.align_min_speed_mps is None:
+            self.align_min_speed_mps = 3.0 if self.platform == "car" else 0.8
+
+
+class InsFilter:
+    """Loosely coupled GNSS/INS error-state EKF (see module docstring and docs/ins.md).
+
+    Times passed to ``process_imu`` are the IMU stamps; the filter's own time label is
+    ``stamp + imu_time_offset`` (``effects.py``). GNSS and wheel times are GPS times.
+    """
+
+    def __init__(self, cfg: InsConfig | None = None):
+        self.cfg = cfg or InsConfig()
+        c = self.cfg
+        self.layout = StateLayout.build(c.effects)
+        n = self.layout.n
+        self.P = np.zeros((n, n))
+        self.nav = np.zeros(6)
+        self.C_nb = np.eye(3)
+        self.corr = np.zeros(12)
+        self.mem = np.zeros(MEM_SIZE)
+        self.A = np.zeros((n, n))
+        self.q_c = ekf.process_noise_density(self.layout, c)
+        self.kidx = self.layout.kernel_index()
+        self.fx = EffectValues(c.lever_arm_m)
+        self.initialized = False
+        self.t_stamp_s: float | None = None
+        self._t_cov_s: float | None = None
+        self._since_chunk = 0
+        self._chunk_t: list = []
+        self._chunk_f: list = []
+        self._chunk_w: list = []
+        self._win = deque(maxlen=max(1, int(round(c.static_window_s * c.constraint_rate_hz))))
+        self.static = False
+        self._last_constraint_t: float = -np.inf
+        self.aligner = CoarseAligner()
+        self.calibrator = StaticCalibrator(c.static_calibration)
+        self.gate = {k: float(chi2.ppf(c.gate_probability, k)) for k in (1, 2, 3, 6)}
+        self.last_fix = FixStatus.NONE
+        self.last_gnss_t_s = -np.inf
+        self._gnss_rejections = 0
+        self._prev_gnss: tuple | None = None
+        self._gnss_speed_mps: float | None = None
+        self._gnss_speed_t_s = -np.inf
+        self.counts = {"gnss_pos_accepted": 0, "gnss_pos_rejected": 0, "gnss_vel_accepted": 0,
+                       "gnss_vel_rejected": 0, "nhc": 0, "nhc_rejected": 0, "zupt": 0, "zaru": 0,
+                       "odometer": 0, "odometer_rejected": 0, "gnss_forced": 0, "static_calibrations": 0,
+                       "malformed_inputs": 0}
+        self.residuals: list[UpdateResult] = []
+        self.on_update = None
+        self._last_w_b = np.zeros(3)
+        self._last_f_b = np.zeros(3)
+        self._last_sample_t: float | None = None
+        self._last_raw_f_b: np.ndarray | None = None
+        self._last_raw_w_b: np.ndarray | None = None
+
+    # ------------------------------------------------------------------ time and state access
+    @property
+    def time_offset_s(self) -> float:
+        return self.fx.imu_time_offset_s
+
+    @property
+    def t_s(self) -> float:
+        """GPS time label of the current state."""
+        return (self.t_stamp_s if self.t_stamp_s is not None else np.nan) + self.fx.imu_time_offset_s
+
+    @property
+    def lla(self) -> np.ndarray:
+        return self.nav[:3].copy()
+
+    @property
+    def v_ned_mps(self) -> np.ndarray:
+        return self.nav[3:6].copy()
+
+    @property
+    def gyro_bias_rps(self) -> np.ndarray:
+        return self.corr[COR_BG:COR_BG + 3].copy()
+
+    @property
+    def accel_bias_mps2(self) -> np.ndarray:
+        return self.corr[COR_BA:COR_BA + 3].copy()
+
+    def misalignment_dcm(self) -> np.ndarray:
+        """R: vehicle <- filter body (identity unless the misalignment effect is estimated)."""
+        m = self.fx.misalignment_rad
+        return dcm_from_euler(m[0], m[1], m[2])
+
+    def sd(self, name: str) -> np.ndarray:
+        """1-sigma of an effect block from P (empty when the effect is not estimated)."""
+        i = self.layout.at(name)
+        if i < 0:
+            return np.zeros(0)
+        k = ekf.EFFECT_SIZES[name]
+        return np.sqrt(np.diag(self.P)[i:i + k])
+
+    # ------------------------------------------------------------------ initialisation
+    def initialize(self, t_s: float, lla: np.ndarray, v_ned_mps: np.ndarray, rpy_rad: np.ndarray,
+                   pos_sd_m: float = 0.05, vel_sd_mps: float | None = None,
+                   att_sd_rad: np.ndarray | None = None) -> None:
+        """Start the filter from a known state of the IMU point at GPS time t_s (rpy of C_nb)."""
+        self._start(t_s, np.asarray(lla, float), np.asarray(v_ned_mps, float),
+                    dcm_from_euler(*np.asarray(rpy_rad, float)), pos_sd_m,
+                    self.cfg.init_vel_sd_mps if vel_sd_mps is None else vel_sd_mps,
+                    np.array([self.cfg.init_level_sd_rad, self.cfg.init_level_sd_rad, self.cfg.init_yaw_sd_rad])
+                    if att_sd_rad is None else np.asarray(att_sd_rad, float))
+
+    def _start(self, t_s, lla, v, C_nb, pos_sd, vel_sd, att_sd) -> None:
+        c = self.cfg
+        n = self.layout.n
+        self.nav[:3] = lla
+        self.nav[3:6] = v
+        self.C_nb = C_nb.copy()
+        self.P = np.zeros((n, n))
+        d = np.zeros(n)
+        d[POS:POS + 3] = np.broadcast_to(np.asarray(pos_sd, float), 3) ** 2
+        d[VEL:VEL + 3] = np.broadcast_to(np.asarray(vel_sd, float), 3) ** 2
+        d[ATT:ATT + 3] = att_sd ** 2
+        d[BG:BG + 3] = c.gyro_bias_init_sd_rps ** 2
+        d[BA:BA + 3] = c.accel_bias_init_sd_mps2 ** 2
+        if self.calibrator.estimates and c.apply_static_calibration:
+            est = self.calibrator.estimates[-1]
+            self.corr[COR_BG:COR_BG + 3] = est.gyro_bias_rps
+            self.corr[COR_BA:COR_BA + 3] = est.accel_bias_mps2
+            d[BG:BG + 3] = np.maximum(est.gyro_sem_rps, 1e-3) ** 2
+            d[BA:BA + 3] = c.static_calibration.level_fx_max_mps2 ** 2
+        for name in self.layout.effects:
+            i, k = self.layout.index[name], ekf.EFFECT_SIZES[name]
+            d[i:i + k] = c.effect_initial_sd.get(name, 0.01) ** 2
+        self.P[np.diag_indices(n)] = d
+        self.A[:] = 0.0
+        self.mem[:] = 0.0
+        if self._last_raw_f_b is not None:
+            self.mem[MEM_W:MEM_W + 3] = self._last_raw_w_b - self.corr[COR_BG:COR_BG + 3]
+            self.mem[MEM_F:MEM_F + 3] = self._last_raw_f_b - self.corr[COR_BA:COR_BA + 3]
+            self.mem[MEM_VALID] = 1.0
+        if self.t_stamp_s is None:
+            self.t_stamp_s = t_s - self.fx.imu_time_offset_s
+        self._t_cov_s = self.t_stamp_s
+        self.initialized = True
+
+    # ------------------------------------------------------------------ IMU
+    def process_imu(self, t_s: float, acc_mps2: np.ndarray, gyro_rps: np.ndarray) -> None:
+        """One IMU sample in IMU axes (specific force [m/s^2], rate [rad/s]) stamped t_s."""
+        self.process_imu_batch(np.array([t_s], float), np.asarray(acc_mps2, float).reshape(1, 3),
+                               np.asarray(gyro_rps, float).reshape(1, 3))
+
+    def process_imu_batch(self, t_s: np.ndarray, acc_mps2: np.ndarray, gyro_rps: np.ndarray) -> None:
+        """Several IMU samples (IMU axes); equivalent to calling ``process_imu`` on each in order."""
+        f_b = np.ascontiguousarray(acc_mps2 @ self.cfg.imu_to_body.T)
+        w_b = np.ascontiguousarray(gyro_rps @ self.cfg.imu_to_body.T)
+        t_s = np.ascontiguousarray(t_s, dtype=float)
+        good = np.isfinite(t_s) & np.isfinite(f_b).all(axis=1) & np.isfinite(w_b).all(axis=1)
+        if self._last_sample_t is not None:
+            good &= t_s > self._last_sample_t
+        if not good.all():
+            self.counts["malformed_inputs"] += int((~good).sum())
+            t_s, f_b, w_b = t_s[good], f_b[good], w_b[good]
+            if len(t_s) > 1:
+                keep = np.concatenate([[True], np.diff(t_s) > 0])
+                self.counts["malformed_inputs"] += int((~keep).sum())
+                t_s, f_b, w_b = t_s[keep], f_b[keep], w_b[keep]
+        if len(t_s):
+            self._last_sample_t = float(t_s[-1])
+            self._last_raw_f_b = f_b[-1].copy()
+            self._last_raw_w_b = w_b[-1].copy()
+            self._run_body(t_s, f_b, w_b)
+
+    def _run_body(self, t_s: np.ndarray, f_b: np.ndarray, w_b: np.ndarray) -> None:
+        n = len(t_s)
+        i = 0
+        ce = self.cfg.cov_every
+        while i < n:
+            j = min(n, i + ce - self._since_chunk)
+            if self.initialized:
+                t_prev = self.t_stamp_s if self.t_stamp_s is not None else t_s[i]
+                strapdown_batch(t_s, f_b, w_b, i, j, t_prev, self.nav, self.C_nb, self.corr, self.mem,
+                                self.A, self.kidx, 1.0 / self.cfg.gyro_bias_tau_s, 1.0 / self.cfg.accel_bias_tau_s)
+            self.t_stamp_s = float(t_s[j - 1])
+            self._chunk_t.append(t_s[i:j])
+            self._chunk_f.append(f_b[i:j])
+            self._chunk_w.append(w_b[i:j])
+            self._since_chunk += j - i
+            i = j
+            if self._since_chunk >= ce:
+                self._end_chunk()
+
+    def _flush_covariance(self) -> None:
+        if not self.initialized or self._t_cov_s is None:
+            return
+        dt = self.t_stamp_s - self._t_cov_s
+        if dt > 0 or np.any(self.A):
+            self.P = ekf.propagate_covariance(self.P, self.A, self.q_c, max(dt, 0.0))
+        self._t_cov_s = self.t_stamp_s
+
+    def _end_chunk(self) -> None:
+        t = np.concatenate(self._chunk_t)
+        f = np.concatenate(self._chunk_f)
+        w = np.concatenate(self._chunk_w)
+        self._chunk_t.clear()
+        self._chunk_f.clear()
+        self._chunk_w.clear()
+        self._since_chunk = 0
+        if len(t) == 0:
+            return
+        self._last_w_b = (self.mem[MEM_W:MEM_W + 3].copy() if self.initialized
+                          else w[-1] - self.corr[COR_BG:COR_BG + 3])
+        self._last_f_b = (f[-1] - self.corr[COR_BA:COR_BA + 3])
+        fn = np.linalg.norm(f, axis=1)
+        f_h = (self.C_nb @ (f.mean(axis=0) - self.corr[COR_BA:COR_BA + 3]))[:2] if self.initialized else np.zeros(2)
+        self._win.append((len(t), fn.sum(), (fn * fn).sum(), w.sum(axis=0), f_h * len(t)))
+        self.static = self._detect_static()
+        g = geo.normal_gravity_mps2(self.nav[NAV_LAT], self.nav[NAV_H]) if self.initialized else None
+        speed = float(np.linalg.norm(self.nav[3:6])) if self.initialized else 0.0
+        est = self.calibrator.feed(t, f, w, moving=self.initialized and speed > 0.5, gravity_mps2=g)
+        if not self.initialized:
+            self.aligner.feed(t, f - self.corr[COR_BA:COR_BA + 3], w - self.corr[COR_BG:COR_BG + 3], self.static)
+            if est is not None:
+                self.counts["static_calibrations"] += 1
+                if self.cfg.apply_static_calibration:
+                    self.corr[COR_BG:COR_BG + 3] = est.gyro_bias_rps
+                    self.corr[COR_BA:COR_BA + 3] = est.accel_bias_mps2
+            return
+        if np.abs(self.nav[NAV_LAT]) > 1.5 or not np.all(np.isfinite(self.nav)):
+            self.initialized = False
+            return
+        self._flush_covariance()
+        if est is not None:
+            self.counts["static_calibrations"] += 1
+            if self.cfg.apply_static_calibration:
+                self._update_static_calibration(est)
+        if self.t_stamp_s - self._last_constraint_t >= 1.0 / self.cfg.constraint_rate_hz - 1e-6:
+            self._last_constraint_t = self.t_stamp_s
+            if self.static:
+                self._update_zupt()
+            elif self.cfg.platform == "car" and speed > self.cfg.nhc_min_speed_mps:
+                self._update_nhc()
+        if self.mem[MEM_VALID] and np.linalg.norm(self.C_nb.T @ self.C_nb - np.eye(3)) > 1e-9:
+            self.C_nb = orthonormalize(self.C_nb)
+
+    def _detect_static(self) -> bool:
+        c = self.cfg
+        if len(self._win) < self._win.maxlen:
+            return False
+        n = sum(x[0] for x in self._win)
+        s1 = sum(x[1] for x in self._win)
+        s2 = sum(x[2] for x in self._win)
+        sw = sum(x[3] for x in self._win)
+        acc_sd = math.sqrt(max(s2 / n - (s1 / n) ** 2, 0.0))
+        w_mean = np.linalg.norm(sw / n - self.corr[COR_BG:COR_BG + 3])
+        ok = acc_sd < c.static_acc_std_max_mps2 and w_mean < c.static_gyro_mean_max_rps
+        if ok and self.initialized:
+            f_h = np.linalg.norm(sum(x[4] for x in self._win) / n)
+            ok = float(np.linalg.norm(self.nav[3:6])) < c.static_max_speed_mps and f_h < c.static_acc_h_max_mps2
+        if ok and self._gnss_speed_mps is not None and self.t_s - self._gnss_speed_t_s < 1.0:
+            ok = self._gnss_speed_mps < c.static_max_gnss_speed_mps
+        return bool(ok)
+
+    # ------------------------------------------------------------------ update machinery
+    def _apply(self, dx: np.ndarray) -> None:
+        lat, h = self.nav[NAV_LAT], self.nav[NAV_H]
+        r_m, r_n = geo.radii_m(lat)
+        self.nav[NAV_LAT] -= dx[POS] / (r_m + h)
+        self.nav[NAV_LON] -= dx[POS + 1] / ((r_n + h) * math.cos(lat))
+        self.nav[NAV_H] += dx[POS + 2]
+        self.nav[NAV_VEL:NAV_VEL + 3] -= dx[VEL:VEL + 3]
+        self.C_nb = exp_so3(dx[ATT:ATT + 3]) @ self.C_nb
+        self.corr[COR_BG:COR_BG + 3] -= dx[BG:BG + 3]
+        self.corr[COR_BA:COR_BA + 3] -= dx[BA:BA + 3]
+        self.fx.apply_correction(self.layout, dx, self.corr)
+
+    def _update(self, kind: str, t_s: float, H: np.ndarray, d: np.ndarray, R: np.ndarray,
+                gate: bool = True, force: bool = False) -> UpdateResult:
+        dx, P, nis, S, ok = kalman_update(self.P, H, d, R, self.gate.get(len(d), None) if gate else None, force)
+        if ok:
+            self.P = P
+            self._apply(dx)
+        res = UpdateResult(kind=kind, t_s=t_s, accepted=ok, nis=nis, innovation=-d,
+                           innovation_sd=np.sqrt(np.abs(np.diag(S))))
+        if self.cfg.log_residuals and kind.startswith("gnss"):
+            self.residuals.append(res)
+        if self.on_update is not None:
+            self.on_update(res, self)
+        return res
+
+    def _gap_s(self, t_meas_s: float) -> float:
+        return t_meas_s - self.fx.gnss_latency_s - self.t_s
+
+    # ------------------------------------------------------------------ GNSS
+    def update_gnss(self, t_s: float, lla: np.ndarray, sd_ned_m: np.ndarray, fix: FixStatus | int,
+                    vel_ned_mps: np.ndarray | None = None,
+                    vel_sd_ned_mps: np.ndarray | None = None) -> UpdateResult:
+        """GNSS antenna position (and velocity) valid at GPS time t_s; before the filter is aligned
+        this drives the heading initialisation and returns accepted=False with reason."""
+        c = self.cfg
+        try:
+            lla = np.asarray(lla, float).reshape(3)
+            sd = np.broadcast_to(np.asarray(sd_ned_m, float), (3,)).copy()
+            fix = FixStatus(int(fix))
+            if vel_ned_mps is not None:
+                vel_ned_mps = np.asarray(vel_ned_mps, float).reshape(3)
+                vel_sd_ned_mps = (np.full(3, 0.1) if vel_sd_ned_mps is None
+                                  else np.broadcast_to(np.asarray(vel_sd_ned_mps, float), (3,)).copy())
+            if not (np.all(np.isfinite(lla)) and np.all(np.isfinite(sd)) and abs(lla[0]) <= math.pi / 2):
+                raise ValueError("non-finite or out-of-range position")
+        except (ValueError, TypeError) as e:
+            self.counts["malformed_inputs"] += 1
+            return UpdateResult("gnss_pos", float(t_s) if np.isscalar(t_s) else np.nan, False, np.nan,
+                                reason=f"malformed GNSS input: {e}")
+        if fix in (FixStatus.NONE, FixStatus.DEAD_RECKONING):
+            return UpdateResult("gnss_pos", t_s, False, np.nan, reason="no fix")
+        if vel_ned_mps is not None and np.all(np.isfinite(vel_ned_mps)):
+            self._gnss_speed_mps = float(np.linalg.norm(vel_ned_mps))
+            self._gnss_speed_t_s = float(t_s)
+        if not self.initialized:
+            return self._try_align(t_s, lla, sd, fix, vel_ned_mps)
+        self._flush_covariance()
+        gap = self._gap_s(t_s)
+        n = self.layout.n
+        C = self.C_nb
+        l_b = self.fx.lever_arm_m
+        Cl = C @ l_b
+        v = self.nav[3:6]
+        a = self.mem[MEM_AN:MEM_AN + 3]
+        lat, h = self.nav[NAV_LAT], self.nav[NAV_H]
+        r_m, r_n = geo.radii_m(lat)
+        pred_ned = Cl + v * gap
+        meas_ned = np.array([(lla[0] - lat) * (r_m + h), (lla[1] - self.nav[NAV_LON]) * (r_n + h) * math.cos(lat),
+                             -(lla[2] - h)])
+        d = pred_ned - meas_ned
+        H = np.zeros((3, n))
+        H[:, POS:POS + 3] = np.eye(3)
+        H[:, ATT:ATT + 3] = skew(Cl)
+        self._effect_rows(H, C, -v)
+        scale = c.fix_sd_scale.get(fix, 2.0)
+        R = np.diag(np.maximum(sd * scale, c.gnss_pos_sd_floor_m) ** 2)
+        force = self._gnss_rejections >= c.gnss_max_consecutive_rejections
+        res = self._update("gnss_pos", t_s, H, d, R, force=force)
+        if res.accepted:
+            self.counts["gnss_pos_accepted"] += 1
+            self.counts["gnss_forced"] += int(force)
+            self._gnss_rejections = 0
+            self.last_fix = fix
+            self.last_gnss_t_s = t_s
+        else:
+            self.counts["gnss_pos_rejected"] += 1
+            self._gnss_rejections += 1
+        if c.use_gnss_velocity and vel_ned_mps is not None and np.all(np.isfinite(vel_ned_mps)):
+            w = self.mem[MEM_W:MEM_W + 3].copy()
+            wl = np.cross(w, l_b)
+            Cwl = C @ wl
+            d = v + Cwl + a * gap - vel_ned_mps
+            H = np.zeros((3, n))
+            H[:, VEL:VEL + 3] = np.eye(3)
+            H[:, ATT:ATT + 3] = skew(Cwl)
+            H[:, BG:BG + 3] = C @ skew(l_b)
+            i = self.layout.at("lever_arm")
+            if i >= 0:
+                H[:, i:i + 3] = C @ skew(w)
+            for name in ("imu_time_offset", "gnss_latency"):
+                i = self.layout.at(name)
+                if i >= 0:
+                    H[:, i] = -a
+            R = np.diag(np.maximum(vel_sd_ned_mps * c.gnss_vel_sd_scale * scale, c.gnss_vel_sd_floor_mps) ** 2)
+            rv = self._update("gnss_vel", t_s, H, d, R)
+            self.counts["gnss_vel_accepted" if rv.accepted else "gnss_vel_rejected"] += 1
+        return res
+
+    def _effect_rows(self, H: np.ndarray, C: np.ndarray, timing_col: np.ndarray) -> None:
+        i = self.layout.at("lever_arm")
+        if i >= 0:
+            H[:, i:i + 3] = C
+        for name in ("imu_time_offset", "gnss_latency"):
+            i = self.layout.at(name)
+            if i >= 0:
+                H[:, i] = timing_col
+
+    def _try_align(self, t_s, lla, sd, fix, vel) -> UpdateResult:
+        c = self.cfg
+        if vel is None and self._prev_gnss is not None:
+            t0, lla0 = self._prev_gnss
+            if 0 < t_s - t0 < 2.0:
+                r_m, r_n = geo.radii_m(lla[0])
+                vel = np.array([(lla[0] - lla0[0]) * (r_m + lla[2]), (lla[1] - lla0[1]) * (r_n + lla[2]) * math.cos(lla[0]),
+                                -(lla[2] - lla0[2])]) / (t_s - t0)
+        self._prev_gnss = (t_s, lla)
+        if vel is None or self.t_stamp_s is None:
+            return UpdateResult("gnss_pos", t_s, False, np.nan, reason="aligning: no velocity yet")
+        speed = float(np.hypot(vel[0], vel[1]))
+        if speed < c.align_min_speed_mps:
+            return UpdateResult("gnss_pos", t_s, False, np.nan, reason="aligning: too slow for heading")
+        C = self.aligner.attitude_with_heading(float(np.arctan2(vel[1], vel[0])))
+        if C is None:
+            return UpdateResult("gnss_pos", t_s, False, np.nan, reason="aligning: not levelled yet")
+        r_m, r_n = geo.radii_m(lla[0])
+        Cl = C @ self.fx.lever_arm_m
+        lla_imu = lla - np.array([Cl[0] / (r_m + lla[2]), Cl[1] / ((r_n + lla[2]) * math.cos(lla[0])), -Cl[2]])
+        # move the IMU point from the GNSS time to the current state label with the GNSS velocity
+        gap = self.t_s - t_s
+        lla_imu = lla_imu + np.array([vel[0] / (r_m + lla[2]), vel[1] / ((r_n + lla[2]) * math.cos(lla[0])), -vel[2]]) * gap
+        pos_sd = np.maximum(sd * c.fix_sd_scale.get(fix, 2.0), 0.05)
+        self._start(self.t_s, lla_imu, vel, C, pos_sd, c.init_vel_sd_mps,
+                    np.array([c.init_level_sd_rad, c.init_level_sd_rad, c.init_yaw_sd_rad]))
+        self.last_fix = fix
+        self.last_gnss_t_s = t_s
+        return UpdateResult("gnss_pos", t_s, False, np.nan, reason="initialised from this epoch")
+
+    # ------------------------------------------------------------------ vehicle constraints
+    def _vehicle_rows(self):
+        Rm = self.misalignment_dcm()
+        RCt = Rm @ self.C_nb.T
+        v = self.nav[3:6]
+        v_b = self.C_nb.T @ v
+        Hv = RCt
+        Hphi = -RCt @ skew(v)
+        Hmis = -skew(v_b)
+        return RCt @ v, Hv, Hphi, Hmis
+
+    def _update_nhc(self) -> None:
+        c = self.cfg
+        v_v, Hv, Hphi, Hmis = self._vehicle_rows()
+        H = np.zeros((2, self.layout.n))
+        H[:, VEL:VEL + 3] = Hv[1:]
+        H[:, ATT:ATT + 3] = Hphi[1:]
+        i = self.layout.at("misalignment")
+        if i >= 0:
+            H[:, i:i + 3] = Hmis[1:]
+        yaw_rate = abs(self._last_w_b[2])
+        R = np.diag([(c.nhc_sd_mps[0] + c.nhc_sd_per_yaw_rate_m * yaw_rate) ** 2, c.nhc_sd_mps[1] ** 2])
+        r = self._update("nhc", self.t_s, H, v_v[1:], R)
+        self.counts["nhc" if r.accepted else "nhc_rejected"] += 1
+
+    def _update_zupt(self) -> None:
+        c = self.cfg
+        n = self.layout.n
+        H = np.zeros((3, n))
+        H[:, VEL:VEL + 3] = np.eye(3)
+        self._update("zupt", self.t_s, H, self.nav[3:6].copy(), np.eye(3) * c.zupt_sd_mps ** 2, gate=False)
+        self.counts["zupt"] += 1
+        cnt = sum(x[0] for x in self._win)
+        w_mean = sum(x[3] for x in self._win) / cnt
+        w_ie_b = self.C_nb.T @ geo.earth_rate_ned_rps(self.nav[NAV_LAT])
+        d = w_mean - self.corr[COR_BG:COR_BG + 3] - w_ie_b
+        H = np.zeros((3, n))
+        H[:, BG:BG + 3] = -np.eye(3)
+        self._update("zaru", self.t_s, H, d, np.eye(3) * c.zaru_sd_rps ** 2, gate=False)
+        self.counts["zaru"] += 1
+
+    def _update_static_calibration(self, est: StaticBiasEstimate) -> None:
+        """Seed 001 estimate applied online as a direct measurement of the bias states (the Earth
+        rate, known once the attitude is, is taken out of the gyro mean)."""
+        c = self.cfg
+        n = self.layout.n
+        H = np.zeros((6, n))
+        H[0:3, BG:BG + 3] = np.eye(3)
+        H[3:6, BA:BA + 3] = np.eye(3)
+        w_ie_b = self.C_nb.T @ geo.earth_rate_ned_rps(self.nav[NAV_LAT])
+        d = np.concatenate([self.corr[COR_BG:COR_BG + 3] - (est.gyro_bias_rps - w_ie_b),
+                            self.corr[COR_BA:COR_BA + 3] - est.accel_bias_mps2])
+        sd = np.concatenate([np.maximum(est.gyro_sem_rps, 5e-4),
+                             np.full(3, max(c.static_calibration.level_fx_max_mps2, 0.05))])
+        self._update("static_calibration", self.t_s, H, d, np.diag(sd ** 2))
+
+    def update_wheel_speed(self, t_s: float, speed_mps: float) -> UpdateResult:
+        """Odometer: forward speed of the vehicle [m/s] at GPS time t_s (Shin 2001 sec. 4.3)."""
+        if not self.initialized or not np.isfinite(speed_mps):
+            if not np.isfinite(speed_mps):
+                self.counts["malformed_inputs"] += 1
+            return UpdateResult("odometer", t_s, False, np.nan, reason="not initialised or malformed")
+        self._flush_covariance()
+        v_v, Hv, Hphi, Hmis = self._vehicle_rows()
+        s = self.fx.odometer_scale
+        H = np.zeros((1, self.layout.n))
+        H[0, VEL:VEL + 3] = (1 + s) * Hv[0]
+        H[0, ATT:ATT + 3] = (1 + s) * Hphi[0]
+        i = self.layout.at("misalignment")
+        if i >= 0:
+            H[0, i:i + 3] = (1 + s) * Hmis[0]
+        i = self.layout.at("odometer_scale")
+        if i >= 0:
+            H[0, i] = v_v[0]
+        gap = t_s - self.t_s
+        a_fwd = (self.misalignment_dcm() @ self.C_nb.T @ self.mem[MEM_AN:MEM_AN + 3])[0]
+        d = np.array([(1 + s) * (v_v[0] + a_fwd * gap) - speed_mps])
+        r = self._update("odometer", t_s, H, d, np.array([[self.cfg.odometer_sd_mps ** 2]]))
+        self.counts["odometer" if r.accepted else "odometer_rejected"] += 1
+        return r
+
+    # ------------------------------------------------------------------ output
+    def nav_state(self) -> NavState:
+        """Current solution at the IMU point (vehicle axes when misalignment is estimated)."""
+        Rm = self.misalignment_dcm()
+        C_nv = self.C_nb @ Rm.T
+        a_n = self.mem[MEM_AN:MEM_AN + 3]
+        sd = np.sqrt(np.abs(np.diag(self.P)))
+        coasting = (self.t_s - self.last_gnss_t_s) > self.cfg.coast_after_s
+        fix = FixStatus.DEAD_RECKONING if (coasting and self.initialized) else self.last_fix
+        return NavState(t_s=float(self.t_s), lla=self.nav[:3].copy(), v_ned_mps=self.nav[3:6].copy(),
+                        acc_body_mps2=C_nv.T @ a_n, rate_body_rps=Rm @ self._last_w_b,
+                        rpy_rad=euler_from_dcm(C_nv), pos_sd_m=sd[POS:POS + 3].copy(),
+                        vel_sd_mps=sd[VEL:VEL + 3].copy(), att_sd_rad=sd[ATT:ATT + 3].copy(), fix=fix)
+
+    def antenna_lla(self) -> np.ndarray:
+        """Current antenna position (lat, lon rad; h m) from the IMU point and the lever arm."""
+        Cl = self.C_nb @ self.fx.lever_arm_m
+        lat, h = self.nav[NAV_LAT], self.nav[NAV_H]
+        r_m, r_n = geo.radii_m(lat)
+        return self.nav[:3] + np.array([Cl[0] / (r_m + h), Cl[1] / ((r_n + h) * math.cos(lat)), -Cl[2]])
+
+    def effects_report(self) -> dict:
+        out = self.fx.as_dict(self.corr)
+        out["sd"] = {name: self.sd(name).tolist() for name in self.layout.effects}
+        return out

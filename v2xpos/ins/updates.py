@@ -1,0 +1,66 @@
+"""Measurement models and the gated Kalman update of the error-state filter.
+
+Conventions: errors are estimate minus truth (``ekf.py``); every model returns ``H`` and the
+prediction-minus-measurement ``d = h(x_est) - z`` so that ``d ~ H dx + noise``. Reported
+innovations are ``z - h(x_est)`` (measurement minus prediction).
+
+Models (C = C_nb estimate, l = lever arm in body, w = compensated body rate, v = NED velocity,
+R_m = misalignment DCM vehicle <- body, v_b = C^T v):
+
+* GNSS position at the antenna (Groves 2013 eq. 14.121 with our signs):
+  h = r + C l + v_IMU * gap;  H_r = I, H_phi = [(C l) x], H_l = C, H_dt = -v, H_lat = +v.
+* GNSS velocity at the antenna: h = v + C (w x l);  H_v = I, H_phi = [(C (w x l)) x],
+  H_bg = C [l x], H_l = C [w x], H_dt = -a, H_lat = +a.
+* Non-holonomic constraint (Shin 2001 sec. 4.3; Dissanayake et al. 2001): the vehicle-frame lateral
+  and vertical velocity are zero: h = (R_m C^T v)_{y,z};
+  H_v = R_m C^T, H_phi = -R_m C^T [v x], H_mis = -[v_b x].
+* Odometer: h = (1 + s_odo)^-1-free form (R_m C^T v)_x compared to speed / (1 + s_odo).
+* ZUPT: h = v, H_v = I. ZARU: h = w - C^T w_ie, H_bg = -I.
+
+The update is the Joseph form (Bucy & Joseph 1968) with a chi-square gate on the normalised
+innovation squared NIS = d^T S^-1 d, S = H P H^T + R.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class UpdateResult:
+    """Outcome of one measurement update.
+
+    innovation: z - h(x) in the measurement's units and axes; innovation_sd: sqrt(diag(S));
+    nis: normalised innovation squared; accepted: False when the chi-square gate rejected it.
+    """
+    kind: str
+    t_s: float
+    accepted: bool
+    nis: float
+    innovation: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    innovation_sd: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    reason: str = ""
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def kalman_update(P: np.ndarray, H: np.ndarray, d: np.ndarray, R: np.ndarray,
+                  gate_chi2: float | None, force: bool = False) -> tuple:
+    """Gated error-state update. Returns (dx, P_new, nis, S, accepted); dx is None when rejected."""
+    PHt = P @ H.T
+    S = H @ PHt + R
+    try:
+        S_inv = np.linalg.inv(S)
+    except np.linalg.LinAlgError:
+        return None, P, float("inf"), S, False
+    nis = float(d @ S_inv @ d)
+    if not force and gate_chi2 is not None and (not np.isfinite(nis) or nis > gate_chi2):
+        return None, P, nis, S, False
+    K = PHt @ S_inv
+    dx = K @ d
+    IKH = np.eye(P.shape[0]) - K @ H
+    P_new = IKH @ P @ IKH.T + K @ R @ K.T
+    return dx, 0.5 * (P_new + P_new.T), nis, S, True
