@@ -224,3 +224,28 @@ def load_multi_imu(path: str | Path):
     if _detect_layout(path) != "quadrotor_mimu":
         raise ValueError(f"{path}: not a multi-IMU folder (need IMU_k.csv and GT.csv)")
     return read_quadrotor_path(path)
+
+
+def describe(ds: Dataset) -> dict:
+    """JSON-ready summary of a loaded dataset: counts, spans [GPS s], rates, clock, malformed."""
+    def span(t: np.ndarray) -> list[float] | None:
+        return [float(t[0]), float(t[-1])] if len(t) else None
+
+    out: dict[str, Any] = {
+        "name": ds.name, "platform": ds.platform, "source": str(ds.source),
+        "imu_samples": len(ds.imu), "imu_span_s": span(ds.imu.t_s),
+        "gnss_epochs": len(ds.gnss), "gnss_span_s": span(ds.gnss.t_s),
+        "gnss_fix_counts": _fix_counts(ds.gnss), "gnss_height_datum": ds.gnss.height_datum,
+        "malformed_lines": ds.malformed_lines,
+        "imu_to_body": ds.imu_to_body.tolist(), "lever_arm_m": ds.lever_arm_m.tolist(),
+    }
+    if len(ds.imu) > 1:
+        out["imu_rate_hz"] = float((len(ds.imu) - 1) / (ds.imu.t_s[-1] - ds.imu.t_s[0]))
+    for key in ("imu", "ubx", "boot_to_gps_clock", "gnss_latency_s", "malformed"):
+        if key in ds.notes:
+            out[key] = ds.notes[key]
+    if ds.wheel is not None:
+        out["wheel_samples"] = len(ds.wheel.t_s)
+    if ds.reference is not None:
+        out["reference_epochs"] = len(ds.reference.t_s)
+    return out
