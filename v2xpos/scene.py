@@ -142,6 +142,7 @@ def _parse_feature(feat: Any, path: Path, i: int) -> Feature:
         if not isinstance(coords, list) or not coords:
             raise SceneError("polygon needs a list of linear rings", path, i, "geometry.coordinates")
         lla = _positions(coords[0], path, i, "geometry.coordinates[0]", 3)
+        default_kind = "polygon"
         if len(lla) >= 2 and np.array_equal(lla[0], lla[-1], equal_nan=True):
             lla = lla[:-1]
         if len(lla) < 3:
