@@ -181,6 +181,19 @@ def _lower_hull_indices(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return np.asarray(hull, dtype=int)
 
 
+def _lower_hull_candidates(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Lower hull indices of many points: qhull (C) picks the hull vertices, the exact monotone
+    chain then runs on those few; falls back to the chain on all points if qhull fails."""
+    from scipy.spatial import ConvexHull, QhullError
+    scale_x, scale_y = max(float(np.ptp(x)), 1e-300), max(float(np.ptp(y)), 1e-300)
+    try:
+        vertices = ConvexHull(np.column_stack([x / scale_x, y / scale_y])).vertices
+    except (QhullError, ValueError):
+        return _lower_hull_indices(x, y)
+    cand = np.unique(np.concatenate([vertices, [0, x.size - 1]]))
+    return cand[_lower_hull_indices(x[cand], y[cand])]
+
+
 def fit_clock_lower_envelope(counter_s: np.ndarray, arrival_s: np.ndarray) -> ClockModel:
     """Fit ``arrival = offset + (1 + drift) * counter`` as the lower envelope of the points.
 
@@ -204,7 +217,7 @@ def fit_clock_lower_envelope(counter_s: np.ndarray, arrival_s: np.ndarray) -> Cl
     keep = np.ones(x.size, dtype=bool)
     keep[1:] = x[1:] != x[:-1]  # lowest arrival per counter value
     x, y = x[keep], y[keep]
-    hull = _lower_hull_indices(x, y)
+    hull = _lower_hull_indices(x, y) if x.size < 2000 else _lower_hull_candidates(x, y)
     x_mean = float(np.mean(c - c0))
     if hull.size == 1:
         slope, icpt = 1.0, y[hull[0]] - x[hull[0]]

@@ -20,7 +20,6 @@ exactly after a minus sign still parses (with the wrong sign).
 """
 from __future__ import annotations
 
-import math
 import re
 from collections import Counter
 from dataclasses import dataclass, field
@@ -41,8 +40,9 @@ this is a wrap, not a malformed line."""
 _OUTLIER_WINDOW = 101
 _OUTLIER_PERIODS = 10.0
 
-_NUMBER = r"[-+]?\d+\.(\d+)"
-_LOOSE = re.compile(r"^\s*" + r"\s*,\s*".join([_NUMBER] * 6) + r"\s*,\s*(\d+)\s*$")
+_NUMBER = r"[-+]?[0-9]+\.([0-9]+)"
+_SEP = r"[ \t]*,[ \t]*"
+_LOOSE = re.compile(r"^[ \t]*" + _SEP.join([_NUMBER] * 6) + _SEP + r"([0-9]+)[ \t]*\r?\Z")
 
 
 @dataclass
@@ -84,6 +84,23 @@ def sample_rate_hz(counter_ms: np.ndarray) -> tuple[float, float]:
     return float(1000.0 / regular.mean()), float(1000.0 * dt_ms.size / dt_ms.sum())
 
 
+def _decimals_in_use(lines: list[str], probe: int = 2000) -> tuple[int, ...] | None:
+    """Most common number of decimals of the six value fields among the first well-formed lines."""
+    counts: Counter = Counter()
+    for line in lines:
+        m = _LOOSE.match(line)
+        if m is not None:
+            counts[tuple(len(m.group(k)) for k in range(1, 7))] += 1
+            if sum(counts.values()) >= probe:
+                break
+    return counts.most_common(1)[0][0] if counts else None
+
+
+def _strict_pattern(decimals: tuple[int, ...]) -> re.Pattern:
+    fields = [rf"[-+]?[0-9]+\.[0-9]{{{d}}}" for d in decimals]
+    return re.compile(r"^[ \t]*" + _SEP.join(fields) + _SEP + r"[0-9]+[ \t]*\r?\Z")
+
+
 def _line_spans(raw: bytes) -> tuple[np.ndarray, np.ndarray, bool]:
     """Start offsets and end offsets (exclusive, after the LF) of every line; whether the last
     line is complete (ends with LF)."""
@@ -106,45 +123,32 @@ def read_imu_csv(path: str | Path, timetag: str | Path | TimeTag | None = None) 
     raw = path.read_bytes()
     starts, ends, last_complete = _line_spans(raw)
     text = raw.decode("ascii", errors="replace")
-    # ASCII decoding keeps byte offsets == character offsets (replacement is 1 char per byte).
-    matches: list[tuple[int, re.Match]] = []
-    n_lines = len(starts)
-    for i in range(n_lines):
-        line = text[starts[i]:ends[i]]
+    lines = text.split("\n")[:len(starts)]
+    n_lines = len(lines)
+    if n_lines and not last_complete:
+        if lines[-1].strip():
+            issues.add(n_lines, "truncated last line (no end of line)")
+        lines[-1] = ""
+    ref_decimals = _decimals_in_use(lines)
+    strict = _strict_pattern(ref_decimals) if ref_decimals else _LOOSE
+    good = [i for i, line in enumerate(lines) if strict.match(line)]
+    for i in sorted(set(range(n_lines)) - set(good)):
+        line = lines[i]
         if not line.strip():
-            continue
-        if i == n_lines - 1 and not last_complete:
-            issues.add(i + 1, "truncated last line (no end of line)")
             continue
         m = _LOOSE.match(line)
         if m is None:
-            n_fields = line.count(",") + 1
-            issues.add(i + 1, f"expected 7 numeric fields, found {n_fields} field(s): "
+            issues.add(i + 1, f"expected 7 numeric fields, found {line.count(',') + 1} field(s): "
                               f"{line.strip()[:60]!r}")
-            continue
-        matches.append((i, m))
-    decimals_mode = Counter(tuple(len(m.group(k)) for k in range(1, 7))
-                            for _, m in matches[:2000]).most_common(1)
-    ref_decimals = decimals_mode[0][0] if decimals_mode else None
-    line_idx, values, counter = [], [], []
-    for i, m in matches:
-        dec = tuple(len(m.group(k)) for k in range(1, 7))
-        if dec != ref_decimals:
+        else:
+            dec = tuple(len(m.group(k)) for k in range(1, 7))
             issues.add(i + 1, f"fields printed with {dec} decimals, the file uses {ref_decimals}: "
                               "line cut short")
-            continue
-        fields = m.group(0).split(",")
-        try:
-            vals = [float(f) for f in fields[:6]]
-        except ValueError as exc:
-            issues.add(i + 1, f"unparsable number: {exc}")
-            continue
-        line_idx.append(i)
-        values.append(vals)
-        counter.append(int(fields[6]))
-    line_idx = np.asarray(line_idx, dtype=np.int64)
-    values = np.asarray(values, dtype=float).reshape(-1, 6)
-    counter_ms = np.asarray(counter, dtype=np.int64)
+    line_idx = np.asarray(good, dtype=np.int64)
+    table = np.loadtxt([lines[i] for i in good], delimiter=",", dtype=float, ndmin=2) \
+        if good else np.zeros((0, 7))
+    values = table[:, :6]
+    counter_ms = table[:, 6].astype(np.int64)
 
     # Counter wraps (uint32 ms), then lone counters out of sequence, then strict increase.
     steps = np.diff(counter_ms)
@@ -163,14 +167,13 @@ def read_imu_csv(path: str | Path, timetag: str | Path | TimeTag | None = None) 
                        f"counter {counter_ms[k]} ms out of sequence with its neighbours")
         keep &= ~off
     kept = np.flatnonzero(keep)
-    last = -math.inf
-    for k in kept:
-        if counter_ms[k] <= last:
-            issues.add(int(line_idx[k]) + 1,
-                       f"counter {counter_ms[k]} ms not after the previous sample ({int(last)} ms)")
+    if kept.size > 1:
+        previous_max = np.maximum.accumulate(counter_ms[kept])[:-1]
+        for j in np.flatnonzero(counter_ms[kept[1:]] <= previous_max):
+            k = kept[j + 1]
+            issues.add(int(line_idx[k]) + 1, f"counter {counter_ms[k]} ms not after the previous "
+                                             f"sample ({int(previous_max[j])} ms)")
             keep[k] = False
-        else:
-            last = counter_ms[k]
     line_idx, values, counter_ms = line_idx[keep], values[keep], counter_ms[keep]
     issues.examples.sort()
 

@@ -105,7 +105,7 @@ def read_rtklib_pos(path: str | Path, height_datum: str = "msl") -> tuple[GnssDa
             t = _parse_time_s(tokens[0], tokens[1], time_system)
             values = {name: float(tokens[i]) for name, i in col_index.items() if name not in
                       ("GPST", "UTC")}
-        except (ValueError, IndexError) as exc:
+        except (ValueError, IndexError, OverflowError) as exc:
             issues.add(line_no, f"unparsable field: {exc}")
             continue
         core = [values[c] for c in _REQUIRED]
