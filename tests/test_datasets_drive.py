@@ -165,3 +165,20 @@ def test_missing_file_named(tmp_path):
     path = _write_toml(tmp_path, GOOD_TOML.format(imu="nope.csv", tag="nope.tag", pos="nope.pos"))
     with pytest.raises(ValueError, match=r"\[imu\] file"):
         load_dataset(path)
+
+
+@pytest.mark.parametrize("folder, stem", [("drive_0708", "imu_1934"), ("walk_0827", "imu_1730")])
+def test_affine_clock_holds_over_the_whole_recording(folder, stem):
+    """With the right drift the envelope touches every part of the recording: each tenth of the
+    lines comes within a few ms of it and the median delay does not trend."""
+    d = _require(DATA / folder)
+    res = read_imu_csv(d / f"{stem}.csv", d / f"{stem}.csv.tag")
+    delay = res.arrival_delay_s
+    assert np.nanmin(delay) == pytest.approx(0.0, abs=1e-6)
+    parts = np.array_split(delay, 10)
+    assert max(np.nanmin(p) for p in parts) < 0.004
+    medians = [np.nanmedian(p) for p in parts]
+    assert max(medians) - min(medians) < 0.004
+    # a fit without drift would leave a trend of drift * span in the delays
+    span_s = (res.imu.counter_ms[-1] - res.imu.counter_ms[0]) * 1e-3
+    assert abs(res.clock.drift_ppm) * 1e-6 * span_s > 0.001
