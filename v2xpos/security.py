@@ -246,10 +246,19 @@ def load_trust_list(path: str | Path, missing_ok: bool = False) -> TrustList:
     if missing_ok and not path.exists():
         return TrustList(source=path)
     try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
+        text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise TrustFileError(f"{path}: cannot read trust list ({exc})") from None
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except UnicodeDecodeError as exc:
+        raise TrustFileError(f"{path}: not UTF-8 text ({exc})") from None
+    return parse_trust_list(text, path)
+
+
+def parse_trust_list(text: str, path: str | Path = "<trust list>") -> TrustList:
+    """Trust list from its JSON text; ``path`` only names the source in messages."""
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError as exc:
         raise TrustFileError(f"{path}: not JSON ({exc})") from None
     if not isinstance(doc, dict):
         raise TrustFileError(f"{path}: top level must be an object")
@@ -260,7 +269,7 @@ def load_trust_list(path: str | Path, missing_ok: bool = False) -> TrustList:
     keys = doc.get("keys")
     if not isinstance(keys, list):
         raise TrustFileError(f"{path}: field 'keys' must be a list")
-    trust = TrustList(source=path)
+    trust = TrustList(source=Path(path))
     for i, item in enumerate(keys):
         where = f"{path}: keys[{i}]"
         try:

@@ -1,0 +1,316 @@
+"""MCAP session recorder of the master: every received payload, the master's own state, every
+silence tick and every output, rotated by size, so ``v2xpos replay-session`` can re-run the
+pipeline and reproduce the outputs byte for byte.
+
+Format: MCAP (https://mcap.dev/spec) written with the ``mcap`` package; messages are JSON
+(``message_encoding = "json"``, schema encoding ``jsonschema``) so Foxglove shows them directly.
+Raw wire bytes are carried base64-encoded in ``raw_b64`` for exact replay. Channels:
+
+* ``/v2xpos/rx`` -- every payload received on the state key expression, before validation:
+  ``key``, ``raw_b64``, ``t_arrival_wall_s``, ``t_now_gps_s`` (master GPS time used for it),
+  ``nav_index`` (the master state it was processed against);
+* ``/v2xpos/master_nav`` -- the master's filter state whenever the pipeline is given a new one
+  (``index``, NavState fields: t_s, lla [rad, rad, m], v_ned_mps, acc_body_mps2, rate_body_rps,
+  rpy_rad, *_sd, fix);
+* ``/v2xpos/tick`` -- silence checks (``t_now_gps_s``, ``master_t_gps_s``);
+* ``/v2xpos/out/relative`` -- every RelativeResult the pipeline produced (``raw_b64`` =
+  ``encode_relative`` bytes, plus readable fields).
+Session metadata (MCAP metadata record ``v2xpos.session``): the pipeline configuration and the
+admission settings (trust list document) as JSON strings.
+
+Rotation: when the current file has grown beyond ``max_bytes`` it is finished (summary and
+index written, so each file is a valid MCAP on its own) and ``<base>_<NNNN>.mcap`` is opened;
+the session metadata and the latest master state are repeated at the head of every file.
+Log times are wall-clock nanoseconds (arrival time for received payloads).
+"""
+from __future__ import annotations
+
+import base64
+import dataclasses
+import json
+import math
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+from mcap.reader import make_reader
+from mcap.writer import CompressionType, Writer
+
+from v2xpos.types import FixStatus, NavState
+from v2xpos.wire import RelativeResult, encode_relative
+
+TOPIC_RX = "/v2xpos/rx"
+TOPIC_NAV = "/v2xpos/master_nav"
+TOPIC_TICK = "/v2xpos/tick"
+TOPIC_RELATIVE = "/v2xpos/out/relative"
+SESSION_METADATA = "v2xpos.session"
+PROFILE = "v2xpos"
+
+_NUM = {"type": "number"}
+_VEC3 = {"type": "array", "items": _NUM, "minItems": 3, "maxItems": 3}
+_NAV_VECTORS = ("lla", "v_ned_mps", "acc_body_mps2", "rate_body_rps", "rpy_rad", "pos_sd_m",
+                "vel_sd_mps", "att_sd_rad")
+SCHEMAS: dict[str, tuple[str, dict]] = {
+    TOPIC_RX: ("v2xpos.Received", {
+        "type": "object", "properties": {
+            "key": {"type": ["string", "null"]}, "raw_b64": {"type": "string"},
+            "t_arrival_wall_s": _NUM, "t_now_gps_s": _NUM, "nav_index": {"type": "integer"}}}),
+    TOPIC_NAV: ("v2xpos.MasterNav", {
+        "type": "object", "properties": {"index": {"type": "integer"}, "t_s": _NUM,
+                                         "fix": {"type": "integer"},
+                                         **{k: _VEC3 for k in _NAV_VECTORS}}}),
+    TOPIC_TICK: ("v2xpos.Tick", {
+        "type": "object", "properties": {"t_now_gps_s": _NUM, "master_t_gps_s": {"type": ["number", "null"]}}}),
+    TOPIC_RELATIVE: ("v2xpos.RelativeResult", {
+        "type": "object", "properties": {
+            "raw_b64": {"type": "string"}, "target_id": {"type": "string"},
+            "status": {"type": "string"}, "seq": {"type": "integer"}, "source_seq": {"type": "integer"},
+            "t_gps_s": _NUM, "latency_s": {"type": ["number", "null"]},
+            "rel_pos_body_m": {"type": ["array", "null"], "items": _NUM},
+            "range_m": {"type": ["number", "null"]}, "ttc_s": {"type": ["number", "null"]}}}),
+}
+
+
+def _finite_or_none(x: float | None) -> float | None:
+    return None if x is None or not math.isfinite(x) else float(x)
+
+
+def nav_to_dict(nav: Any, index: int) -> dict:
+    """Master state (NavState-like) -> JSON-ready dict; floats round-trip exactly (repr)."""
+    d = {"index": index, "t_s": float(nav.t_s), "fix": int(nav.fix)}
+    for k in _NAV_VECTORS:
+        d[k] = [float(x) for x in np.asarray(getattr(nav, k), dtype=float).reshape(3)]
+    return d
+
+
+def nav_from_dict(d: dict) -> NavState:
+    """Inverse of :func:`nav_to_dict`."""
+    kw = {k: np.array(d[k], dtype=float) for k in _NAV_VECTORS}
+    return NavState(t_s=float(d["t_s"]), fix=FixStatus(int(d["fix"])), **kw)
+
+
+class McapRecorder:
+    """Thread-safe MCAP writer with size-based rotation.
+
+    ``path``: ``<dir>/<base>.mcap``; rotated files are ``<base>_0001.mcap``, ... beside it.
+    ``recorded`` counts messages written per topic; ``files`` lists the files written.
+    """
+
+    def __init__(self, path: str | Path, max_bytes: int = 256 * 2 ** 20,
+                 chunk_size: int = 256 * 1024, compression: str = "zstd"):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.max_bytes = int(max_bytes)
+        self.chunk_size = int(chunk_size)
+        self.compression = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
+                            "none": CompressionType.NONE}[compression]
+        self.files: list[Path] = []
+        self.recorded: dict[str, int] = {t: 0 for t in SCHEMAS}
+        self.session: dict[str, str] = {}
+        self._lock = threading.Lock()
+        self._fh = None
+        self._writer: Writer | None = None
+        self._channels: dict[str, int] = {}
+        self._last_nav: dict | None = None
+        self._seq = 0
+        self._closed = False
+        self._open_next()
+
+    @property
+    def total_recorded(self) -> int:
+        return sum(self.recorded.values())
+
+    def _open_next(self) -> None:
+        n = len(self.files)
+        path = self.path if n == 0 else self.path.with_name(f"{self.path.stem}_{n:04d}{self.path.suffix}")
+        self._fh = open(path, "wb")
+        self._writer = Writer(self._fh, chunk_size=self.chunk_size, compression=self.compression)
+        self._writer.start(profile=PROFILE, library="v2xpos")
+        self._channels = {}
+        for topic, (name, schema) in SCHEMAS.items():
+            sid = self._writer.register_schema(name=name, encoding="jsonschema",
+                                               data=json.dumps(schema).encode())
+            self._channels[topic] = self._writer.register_channel(topic=topic, message_encoding="json",
+                                                                  schema_id=sid)
+        self.files.append(path)
+        if self.session:
+            self._writer.add_metadata(SESSION_METADATA, dict(self.session))
+        if self._last_nav is not None:
+            self._add(TOPIC_NAV, self._last_nav, time.time_ns(), count=False)
+
+    def _finish(self) -> None:
+        self._writer.finish()
+        self._fh.close()
+
+    def _add(self, topic: str, doc: dict, log_time_ns: int, count: bool = True) -> None:
+        self._seq += 1
+        self._writer.add_message(self._channels[topic], log_time=log_time_ns,
+                                 data=json.dumps(doc, separators=(",", ":")).encode(),
+                                 publish_time=log_time_ns, sequence=self._seq)
+        if count:
+            self.recorded[topic] += 1
+        if self._fh.tell() >= self.max_bytes:
+            self._finish()
+            self._open_next()
+
+    def write_session(self, session: dict[str, Any]) -> None:
+        """Session metadata (values JSON-encoded) written now and at the head of rotated files."""
+        with self._lock:
+            self.session = {k: v if isinstance(v, str) else json.dumps(v) for k, v in session.items()}
+            self._writer.add_metadata(SESSION_METADATA, dict(self.session))
+
+    def record_nav(self, nav: Any, index: int) -> None:
+        doc = nav_to_dict(nav, index)
+        with self._lock:
+            self._last_nav = doc
+            self._add(TOPIC_NAV, doc, time.time_ns())
+
+    def record_received(self, payload: bytes, key: str | None, t_arrival_wall_s: float,
+                        t_now_gps_s: float, nav_index: int) -> None:
+        doc = {"key": key, "raw_b64": base64.b64encode(bytes(payload)).decode(),
+               "t_arrival_wall_s": float(t_arrival_wall_s), "t_now_gps_s": float(t_now_gps_s),
+               "nav_index": int(nav_index)}
+        with self._lock:
+            self._add(TOPIC_RX, doc, int(t_arrival_wall_s * 1e9))
+
+    def record_tick(self, t_now_gps_s: float, master_t_gps_s: float | None) -> None:
+        doc = {"t_now_gps_s": float(t_now_gps_s),
+               "master_t_gps_s": None if master_t_gps_s is None else float(master_t_gps_s)}
+        with self._lock:
+            self._add(TOPIC_TICK, doc, time.time_ns())
+
+    def record_result(self, res: RelativeResult) -> None:
+        valid = res.has_kinematics
+        doc = {"raw_b64": base64.b64encode(encode_relative(res)).decode(), "target_id": res.target_id,
+               "status": res.status.name.lower(), "seq": int(res.seq), "source_seq": int(res.source_seq),
+               "t_gps_s": float(res.t_gps_s), "latency_s": _finite_or_none(res.latency_s),
+               "rel_pos_body_m": [float(x) for x in res.rel_pos_body_m] if valid else None,
+               "range_m": _finite_or_none(res.range_m) if valid else None,
+               "ttc_s": _finite_or_none(res.ttc_s) if valid else None}
+        with self._lock:
+            self._add(TOPIC_RELATIVE, doc, time.time_ns())
+
+    def close(self) -> None:
+        with self._lock:
+            if not self._closed:
+                self._closed = True
+                self._finish()
+
+    def __enter__(self) -> "McapRecorder":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class RecorderSink:
+    """Pipeline output sink that records every RelativeResult (``write(result)``)."""
+
+    def __init__(self, recorder: McapRecorder):
+        self.recorder = recorder
+
+    def write(self, result: RelativeResult) -> None:
+        self.recorder.record_result(result)
+
+    def close(self) -> None:
+        pass
+
+
+def pipeline_session(pipeline: Any) -> dict[str, Any]:
+    """What replay needs besides the messages: the PipelineConfig and the admission settings."""
+    cfg = dataclasses.asdict(pipeline.config) if dataclasses.is_dataclass(pipeline.config) else {}
+    auth = getattr(pipeline, "authenticator", None)
+    session: dict[str, Any] = {"pipeline_config": cfg, "authenticator": None}
+    if auth is not None and hasattr(auth, "trust"):
+        session["authenticator"] = {
+            "trust_list": auth.trust.to_json(), "require_signature": auth.require_signature,
+            "max_age_s": auth.max_age_s, "future_tolerance_s": auth.future_tolerance_s,
+            "replay_window": auth.replay_window}
+    return session
+
+
+class RecordingPipeline:
+    """Wraps a ``master.pipeline.MasterPipeline``: records each input before it is processed and
+    each output as it is written; everything else is delegated to the wrapped pipeline."""
+
+    def __init__(self, pipeline: Any, recorder: McapRecorder):
+        self._pipeline = pipeline
+        self.recorder = recorder
+        self._nav_obj: Any = None
+        self._nav_index = -1
+        pipeline.sinks.append(RecorderSink(recorder))
+        recorder.write_session(pipeline_session(pipeline))
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._pipeline, name)
+
+    def _nav(self, master: Any) -> None:
+        if master is not self._nav_obj:
+            self._nav_obj = master
+            self._nav_index += 1
+            self.recorder.record_nav(master, self._nav_index)
+
+    def handle(self, payload: bytes, key: str | None, master: Any, t_now_gps_s: float,
+               t_arrival_wall_s: float | None = None):
+        if t_arrival_wall_s is None:
+            t_arrival_wall_s = self._pipeline.clock_wall()
+        self._nav(master)
+        self.recorder.record_received(payload, key, t_arrival_wall_s, t_now_gps_s, self._nav_index)
+        return self._pipeline.handle(payload, key, master, t_now_gps_s, t_arrival_wall_s)
+
+    def tick(self, t_now_gps_s: float, master_t_gps_s: float | None = None):
+        self.recorder.record_tick(t_now_gps_s, master_t_gps_s)
+        return self._pipeline.tick(t_now_gps_s, master_t_gps_s)
+
+
+# ----------------------------------------------------------------------------- reading
+
+@dataclass
+class RecordedMessage:
+    """One message read back: topic, log time [ns], the JSON document."""
+    topic: str
+    log_time_ns: int
+    doc: dict
+
+
+def recording_files(path: str | Path) -> list[Path]:
+    """The files of one recording: ``path`` and its rotated siblings ``<stem>_NNNN.mcap``, in
+    order; a directory gives every ``*.mcap`` in it sorted by name."""
+    path = Path(path)
+    if path.is_dir():
+        return sorted(path.glob("*.mcap"))
+    rotated = sorted(path.parent.glob(f"{path.stem}_[0-9][0-9][0-9][0-9]{path.suffix}"))
+    return [path, *rotated]
+
+
+def read_session(path: str | Path) -> dict[str, Any]:
+    """Session metadata of the first file, values JSON-decoded."""
+    with open(recording_files(path)[0], "rb") as fh:
+        for meta in make_reader(fh).iter_metadata():
+            if meta.name == SESSION_METADATA:
+                return {k: json.loads(v) for k, v in meta.metadata.items()}
+    return {}
+
+
+def read_recording(path: str | Path, topics: tuple[str, ...] | None = None) -> Iterator[RecordedMessage]:
+    """Messages of all files in write order (by the recorder's sequence number within a file).
+
+    The master state repeated at the head of a rotated file is skipped (it duplicates the last
+    state of the previous file).
+    """
+    files = recording_files(path)
+    for i, f in enumerate(files):
+        with open(f, "rb") as fh:
+            reader = make_reader(fh)
+            rows = [(m.sequence, ch.topic, m.log_time, m.data)
+                    for _, ch, m in reader.iter_messages(topics=list(topics) if topics else None,
+                                                         log_time_order=False)]
+        rows.sort(key=lambda r: r[0])
+        for j, (_, topic, log_time, data) in enumerate(rows):
+            doc = json.loads(data)
+            if i > 0 and j == 0 and topic == TOPIC_NAV:
+                continue
+            yield RecordedMessage(topic, log_time, doc)
