@@ -27,6 +27,7 @@ A folder is accepted too: one holding ``dataset.toml``, a comma2k19 segment (``p
 """
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +43,7 @@ except ImportError:  # Python 3.10
 IMU_FORMATS = ("csv_g_dps_ms",)
 GNSS_FORMATS = ("rtklib_pos", "ubx")
 LAYOUTS = ("comma2k19", "quadrotor_mimu")
+log = logging.getLogger(__name__)
 
 
 def _field(table: dict, key: str, where: str, toml_path: Path, kind: type | tuple = str,
@@ -164,6 +166,11 @@ def _load_toml(toml_path: Path, read_raw: bool) -> Dataset:
             ubx_res = read_ubx(base / raw, base / raw_timetag if raw_timetag else None)
             notes["ubx"] = ubx_res.summary()
             notes["ubx_result"] = ubx_res
+    for entry in notes["malformed"]:
+        if entry["count"]:
+            shown = "; ".join(f"line {e['line']}: {e['reason']}" for e in entry["examples"])
+            log.warning("%s: %d malformed record(s) skipped (%s)", entry["source"], entry["count"],
+                        shown)
     return Dataset(name=name, platform=platform, imu=imu_res.imu, gnss=gnss,
                    imu_to_body=imu_to_body, lever_arm_m=lever, lever_arm_sd_m=lever_sd,
                    malformed_lines=malformed, source=toml_path, notes=notes)
