@@ -293,7 +293,7 @@ def estimate_offset_xcorr(t_a_s: np.ndarray, x_a: np.ndarray, t_b_s: np.ndarray,
     grid = np.arange(start, stop, dt)
     ga = np.interp(grid, t_a, a)
     max_lag = int(np.ceil(max_lag_s * rate_hz))
-    grid_b = np.arange(grid[0] - max_lag * dt, grid[-1] + (max_lag + 0.5) * dt, dt)
+    grid_b = grid[0] + dt * np.arange(-max_lag, grid.size + max_lag)
     gb = np.interp(grid_b, t_b, b)
     valid_b = (grid_b >= t_b[0]) & (grid_b <= t_b[-1])
     ga = ga - ga.mean()
