@@ -345,18 +345,26 @@ class MessageAuthenticator:
     (one of REJECT_REASONS). ``msg`` needs ``vehicle_id``, ``seq``, ``t_gps_s``, ``sig``,
     ``key_id`` and ``signed_payload`` (as ``v2xpos.wire.decode_state`` fills them).
     ``require_signature=False`` admits unsigned messages (still time and replay checked); signed
-    ones are always verified.
+    ones are always verified. Every authentic message also feeds ``clock`` (a ClockSkewMonitor,
+    with ``now_gps_s`` as the arrival time), before the time checks, so a sender whose clock
+    jumped ahead is both rejected as *future* and reported as skewed: ``skew_report()``.
     """
 
     def __init__(self, trust: TrustList, *, require_signature: bool = True, max_age_s: float = 5.0,
-                 future_tolerance_s: float = 0.05, replay_window: int = 1024):
+                 future_tolerance_s: float = 0.05, replay_window: int = 1024,
+                 clock: "ClockSkewMonitor | None" = None):
         self.trust = trust
+        self.clock = clock if clock is not None else ClockSkewMonitor()
         self.require_signature = require_signature
         self.max_age_s = float(max_age_s)
         self.future_tolerance_s = float(future_tolerance_s)
         self.replay_window = int(replay_window)
         self.stats = AdmissionStats()
         self._windows: dict[str, _SeqWindow] = {}
+
+    def skew_report(self) -> list[dict]:
+        """Clock status of every authentic sender seen (ClockSkewStatus.as_dict())."""
+        return [st.as_dict() for st in self.clock.all_status()]
 
     def _reject(self, reason: str) -> str:
         self.stats.rejected[reason] += 1
@@ -382,6 +390,7 @@ class MessageAuthenticator:
         if reason is not None:
             return self._reject(reason)
         t = float(msg.t_gps_s)
+        self.clock.update(msg.vehicle_id, int(msg.seq), t, now_gps_s)
         if t > now_gps_s + self.future_tolerance_s:
             return self._reject(REJECT_FUTURE)
         if t < now_gps_s - self.max_age_s:
