@@ -129,3 +129,31 @@ def test_evaluate_target_statuses_carry_no_kinematics(m_fix, s_fix, t_master, ex
     assert res.status == expect and res.fix_side == side
     assert not res.has_kinematics and math.isnan(res.range_m) and res.ttc_s is None
     assert math.isfinite(res.latency_s)
+
+
+def test_closed_form_covariance_equals_full_9x9_propagation():
+    """sqrt(diag(F P F^T + G Q G^T)) of the full error-state model equals predict_state's sds."""
+    from v2xpos.rotation import dcm_from_euler, exp_so3, skew
+    msg = target_at_origin(3.0)
+    msg.rpy_rad = np.array([0.05, -0.03, 0.4])
+    msg.rate_body_rps = np.array([0.02, -0.05, 0.3])
+    msg.att_sd_rad = np.array([0.003, 0.004, 0.01])
+    dt, sa, sw = 0.15, 0.7, 0.03
+    C = dcm_from_euler(*msg.rpy_rad)
+    # Gamma integrals by numerical quadrature (independent of the closed form)
+    s = np.linspace(0.0, 1.0, 4001)
+    E = np.array([exp_so3(msg.rate_body_rps * dt * x) for x in s])
+    G1 = np.trapezoid(E, s, axis=0)
+    G2 = np.trapezoid(E * (1.0 - s)[:, None, None], s, axis=0)
+    a = msg.acc_body_mps2
+    F = np.eye(9)
+    F[0:3, 3:6] = np.eye(3) * dt
+    F[0:3, 6:9] = -skew(C @ G2 @ a * dt * dt)
+    F[3:6, 6:9] = -skew(C @ G1 @ a * dt)
+    P = np.diag(np.concatenate([msg.pos_sd_m, msg.vel_sd_mps, msg.att_sd_rad]) ** 2)
+    Ga = np.vstack([C @ G2 * dt * dt, C @ G1 * dt, np.zeros((3, 3))])
+    Gw = np.vstack([np.zeros((6, 3)), C @ exp_so3(msg.rate_body_rps * dt) * dt])
+    P = F @ P @ F.T + sa ** 2 * Ga @ Ga.T + sw ** 2 * Gw @ Gw.T
+    pred = predict_state(msg, dt, acc_sd_mps2=sa, rate_sd_rps=sw)
+    np.testing.assert_allclose(np.concatenate([pred.pos_sd_m, pred.vel_sd_mps, pred.att_sd_rad]),
+                               np.sqrt(np.diag(P)), rtol=1e-6)

@@ -35,13 +35,11 @@ NED to the master's NED (C_n_m n_s = C_en(m) C_en(s)^T) so the result stays exac
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
-from v2xpos.geo import A_M, E2, dcm_ecef_to_ned, radii_m
-from v2xpos.rotation import dcm_from_euler, euler_from_dcm, exp_so3, skew
+from v2xpos.geo import A_M, E2
 from v2xpos.types import FixStatus
 from v2xpos.wire import FixSide, Geometry, RelativeResult, StateMessage, TargetStatus
 
@@ -57,8 +55,6 @@ DEFAULT_RATE_SD_RPS = 0.02
 """1-sigma of the unmodelled change of body angular rate over a prediction."""
 CLOSING_EPS_MPS = 1.0e-3
 
-# error-state layout of the prediction covariance (nav-frame attitude error, Groves 2013 §14.2)
-POS, VEL, ATT = slice(0, 3), slice(3, 6), slice(6, 9)
 
 
 # ----------------------------------------------------------------------------- gating
@@ -97,46 +93,148 @@ def check_latency(master_t_gps_s: float, slave_t_gps_s: float, timeout_s: float 
     return TargetStatus.VALID, latency_s
 
 
-# ----------------------------------------------------------------------------- CTRA prediction
+# ----------------------------------------------------------------------------- 3-D helpers
+# Small fixed-size algebra in plain floats: 3-vectors are tuples, 3x3 matrices are row-major
+# 9-tuples. On single vectors this is several times faster than numpy's per-call overhead.
 
-def _gamma12(phi: np.ndarray) -> tuple:
-    """Integrals of exp([s phi x]) used for constant body rate + constant body acceleration.
+def _mv(M: tuple, v: tuple) -> tuple:
+    """M v."""
+    x, y, z = v
+    return (M[0] * x + M[1] * y + M[2] * z, M[3] * x + M[4] * y + M[5] * z, M[6] * x + M[7] * y + M[8] * z)
 
-    Gamma1 = int_0^1 exp(s K) ds = I + (1-cos a)/a^2 K + (a - sin a)/a^3 K^2,
-    Gamma2 = int_0^1 int_0^s exp(u K) du ds = I/2 + (a - sin a)/a^3 K + (a^2/2 + cos a - 1)/a^4 K^2,
-    K = [phi x], a = |phi| (Barfoot, *State Estimation for Robotics*, 2017, eqs. 7.86 & 7.87 series;
-    Forster et al. 2017, on-manifold preintegration). Series near a = 0.
+
+def _mtv(M: tuple, v: tuple) -> tuple:
+    """M^T v."""
+    x, y, z = v
+    return (M[0] * x + M[3] * y + M[6] * z, M[1] * x + M[4] * y + M[7] * z, M[2] * x + M[5] * y + M[8] * z)
+
+
+def _mm(A: tuple, B: tuple) -> tuple:
+    """A B."""
+    return tuple(A[3 * i] * B[j] + A[3 * i + 1] * B[3 + j] + A[3 * i + 2] * B[6 + j]
+                 for i in range(3) for j in range(3))
+
+
+def _mtm(A: tuple, B: tuple) -> tuple:
+    """A^T B."""
+    return tuple(A[i] * B[j] + A[3 + i] * B[3 + j] + A[6 + i] * B[6 + j] for i in range(3) for j in range(3))
+
+
+def _mmt(A: tuple, B: tuple) -> tuple:
+    """A B^T."""
+    return tuple(A[3 * i] * B[3 * j] + A[3 * i + 1] * B[3 * j + 1] + A[3 * i + 2] * B[3 * j + 2]
+                 for i in range(3) for j in range(3))
+
+
+def _cross(a: tuple, b: tuple) -> tuple:
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def _dcm(roll: float, pitch: float, yaw: float) -> tuple:
+    """C_nb = Rz(yaw) Ry(pitch) Rx(roll) (same as rotation.dcm_from_euler)."""
+    cr, sr, cp, sp, cy, sy = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch), math.cos(yaw), math.sin(yaw)
+    return (cp * cy, -cr * sy + sr * sp * cy, sr * sy + cr * sp * cy,
+            cp * sy, cr * cy + sr * sp * sy, -sr * cy + cr * sp * sy,
+            -sp, sr * cp, cr * cp)
+
+
+def _euler(C: tuple) -> tuple:
+    """(roll, pitch, yaw) of C_nb (same as rotation.euler_from_dcm)."""
+    return (math.atan2(C[7], C[8]), -math.asin(max(-1.0, min(1.0, C[6]))), math.atan2(C[3], C[0]))
+
+
+def _c_en(lat: float, lon: float) -> tuple:
+    """C_en, ECEF -> NED at (lat, lon) (Groves 2013 eq. 2.150)."""
+    sl, cl, so, co = math.sin(lat), math.cos(lat), math.sin(lon), math.cos(lon)
+    return (-sl * co, -sl * so, cl, -so, co, 0.0, -cl * co, -cl * so, -sl)
+
+
+def _ecef(lat: float, lon: float, h: float) -> tuple:
+    """Geodetic -> ECEF [m] (Groves 2013 eq. 2.112)."""
+    sl, cl = math.sin(lat), math.cos(lat)
+    r_n = A_M / math.sqrt(1.0 - E2 * sl * sl)
+    return ((r_n + h) * cl * math.cos(lon), (r_n + h) * cl * math.sin(lon), (r_n * (1.0 - E2) + h) * sl)
+
+
+def _poly_so3(phi: tuple, c0: float, c1: float, c2: float) -> tuple:
+    """c0 I + c1 K + c2 K^2 with K = [phi x] and K^2 = phi phi^T - |phi|^2 I."""
+    x, y, z = phi
+    a2 = x * x + y * y + z * z
+    return (c0 + c2 * (x * x - a2), -c1 * z + c2 * x * y, c1 * y + c2 * x * z,
+            c1 * z + c2 * x * y, c0 + c2 * (y * y - a2), -c1 * x + c2 * y * z,
+            -c1 * y + c2 * x * z, c1 * x + c2 * y * z, c0 + c2 * (z * z - a2))
+
+
+def _so3_integrals(phi: tuple) -> tuple:
+    """exp([phi x]) and its first and second integrals Gamma1, Gamma2 (see ``ctra_increments``).
+
+    exp = I + sin a/a K + (1-cos a)/a^2 K^2 (Rodrigues);
+    Gamma1 = int_0^1 exp(s K) ds = I + (1-cos a)/a^2 K + (a - sin a)/a^3 K^2;
+    Gamma2 = int_0^1 int_0^s exp(u K) du ds = I/2 + (a - sin a)/a^3 K + (a^2/2 + cos a - 1)/a^4 K^2;
+    a = |phi| (Barfoot, *State Estimation for Robotics*, 2017, §7.1; Forster et al., IEEE T-RO
+    2017, on-manifold preintegration). Taylor series below a = 1e-4.
     """
-    a2 = float(phi @ phi)
-    K = skew(phi)
-    K2 = K @ K
+    a2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
     if a2 < 1e-8:
+        e1, e2 = 1.0 - a2 / 6.0, 0.5 - a2 / 24.0
         c1, c2 = 0.5 - a2 / 24.0, 1.0 / 6.0 - a2 / 120.0
-        d1, d2 = 1.0 / 6.0 - a2 / 120.0, 1.0 / 24.0 - a2 / 720.0
+        d2 = 1.0 / 24.0 - a2 / 720.0
     else:
         a = math.sqrt(a2)
         s, c = math.sin(a), math.cos(a)
+        e1, e2 = s / a, (1.0 - c) / a2
         c1, c2 = (1.0 - c) / a2, (a - s) / (a2 * a)
-        d1, d2 = (a - s) / (a2 * a), (0.5 * a2 + c - 1.0) / (a2 * a2)
-    eye = np.eye(3)
-    return eye + c1 * K + c2 * K2, 0.5 * eye + d1 * K + d2 * K2
+        d2 = (0.5 * a2 + c - 1.0) / (a2 * a2)
+    return _poly_so3(phi, 1.0, e1, e2), _poly_so3(phi, 1.0, c1, c2), _poly_so3(phi, 0.5, c2, d2)
 
+
+def _tup(a: Any) -> tuple:
+    return tuple(a.tolist()) if isinstance(a, np.ndarray) else tuple(float(x) for x in a)
+
+
+def _lla_of(state: Any) -> tuple:
+    if hasattr(state, "lat_rad"):
+        return float(state.lat_rad), float(state.lon_rad), float(state.height_m)
+    return _tup(state.lla)
+
+
+# ----------------------------------------------------------------------------- CTRA prediction
 
 def ctra_increments(v_ned_mps: np.ndarray, C_nb: np.ndarray, acc_body_mps2: np.ndarray,
                     rate_body_rps: np.ndarray, dt_s: float) -> tuple:
     """Exact motion over dt_s with constant body angular rate w and constant body acceleration a.
 
-    C_nb(t) = C_nb exp([w t x]);  v(t) = v + C_nb Gamma1(w t) a t;  r(t) = r + v t + C_nb Gamma2(w t) a t^2.
-    Returns (dr_ned_m, v_ned_new_mps, C_nb_new, Gamma1, Gamma2). Uniform circular motion (a = w x v_b)
-    and constant-rate turns with constant body-frame braking are reproduced exactly;
-    Earth rate and transport rate are neglected (< 1e-5 rad over 0.2 s).
+    C_nb(t) = C_nb exp([w t x]);  v(t) = v + C_nb Gamma1(w t) a t;  r(t) = r + v t + C_nb Gamma2(w t) a t^2
+    (Gamma1/2: ``_so3_integrals``). Returns (dr_ned_m, v_ned_new_mps, C_nb_new) as numpy arrays.
+    Uniform circular motion (a = w x v_b) is reproduced exactly; Earth rate and transport rate are
+    neglected (< 1e-5 rad over 0.2 s).
     """
-    phi = np.asarray(rate_body_rps, dtype=float) * dt_s
-    G1, G2 = _gamma12(phi)
-    a = np.asarray(acc_body_mps2, dtype=float)
-    dv = C_nb @ (G1 @ a) * dt_s
-    dr = np.asarray(v_ned_mps, dtype=float) * dt_s + C_nb @ (G2 @ a) * (dt_s * dt_s)
-    return dr, v_ned_mps + dv, C_nb @ exp_so3(phi), G1, G2
+    C = _tup(np.asarray(C_nb, dtype=float).reshape(9))
+    dr, v_new, C_new, _, _ = _ctra(_tup(v_ned_mps), C, _tup(acc_body_mps2), _tup(rate_body_rps), float(dt_s))
+    return np.array(dr), np.array(v_new), np.array(C_new).reshape(3, 3)
+
+
+def _ctra(v: tuple, C: tuple, a: tuple, w: tuple, dt: float) -> tuple:
+    E, G1, G2 = _so3_integrals((w[0] * dt, w[1] * dt, w[2] * dt))
+    dv = _mv(C, _mv(G1, a))
+    dr_a = _mv(C, _mv(G2, a))
+    dt2 = dt * dt
+    s_r = (dr_a[0] * dt2, dr_a[1] * dt2, dr_a[2] * dt2)
+    s_v = (dv[0] * dt, dv[1] * dt, dv[2] * dt)
+    dr = (v[0] * dt + s_r[0], v[1] * dt + s_r[1], v[2] * dt + s_r[2])
+    v_new = (v[0] + s_v[0], v[1] + s_v[1], v[2] + s_v[2])
+    return dr, v_new, _mm(C, E), (s_r, s_v), (_mm(C, G1), _mm(C, G2))
+
+
+def _skew_sandwich_diag(s: tuple, p: tuple) -> tuple:
+    """diag([s x] diag(p) [s x]^T)."""
+    return (s[2] * s[2] * p[1] + s[1] * s[1] * p[2], s[2] * s[2] * p[0] + s[0] * s[0] * p[2],
+            s[1] * s[1] * p[0] + s[0] * s[0] * p[1])
+
+
+def _row_sq(M: tuple) -> tuple:
+    return (M[0] * M[0] + M[1] * M[1] + M[2] * M[2], M[3] * M[3] + M[4] * M[4] + M[5] * M[5],
+            M[6] * M[6] + M[7] * M[7] + M[8] * M[8])
 
 
 def predict_state(msg: StateMessage, dt_s: float, acc_sd_mps2: float = DEFAULT_ACC_SD_MPS2,
@@ -145,83 +243,53 @@ def predict_state(msg: StateMessage, dt_s: float, acc_sd_mps2: float = DEFAULT_A
 
     Position is moved in the local-level frame at the target and converted back to geodetic with
     the curvilinear relation (Groves 2013 eq. 2.119; error < 1 um for displacements < 10 m).
-    Covariance of the error state [dr_n, dv_n, psi_n] (diagonal from the message's sds) is
+    Covariance of the error state [dr_n, dv_n, psi_n] (block-diagonal from the message's sds) is
     propagated as P' = F P F^T + G Q G^T with
         F = [[I, I dt, -[C Gamma2 a dt^2 x]], [0, I, -[C Gamma1 a dt x]], [0, 0, I]],
         acceleration noise acc_sd_mps2 entering through (C Gamma2 dt^2, C Gamma1 dt, 0) and rate
-        noise rate_sd_rps through (0, 0, C(t) dt); the returned sds are sqrt(diag P').
-    Attitude sd (roll, pitch, yaw) is treated as the nav-frame attitude error (small tilt).
-    The result keeps ids, fix, geometry; t_gps_s advances by dt_s; acc/rate are held constant.
+        noise rate_sd_rps through (0, 0, C(t) dt); the returned sds are sqrt(diag P') (computed
+        in closed form per block). Attitude sd (roll, pitch, yaw) is treated as the nav-frame
+        attitude error (small tilt). The result keeps ids, fix, geometry; t_gps_s advances by dt_s;
+        acceleration and rate are held constant.
     """
-    dt_s = float(dt_s)
-    C_nb = dcm_from_euler(*msg.rpy_rad)
-    dr, v_new, C_new, G1, G2 = ctra_increments(msg.v_ned_mps, C_nb, msg.acc_body_mps2,
-                                               msg.rate_body_rps, dt_s)
-    lat, lon, h = msg.lat_rad, msg.lon_rad, msg.height_m
-    r_m, r_n = radii_m(lat)
+    dt = float(dt_s)
+    C = _dcm(*_tup(msg.rpy_rad))
+    dr, v_new, C_new, (s_r, s_v), (CG1, CG2) = _ctra(_tup(msg.v_ned_mps), C, _tup(msg.acc_body_mps2),
+                                                     _tup(msg.rate_body_rps), dt)
+    lat, lon, h = float(msg.lat_rad), float(msg.lon_rad), float(msg.height_m)
+    sl = math.sin(lat)
+    w = 1.0 - E2 * sl * sl
+    r_n = A_M / math.sqrt(w)
+    r_m = r_n * (1.0 - E2) / w
     lat_new = lat + dr[0] / (r_m + h)
     lon_new = lon + dr[1] / ((r_n + h) * math.cos(lat))
     lon_new = (lon_new + math.pi) % (2.0 * math.pi) - math.pi
-    h_new = h - dr[2]
 
-    F = np.eye(9)
-    F[POS, VEL] = np.eye(3) * dt_s
-    F[POS, ATT] = -skew(C_nb @ (G2 @ msg.acc_body_mps2) * dt_s * dt_s)
-    F[VEL, ATT] = -skew(C_nb @ (G1 @ msg.acc_body_mps2) * dt_s)
-    P = np.diag(np.concatenate([msg.pos_sd_m, msg.vel_sd_mps, msg.att_sd_rad]) ** 2)
-    Ga = np.zeros((9, 3))
-    Ga[POS] = C_nb @ G2 * (dt_s * dt_s)
-    Ga[VEL] = C_nb @ G1 * dt_s
-    Gw = np.zeros((9, 3))
-    Gw[ATT] = C_new * dt_s
-    P = F @ P @ F.T + (acc_sd_mps2 ** 2) * (Ga @ Ga.T) + (rate_sd_rps ** 2) * (Gw @ Gw.T)
-    sd = np.sqrt(np.diag(P))
-    return replace(msg, t_gps_s=msg.t_gps_s + dt_s, lat_rad=lat_new, lon_rad=lon_new, height_m=h_new,
-                   v_ned_mps=v_new, rpy_rad=euler_from_dcm(C_new), pos_sd_m=sd[POS],
-                   vel_sd_mps=sd[VEL], att_sd_rad=sd[ATT], signed_payload=None)
+    p_r = tuple(x * x for x in _tup(msg.pos_sd_m))
+    p_v = tuple(x * x for x in _tup(msg.vel_sd_mps))
+    p_a = tuple(x * x for x in _tup(msg.att_sd_rad))
+    qa, qw = acc_sd_mps2 * acc_sd_mps2, rate_sd_rps * rate_sd_rps * dt * dt
+    sr, sv = _skew_sandwich_diag(s_r, p_a), _skew_sandwich_diag(s_v, p_a)
+    gr, gv = _row_sq(CG2), _row_sq(CG1)
+    dt2, dt4 = dt * dt, dt ** 4
+    var_r = [p_r[i] + dt2 * p_v[i] + sr[i] + qa * dt4 * gr[i] for i in range(3)]
+    var_v = [p_v[i] + sv[i] + qa * dt2 * gv[i] for i in range(3)]
+    var_a = [p_a[i] + qw for i in range(3)]
+
+    out = StateMessage.__new__(StateMessage)
+    out.__dict__.update(msg.__dict__)
+    out.t_gps_s = msg.t_gps_s + dt
+    out.lat_rad, out.lon_rad, out.height_m = lat_new, lon_new, h - dr[2]
+    out.v_ned_mps = np.array(v_new)
+    out.rpy_rad = np.array(_euler(C_new))
+    out.pos_sd_m = np.sqrt(var_r)
+    out.vel_sd_mps = np.sqrt(var_v)
+    out.att_sd_rad = np.sqrt(var_a)
+    out.signed_payload = None
+    return out
 
 
 # ----------------------------------------------------------------------------- transform
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a x b for 3-vectors (np.cross is ~20x slower on single vectors)."""
-    a0, a1, a2 = a.tolist()
-    b0, b1, b2 = b.tolist()
-    return np.array((a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0))
-
-
-def _ecef(lat: float, lon: float, h: float) -> tuple:
-    """Geodetic -> ECEF [m] (Groves 2013 eq. 2.112), scalar math for speed."""
-    sl, cl = math.sin(lat), math.cos(lat)
-    r_n = A_M / math.sqrt(1.0 - E2 * sl * sl)
-    return ((r_n + h) * cl * math.cos(lon), (r_n + h) * cl * math.sin(lon), (r_n * (1.0 - E2) + h) * sl)
-
-
-def _horizontal_nearest(points_xy: np.ndarray, polygon: bool, p_xy: np.ndarray) -> tuple:
-    """Nearest point to p_xy on a point set or on a closed polygon's boundary (2-D).
-
-    Returns (index_a, index_b, t, q_xy, inside): the nearest point q = P[a] + t (P[b] - P[a]).
-    """
-    if not polygon:
-        d2 = ((points_xy - p_xy) ** 2).sum(axis=1)
-        i = int(np.argmin(d2))
-        return i, i, 0.0, points_xy[i], False
-    A = points_xy
-    B = np.roll(points_xy, -1, axis=0)
-    AB = B - A
-    L2 = (AB ** 2).sum(axis=1)
-    t = np.clip(((p_xy - A) * AB).sum(axis=1) / np.where(L2 > 0, L2, 1.0), 0.0, 1.0)
-    Q = A + t[:, None] * AB
-    d2 = ((Q - p_xy) ** 2).sum(axis=1)
-    i = int(np.argmin(d2))
-    # even-odd rule for the inside test (ray towards +x)
-    ya, yb = A[:, 1], B[:, 1]
-    cross = (ya > p_xy[1]) != (yb > p_xy[1])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        x_at = A[:, 0] + (p_xy[1] - ya) * AB[:, 0] / (yb - ya)
-    inside = bool(np.count_nonzero(cross & (x_at > p_xy[0])) % 2)
-    return i, (i + 1) % len(A), float(t[i]), Q[i], inside
-
 
 def _target_outline(slave_state: Any, slave_points: Any) -> Geometry:
     if slave_points is None:
@@ -231,6 +299,38 @@ def _target_outline(slave_state: Any, slave_points: Any) -> Geometry:
         return slave_points
     pts = np.asarray(slave_points, dtype=float).reshape(-1, 3)
     return Geometry(kind="points", points_body_m=pts)
+
+
+def _nearest_outline_point(Q: list, polygon: bool, px: float, py: float) -> tuple:
+    """Nearest point to (px, py) on a point set or a closed polygon boundary (horizontal).
+
+    Q: target outline points already in the master frame [(x, y), ...]. Returns
+    (index_a, index_b, t, qx, qy, inside) with the nearest point = Q[a] + t (Q[b] - Q[a]);
+    inside by the even-odd rule.
+    """
+    best = (math.inf, 0, 0, 0.0, Q[0][0], Q[0][1])
+    n = len(Q)
+    if not polygon:
+        for i, (x, y) in enumerate(Q):
+            d2 = (x - px) ** 2 + (y - py) ** 2
+            if d2 < best[0]:
+                best = (d2, i, i, 0.0, x, y)
+        return best[1], best[2], best[3], best[4], best[5], False
+    inside = False
+    for i in range(n):
+        ax, ay = Q[i]
+        bx, by = Q[(i + 1) % n]
+        ex, ey = bx - ax, by - ay
+        L2 = ex * ex + ey * ey
+        t = ((px - ax) * ex + (py - ay) * ey) / L2 if L2 > 0 else 0.0
+        t = 0.0 if t < 0.0 else 1.0 if t > 1.0 else t
+        qx, qy = ax + t * ex, ay + t * ey
+        d2 = (qx - px) ** 2 + (qy - py) ** 2
+        if d2 < best[0]:
+            best = (d2, i, (i + 1) % n, t, qx, qy)
+        if (ay > py) != (by > py) and ax + (py - ay) * ex / ey > px:
+            inside = not inside
+    return best[1], best[2], best[3], best[4], best[5], inside
 
 
 def _t_of(state: Any) -> float:
@@ -253,75 +353,91 @@ def relative_kinematics(master_state: Any, slave_state: Any, master_points: Any 
     the circle edge (pedestrian radius). Its velocity relative to the master point in the master
     frame is u = v_rel_b + C_ms (w_s x p_s) - w_m x (C_ms p_s); closing_speed = -(d_xy . u_xy)/|d_xy|;
     ttc_s = gap / closing speed if closing speed > 1 mm/s else None.
-    Position covariance: P_b = C_bn (P_s + P_m) C_nb + C_bn [r_n x] Psi_m [r_n x]^T C_nb (master
-    attitude error Psi_m); range_sd_m = sqrt(u^T P_b u), u = r_b / |r_b|.
+    Position covariance: P_b = C_bn (P_s + P_m + [r_n x] Psi_m [r_n x]^T) C_nb (P_s, P_m position
+    covariances, Psi_m master attitude-error covariance); range_sd_m = sqrt(u_n^T (...) u_n) with
+    u_n the line-of-sight unit vector.
     """
-    lat_m, lon_m, h_m = (float(x) for x in master_state.lla)
-    lat_s, lon_s, h_s = (float(x) for x in slave_state.lla)
-    C_en_m = dcm_ecef_to_ned(lat_m, lon_m)
-    C_en_s = dcm_ecef_to_ned(lat_s, lon_s)
-    C_nm_ns = C_en_m @ C_en_s.T
+    lat_m, lon_m, h_m = _lla_of(master_state)
+    lat_s, lon_s, h_s = _lla_of(slave_state)
+    C_en_m = _c_en(lat_m, lon_m)
+    C_nm_ns = _mmt(C_en_m, _c_en(lat_s, lon_s))
     em, es = _ecef(lat_m, lon_m, h_m), _ecef(lat_s, lon_s, h_s)
-    r_n = C_en_m @ np.array((es[0] - em[0], es[1] - em[1], es[2] - em[2]))
+    r_n = _mv(C_en_m, (es[0] - em[0], es[1] - em[1], es[2] - em[2]))
 
-    C_nm = dcm_from_euler(*master_state.rpy_rad)
-    C_mn = C_nm.T
-    C_ns = C_nm_ns @ dcm_from_euler(*slave_state.rpy_rad)
-    C_ms = C_mn @ C_ns
-    w_m = np.asarray(master_state.rate_body_rps, dtype=float)
-    w_s = np.asarray(slave_state.rate_body_rps, dtype=float)
+    C_nm = _dcm(*_tup(master_state.rpy_rad))
+    C_ns = _mm(C_nm_ns, _dcm(*_tup(slave_state.rpy_rad)))
+    C_ms = _mtm(C_nm, C_ns)
+    w_m = _tup(master_state.rate_body_rps)
+    w_s = _tup(slave_state.rate_body_rps)
+    v_s = _mv(C_nm_ns, _tup(slave_state.v_ned_mps))
+    v_m = _tup(master_state.v_ned_mps)
 
-    r_b = C_mn @ r_n
-    dv_b = C_mn @ (C_nm_ns @ slave_state.v_ned_mps - master_state.v_ned_mps)
+    r_b = _mtv(C_nm, r_n)
+    dv_b = _mtv(C_nm, (v_s[0] - v_m[0], v_s[1] - v_m[1], v_s[2] - v_m[2]))
     wxr = _cross(w_m, r_b)
-    v_rel = dv_b - wxr
-    da_b = C_ms @ slave_state.acc_body_mps2 - master_state.acc_body_mps2
-    a_rel = da_b - 2.0 * _cross(w_m, dv_b) + _cross(w_m, wxr)
+    v_rel = (dv_b[0] - wxr[0], dv_b[1] - wxr[1], dv_b[2] - wxr[2])
+    a_s = _mv(C_ms, _tup(slave_state.acc_body_mps2))
+    a_m = _tup(master_state.acc_body_mps2)
+    cor = _cross(w_m, dv_b)
+    cen = _cross(w_m, wxr)
+    a_rel = tuple(a_s[i] - a_m[i] - 2.0 * cor[i] + cen[i] for i in range(3))
 
-    rng = math.sqrt(float(r_b @ r_b))
+    rng = math.sqrt(r_b[0] ** 2 + r_b[1] ** 2 + r_b[2] ** 2)
+    rho_ref = math.hypot(r_b[0], r_b[1])
     bearing = math.atan2(r_b[1], r_b[0])
-    elevation = math.atan2(-r_b[2], math.hypot(r_b[0], r_b[1]))
+    elevation = math.atan2(-r_b[2], rho_ref)
 
-    P_n = np.diag(np.asarray(slave_state.pos_sd_m) ** 2 + np.asarray(master_state.pos_sd_m) ** 2)
-    S = skew(r_n)
-    P_b = C_mn @ (P_n + S @ np.diag(np.asarray(master_state.att_sd_rad) ** 2) @ S.T) @ C_nm
-    pos_sd = np.sqrt(np.diag(P_b))
-    u = r_b / rng if rng > 0 else np.array([1.0, 0.0, 0.0])
-    range_sd = math.sqrt(float(u @ P_b @ u))
+    # covariance in NED: D + [r x] Psi [r x]^T, then quadratic forms along the body axes
+    ps, pm, pa = _tup(slave_state.pos_sd_m), _tup(master_state.pos_sd_m), _tup(master_state.att_sd_rad)
+    x, y, z = r_n
+    p0, p1, p2 = pa[0] ** 2, pa[1] ** 2, pa[2] ** 2
+    Q = (ps[0] ** 2 + pm[0] ** 2 + z * z * p1 + y * y * p2, -x * y * p2, -x * z * p1,
+         -x * y * p2, ps[1] ** 2 + pm[1] ** 2 + z * z * p0 + x * x * p2, -y * z * p0,
+         -x * z * p1, -y * z * p0, ps[2] ** 2 + pm[2] ** 2 + y * y * p0 + x * x * p1)
 
-    p_m = np.zeros(3) if master_points is None else np.asarray(master_points, dtype=float).reshape(-1, 3)[0]
+    def quad(c: tuple) -> float:
+        Qc = _mv(Q, c)
+        return c[0] * Qc[0] + c[1] * Qc[1] + c[2] * Qc[2]
+
+    pos_sd = tuple(math.sqrt(max(quad((C_nm[i], C_nm[3 + i], C_nm[6 + i])), 0.0)) for i in range(3))
+    u_n = (x / rng, y / rng, z / rng) if rng > 0 else (C_nm[0], C_nm[3], C_nm[6])
+    range_sd = math.sqrt(max(quad(u_n), 0.0))
+
+    p_m = (0.0, 0.0, 0.0) if master_points is None else \
+        _tup(np.asarray(master_points, dtype=float).reshape(-1, 3)[0])
     outline = _target_outline(slave_state, slave_points)
     if outline.kind == "circle" or len(outline.points_body_m) == 0:
-        d = r_b - p_m
-        rho = math.hypot(d[0], d[1])
-        radius = outline.radius_m
-        scale = max(rho - radius, 0.0) / rho if rho > 0 else 0.0
-        d_xy = d[:2] * scale
-        gap = max(rho - radius, 0.0)
+        dx, dy = r_b[0] - p_m[0], r_b[1] - p_m[1]
+        rho = math.hypot(dx, dy)
+        gap = max(rho - outline.radius_m, 0.0)
+        scale = gap / rho if rho > 0 else 0.0
+        d_xy = (dx * scale, dy * scale)
         u_pt = v_rel
     else:
-        P_s = np.asarray(outline.points_body_m, dtype=float)
-        Q_b = r_b + P_s @ C_ms.T
-        ia, ib, t, q_xy, inside = _horizontal_nearest(Q_b[:, :2], outline.kind == "polygon", p_m[:2])
-        p_s = P_s[ia] + t * (P_s[ib] - P_s[ia])
-        d_xy = np.zeros(2) if inside else q_xy - p_m[:2]
+        P_s = [tuple(p) for p in np.asarray(outline.points_body_m, dtype=float).tolist()]
+        Q_b = [_mv(C_ms, p) for p in P_s]
+        ia, ib, t, qx, qy, inside = _nearest_outline_point(
+            [(r_b[0] + q[0], r_b[1] + q[1]) for q in Q_b], outline.kind == "polygon", p_m[0], p_m[1])
+        p_s = tuple(P_s[ia][k] + t * (P_s[ib][k] - P_s[ia][k]) for k in range(3))
+        d_xy = (0.0, 0.0) if inside else (qx - p_m[0], qy - p_m[1])
         gap = math.hypot(d_xy[0], d_xy[1])
-        cp = C_ms @ p_s
-        u_pt = v_rel + C_ms @ _cross(w_s, p_s) - _cross(w_m, cp)
+        spin = _mv(C_ms, _cross(w_s, p_s))
+        drag = _cross(w_m, _mv(C_ms, p_s))
+        u_pt = tuple(v_rel[k] + spin[k] - drag[k] for k in range(3))
     if gap > 0:
-        closing = -float(d_xy @ u_pt[:2]) / gap
+        closing = -(d_xy[0] * u_pt[0] + d_xy[1] * u_pt[1]) / gap
     else:
-        closing = -float(r_b[:2] @ u_pt[:2]) / max(math.hypot(r_b[0], r_b[1]), 1e-9)
+        closing = -(r_b[0] * u_pt[0] + r_b[1] * u_pt[1]) / max(rho_ref, 1e-9)
     ttc = gap / closing if closing > CLOSING_EPS_MPS else None
 
     return RelativeResult(
         target_id=str(getattr(slave_state, "vehicle_id", "")),
         target_kind=str(getattr(slave_state, "kind", "vehicle")),
         t_gps_s=_t_of(master_state),
-        rel_pos_body_m=r_b, rel_pos_sd_m=pos_sd, rel_vel_body_mps=v_rel, rel_acc_body_mps2=a_rel,
-        rel_rpy_rad=euler_from_dcm(C_ms), range_m=rng, range_sd_m=range_sd, bearing_rad=bearing,
-        elevation_rad=elevation, longitudinal_m=float(d_xy[0]), lateral_m=float(d_xy[1]),
-        gap_m=gap, closing_speed_mps=closing, ttc_s=ttc)
+        rel_pos_body_m=np.array(r_b), rel_pos_sd_m=np.array(pos_sd), rel_vel_body_mps=np.array(v_rel),
+        rel_acc_body_mps2=np.array(a_rel), rel_rpy_rad=np.array(_euler(C_ms)), range_m=rng,
+        range_sd_m=range_sd, bearing_rad=bearing, elevation_rad=elevation, longitudinal_m=float(d_xy[0]),
+        lateral_m=float(d_xy[1]), gap_m=gap, closing_speed_mps=closing, ttc_s=ttc)
 
 
 def evaluate_target(master_state: Any, slave_msg: StateMessage, master_point: Any = None,
