@@ -126,3 +126,30 @@ def _write_raw(tmp_path, doc):
     p = tmp_path / "raw.geojson"
     p.write_text(json.dumps(doc))
     return p
+
+
+def test_scene_results_go_out_on_can_and_udp(tmp_path):
+    import uuid
+
+    import can
+
+    from v2xpos.output.can import CanOutput, decode_frames
+    from v2xpos.output.udp import build_datagram, parse_datagram, records_from_scene
+    feats = [feature("LineString", lonlat([[-50, 1.8, 0], [50, 1.8, 0]]), id="edge"),
+             feature("Point", lonlat([20.0, 0.0, 0.0])[0], id="cone")]
+    res = Scene.load(write(tmp_path, feats), strict=True).evaluate(master(v=(10.0, 0.0, 0.0)))
+    channel = f"scene-{uuid.uuid4().hex}"
+    rx = can.Bus(channel=channel, interface="virtual")
+    with CanOutput(channel=channel, interface="virtual") as out:
+        assert out.send_scene(res) == 2
+    frames = []
+    while (f := rx.recv(timeout=0.05)) is not None:
+        frames.append(f)
+    rx.shutdown()
+    dec = decode_frames(frames)
+    assert dec["lanes"][0]["LateralDist"] == pytest.approx(1.8, abs=1e-3)
+    assert dec["objects"][0]["Distance"] == pytest.approx(20.0, abs=1e-3)
+    assert dec["objects"][0]["TTC"] == pytest.approx(2.0, abs=0.01)
+    lanes, objects = records_from_scene(res)
+    d = parse_datagram(build_datagram([], 1, 0.0, lanes, objects))
+    assert d.lanes[0].lateral_m == pytest.approx(1.8, abs=1e-3) and d.objects[0].ttc_s == pytest.approx(2.0, abs=1e-3)

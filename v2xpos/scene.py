@@ -204,6 +204,9 @@ class Scene:
             self._pt_h = lla[:, 2]
         self.object_index = np.array([f.index for f in self.objects], dtype=int)
         self.object_kind = np.array([KIND_POINT] * len(self.points) + [KIND_POLYGON] * len(self.polygons), int)
+        self.lane_ids = [f.id for f in self.lanes]
+        self.lane_index = np.array([f.index for f in self.lanes], dtype=int)
+        self.object_ids = [f.id for f in self.objects]
 
     @staticmethod
     def _segments(features: list, closed: bool) -> dict | None:
@@ -266,7 +269,9 @@ class Scene:
         p_b = np.zeros(3) if measurement_point_body_m is None else np.asarray(measurement_point_body_m, float)
         p_n = C_nb @ p_b
         w_b = np.asarray(master_state.rate_body_rps, float)
-        v_p = np.asarray(master_state.v_ned_mps, float) + C_nb @ np.cross(w_b, p_b)
+        w_x_p = np.array([w_b[1] * p_b[2] - w_b[2] * p_b[1], w_b[2] * p_b[0] - w_b[0] * p_b[2],
+                          w_b[0] * p_b[1] - w_b[1] * p_b[0]])
+        v_p = np.asarray(master_state.v_ned_mps, float) + C_nb @ w_x_p
         p2, v2 = p_n[:2], v_p[:2]
         yaw = float(master_state.rpy_rad[2])
         cy, sy = math.cos(yaw), math.sin(yaw)
@@ -283,8 +288,8 @@ class Scene:
             s = np.where(right >= 0.0, 1.0, -1.0)
             with np.errstate(invalid="ignore", divide="ignore"):
                 rate = -s * (D @ v2) / dist
-            out.lane_ids = [f.id for f in self.lanes]
-            out.lane_index = np.array([f.index for f in self.lanes], int)
+            out.lane_ids = self.lane_ids
+            out.lane_index = self.lane_index
             out.lane_lateral_m = s * dist
             out.lane_lateral_speed_mps = np.where(dist > 0, rate, 0.0)
 
@@ -320,7 +325,7 @@ class Scene:
             with np.errstate(invalid="ignore", divide="ignore"):
                 closing = np.where(norm > 0, (D @ v2) / norm, 0.0)
                 ttc = np.where(closing > CLOSING_EPS_MPS, dist / closing, np.nan)
-            out.object_ids = [f.id for f in self.objects]
+            out.object_ids = self.object_ids
             out.object_index = self.object_index
             out.object_kind = self.object_kind
             out.object_distance_m = dist

@@ -9,7 +9,9 @@ Public API (stable)
 * ``CanOutput(channel, interface, dbc_path=None, n_slots=64, bus=None)``:
   ``frames_for_result(res, slot)``, ``send_result(res, slot=None)`` (slot from its SlotTable),
   ``send_lanes(ids, lateral_m, lateral_speed_mps)``, ``send_objects(ids, distance_m, bearing_rad,
-  ttc_s)``, ``send_master_status(n_targets, master_fix, t_gps_s)``, ``frames_sent``, ``close()``.
+  ttc_s)``, ``send_scene(scene_result)``, ``send_master_status(n_targets, master_fix, t_gps_s)``,
+  ``frames_sent``, ``close()``. OBJECT frames are indexed by position in ``Scene.objects``
+  (points, then polygons); LANE frames by the lane's feature index in the GeoJSON file.
 * ``decode_frames(frames, db=None) -> dict`` -- {"targets": {slot: {...}}, "lanes": {index: {...}},
   "objects": {index: {...}}, "master": {...}}, signal names without the slot prefix and
   physical values; a TTC of "none" decodes as None.
@@ -295,6 +297,13 @@ class CanOutput:
     def send_objects(self, ids: Sequence[int], distance_m: Sequence[float], bearing_rad: Sequence[float],
                      ttc_s: Sequence[float | None]) -> int:
         return self._send(self.object_frames(ids, distance_m, bearing_rad, ttc_s))
+
+    def send_scene(self, scene_result: Any) -> int:
+        """Send a ``scene.SceneResult``: one LANE frame per lane line, one OBJECT frame per object."""
+        n = self.send_lanes(scene_result.lane_index, scene_result.lane_lateral_m,
+                            scene_result.lane_lateral_speed_mps)
+        return n + self.send_objects(range(len(scene_result.object_ids)), scene_result.object_distance_m,
+                                     scene_result.object_bearing_rad, scene_result.object_ttc_s)
 
     def send_master_status(self, n_targets: int, master_fix: int, t_gps_s: float) -> int:
         n = self._send([self.master_frame(n_targets, master_fix, t_gps_s)])

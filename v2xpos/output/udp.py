@@ -7,7 +7,8 @@ Public API (stable)
   not loopback are refused unless ``allow_remote=True``.
 * ``build_datagram(results, seq, t_gps_s, lanes=None, objects=None) -> bytes`` and
   ``parse_datagram(data) -> UdpDatagram`` (raises ``UdpFormatError(reason, offset)``).
-* ``LaneRecord``, ``ObjectRecord`` -- scene records.
+* ``LaneRecord``, ``ObjectRecord`` -- scene records; ``records_from_scene(scene_result)
+  -> (lanes, objects)``.
 
 Layout (all little-endian; docs/protocol.md §6):
 header ``<4sBBHHHId`` (24 bytes): magic b"V2XR", version 1, flags 0, n_targets, n_lanes,
@@ -22,7 +23,7 @@ import math
 import socket
 import struct
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -77,6 +78,17 @@ class UdpDatagram:
     targets: list = field(default_factory=list)
     lanes: list = field(default_factory=list)
     objects: list = field(default_factory=list)
+
+
+def records_from_scene(scene_result: Any) -> tuple:
+    """(lanes, objects) records of a ``scene.SceneResult`` (object index = position in Scene.objects)."""
+    r = scene_result
+    lanes = [LaneRecord(int(i), float(d), float(s))
+             for i, d, s in zip(r.lane_index, r.lane_lateral_m, r.lane_lateral_speed_mps)]
+    objects = [ObjectRecord(k, int(kind), float(d), float(b), float(t), float(c))
+               for k, (kind, d, b, t, c) in enumerate(zip(r.object_kind, r.object_distance_m, r.object_bearing_rad,
+                                                          r.object_ttc_s, r.object_closing_speed_mps))]
+    return lanes, objects
 
 
 def _nan(x: float | None) -> float:
