@@ -175,3 +175,31 @@ def test_long_range_target_uses_master_ned():
     res = relative_kinematics(m, s)
     np.testing.assert_allclose(res.rel_pos_body_m, s_ned, atol=1e-6)
     np.testing.assert_allclose(res.rel_vel_body_mps, 0, atol=1e-3)
+
+
+from hypothesis import given, settings, strategies as st  # noqa: E402
+
+angle = st.floats(-math.pi, math.pi)
+small = st.floats(-0.5, 0.5)
+
+
+@settings(max_examples=60, deadline=None)
+@given(ned=st.tuples(st.floats(-500, 500), st.floats(-500, 500), st.floats(-20, 20)),
+       rpy_m=st.tuples(small, small, angle), rpy_s=st.tuples(small, small, angle),
+       v_m=st.tuples(st.floats(-40, 40), st.floats(-40, 40), st.floats(-1, 1)),
+       v_s=st.tuples(st.floats(-40, 40), st.floats(-40, 40), st.floats(-1, 1)),
+       w_m=st.tuples(small, small, small), w_s=st.tuples(small, small, small))
+def test_swapping_master_and_target_is_consistent(ned, rpy_m, rpy_s, v_m, v_s, w_m, w_s):
+    """Seen from the target, the master sits at -C_sm r_b with the inverse relative attitude and
+    (by the rotating-frame formula) velocity -C_sm (v_rel + w_m x r_b) - w_s x r_sm."""
+    m = state(rpy=rpy_m, v_ned=v_m, rate_b=w_m, vid="m")
+    s = state(ned_m=ned, rpy=rpy_s, v_ned=v_s, rate_b=w_s, vid="s")
+    ab, ba = relative_kinematics(m, s), relative_kinematics(s, m)
+    C_ms = operator_T(ab.rel_rpy_rad[2], ab.rel_rpy_rad[1], ab.rel_rpy_rad[0])
+    C_sm = operator_T(ba.rel_rpy_rad[2], ba.rel_rpy_rad[1], ba.rel_rpy_rad[0])
+    np.testing.assert_allclose(C_ms @ C_sm, np.eye(3), atol=1e-9)
+    np.testing.assert_allclose(ba.rel_pos_body_m, -C_ms.T @ ab.rel_pos_body_m, atol=1e-6)
+    assert ba.range_m == pytest.approx(ab.range_m, abs=1e-6)
+    v_inertial_b = ab.rel_vel_body_mps + np.cross(w_m, ab.rel_pos_body_m)   # C_bn (v_s - v_m)
+    expect = -C_ms.T @ v_inertial_b - np.cross(w_s, ba.rel_pos_body_m)
+    np.testing.assert_allclose(ba.rel_vel_body_mps, expect, atol=1e-6)
