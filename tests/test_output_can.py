@@ -113,6 +113,15 @@ def test_slot_table_is_stable_and_bounded():
     assert slots.slot_of("d") == 1 and len(slots) == 3
 
 
-def test_unknown_frame_counted():
-    dec = decode_frames([can.Message(arbitration_id=0x7FF, data=bytes(8), is_extended_id=False)])
+def test_unknown_and_short_frames_counted_not_fatal():
+    dec = decode_frames([can.Message(arbitration_id=0x7FF, data=bytes(8), is_extended_id=False),
+                         can.Message(arbitration_id=0x240, data=bytes(3), is_extended_id=False),
+                         can.Message(arbitration_id=0x380, data=bytes([2, 0, 1, 0, 0, 0, 0, 0]), is_extended_id=False)])
     assert dec["unknown"] == 1
+    assert len(dec["malformed"]) == 1 and "0x240" in dec["malformed"][0] and "3 data bytes" in dec["malformed"][0]
+    assert dec["lanes"][2]["LateralDist"] == pytest.approx(0.001)
+
+
+def test_slot_count_bounded_by_dbc():
+    with pytest.raises(ValueError, match="n_slots"):
+        CanOutput(channel="x", interface="virtual", n_slots=65)

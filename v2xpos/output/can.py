@@ -195,6 +195,8 @@ class CanOutput:
 
     def __init__(self, channel: str = "vcan0", interface: str = "virtual", dbc_path: str | Path | None = None,
                  n_slots: int = N_SLOTS, bus: can.BusABC | None = None, **bus_kwargs: Any):
+        if not 1 <= n_slots <= N_SLOTS:
+            raise ValueError(f"n_slots must be 1..{N_SLOTS} (the DBC defines {N_SLOTS} target slots), got {n_slots}")
         self.db = load_dbc(dbc_path)
         self.n_slots = n_slots
         self.slots = SlotTable(n_slots)
@@ -322,18 +324,22 @@ class CanOutput:
 
 
 def decode_frames(frames: Iterable[can.Message], db: Any = None) -> dict:
-    """Decode frames with the DBC into {"targets", "lanes", "objects", "master", "unknown"}.
+    """Decode frames with the DBC into {"targets", "lanes", "objects", "master", "unknown", "malformed"}.
 
     targets: {slot: {signal: value}} merged over a slot's frames (later frames win);
-    lanes/objects: {index: {signal: value}}; TTC "none" -> None; unknown ids are counted.
+    lanes/objects: {index: {signal: value}}; TTC "none" -> None; unknown ids are counted;
+    frames of the wrong length are skipped and described in "malformed".
     """
     db = db if db is not None else load_dbc()
-    out: dict = {"targets": {}, "lanes": {}, "objects": {}, "master": {}, "unknown": 0}
+    out: dict = {"targets": {}, "lanes": {}, "objects": {}, "master": {}, "unknown": 0, "malformed": []}
     for f in frames:
         try:
             msg = db.get_message_by_frame_id(f.arbitration_id)
         except KeyError:
             out["unknown"] += 1
+            continue
+        if len(f.data) != msg.length:
+            out["malformed"].append(f"id 0x{f.arbitration_id:03X}: {len(f.data)} data bytes, expected {msg.length}")
             continue
         raw = msg.decode(bytes(f.data), decode_choices=False, scaling=False)
         vals = msg.decode(bytes(f.data), decode_choices=False)
