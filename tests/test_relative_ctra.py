@@ -157,3 +157,13 @@ def test_closed_form_covariance_equals_full_9x9_propagation():
     pred = predict_state(msg, dt, acc_sd_mps2=sa, rate_sd_rps=sw)
     np.testing.assert_allclose(np.concatenate([pred.pos_sd_m, pred.vel_sd_mps, pred.att_sd_rad]),
                                np.sqrt(np.diag(P)), rtol=1e-6)
+
+
+def test_predict_nav_state_same_as_message():
+    msg = target_at_origin(2.0)
+    nav = msg.to_nav_state()
+    p_msg, p_nav = predict_state(msg, 0.1), predict_state(nav, 0.1)
+    assert type(p_nav) is type(nav) and p_nav.t_s == pytest.approx(msg.t_gps_s + 0.1)
+    np.testing.assert_allclose(p_nav.lla, p_msg.lla, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(p_nav.pos_sd_m, p_msg.pos_sd_m)
+    np.testing.assert_allclose(nav.lla, msg.lla)      # input untouched

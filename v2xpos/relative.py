@@ -8,7 +8,8 @@ Public API (stable; composed by the master service)
   ``fix_failed_side(master_fix, slave_fix) -> FixSide``
 * ``check_latency(master_t_gps_s, slave_t_gps_s, timeout_s=0.2, future_tolerance_s=0.02)
   -> (TargetStatus, latency_s)``
-* ``predict_state(msg, dt_s, acc_sd_mps2=..., rate_sd_rps=...) -> StateMessage`` (CTRA)
+* ``predict_state(state, dt_s, acc_sd_mps2=..., rate_sd_rps=...)`` -> same type (StateMessage or
+  NavState), CTRA latency compensation with covariance
 * ``relative_kinematics(master_state, slave_state, master_points=None, slave_points=None)
   -> RelativeResult``
 * ``evaluate_target(master_state, slave_msg, master_point=None, timeout_s=0.2, ...)
@@ -237,7 +238,7 @@ def _row_sq(M: tuple) -> tuple:
             M[6] * M[6] + M[7] * M[7] + M[8] * M[8])
 
 
-def predict_state(msg: StateMessage, dt_s: float, acc_sd_mps2: float = DEFAULT_ACC_SD_MPS2,
+def predict_state(msg: Any, dt_s: float, acc_sd_mps2: float = DEFAULT_ACC_SD_MPS2,
                   rate_sd_rps: float = DEFAULT_RATE_SD_RPS) -> StateMessage:
     """Latency compensation: the target state predicted by dt_s [s] with CTRA (``ctra_increments``).
 
@@ -250,13 +251,14 @@ def predict_state(msg: StateMessage, dt_s: float, acc_sd_mps2: float = DEFAULT_A
         noise rate_sd_rps through (0, 0, C(t) dt); the returned sds are sqrt(diag P') (computed
         in closed form per block). Attitude sd (roll, pitch, yaw) is treated as the nav-frame
         attitude error (small tilt). The result keeps ids, fix, geometry; t_gps_s advances by dt_s;
-        acceleration and rate are held constant.
+        acceleration and rate are held constant. Works on a StateMessage or a NavState (e.g. to
+        bring the master's own state to the current time) and returns the same type.
     """
     dt = float(dt_s)
     C = _dcm(*_tup(msg.rpy_rad))
     dr, v_new, C_new, (s_r, s_v), (CG1, CG2) = _ctra(_tup(msg.v_ned_mps), C, _tup(msg.acc_body_mps2),
                                                      _tup(msg.rate_body_rps), dt)
-    lat, lon, h = float(msg.lat_rad), float(msg.lon_rad), float(msg.height_m)
+    lat, lon, h = _lla_of(msg)
     sl = math.sin(lat)
     w = 1.0 - E2 * sl * sl
     r_n = A_M / math.sqrt(w)
@@ -276,16 +278,20 @@ def predict_state(msg: StateMessage, dt_s: float, acc_sd_mps2: float = DEFAULT_A
     var_v = [p_v[i] + sv[i] + qa * dt2 * gv[i] for i in range(3)]
     var_a = [p_a[i] + qw for i in range(3)]
 
-    out = StateMessage.__new__(StateMessage)
+    out = type(msg).__new__(type(msg))
     out.__dict__.update(msg.__dict__)
-    out.t_gps_s = msg.t_gps_s + dt
-    out.lat_rad, out.lon_rad, out.height_m = lat_new, lon_new, h - dr[2]
+    if isinstance(msg, StateMessage):
+        out.t_gps_s = msg.t_gps_s + dt
+        out.lat_rad, out.lon_rad, out.height_m = lat_new, lon_new, h - dr[2]
+        out.signed_payload = None
+    else:
+        out.t_s = msg.t_s + dt
+        out.lla = np.array((lat_new, lon_new, h - dr[2]))
     out.v_ned_mps = np.array(v_new)
     out.rpy_rad = np.array(_euler(C_new))
     out.pos_sd_m = np.sqrt(var_r)
     out.vel_sd_mps = np.sqrt(var_v)
     out.att_sd_rad = np.sqrt(var_a)
-    out.signed_payload = None
     return out
 
 
