@@ -257,9 +257,11 @@ class MasterPipeline:
         return out
 
     # ------------------------------------------------------------------ summaries
-    def summary(self) -> dict:
-        """Counters and per-target status for monitors (JSON-serialisable)."""
+    def summary(self, window: int | None = None) -> dict:
+        """Counters and per-target status for monitors (JSON-serialisable); latency percentiles over
+        the last ``window`` messages (None = all)."""
         def pct(a: list, q: float) -> float | None:
+            a = a if window is None else a[-window:]
             return float(np.percentile(a, q)) if a else None
         return {
             "processed": self.processed, "rejected": dict(self.rejected),

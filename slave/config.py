@@ -9,7 +9,7 @@ Example (``configs/slave_t1.toml``)::
     duration_s = 40        # stop at scenario epoch + duration (omit: run until SIGTERM/SIGINT)
 
     [link]                 # v2xpos.link.LinkConfig
-    mode = "client"
+    mode = "peer"           # opens at once, connects when the router is up
     connect = ["tcp/127.0.0.1:7447"]
 
     [source]
@@ -53,6 +53,8 @@ def load_toml(path: str | Path) -> dict:
         raise ConfigError(f"{p}: file not found") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    except UnicodeDecodeError as exc:  # added by trust/resilience (fuzz finding): name the file
+        raise ConfigError(f"{p}: not UTF-8 text: {exc}") from None
 
 
 def take(table: dict, key: str, kind: type | tuple, default: Any, where: str) -> Any:
@@ -109,7 +111,7 @@ class SlaveConfig:
     vehicle_id: str = "t1"
     rate_hz: float = 100.0
     duration_s: float | None = None
-    link: LinkConfig = field(default_factory=lambda: LinkConfig(mode="client"))
+    link: LinkConfig = field(default_factory=lambda: LinkConfig(mode="peer", connect=["tcp/127.0.0.1:7447"]))
     source: SourceConfig = field(default_factory=SourceConfig)
     latency_ms: float | None = None
     jitter_ms: float | None = None
@@ -138,7 +140,7 @@ class SlaveConfig:
         check_keys(sec, {"key_file"}, f"{path}: [security]")
         cfg = cls(fleet=take(s, "fleet", str, "demo", w), vehicle_id=take(s, "vehicle_id", str, "t1", w),
                   rate_hz=rate, duration_s=take(s, "duration_s", float, None, w),
-                  link=link_from_table(take(d, "link", dict, {"mode": "client"}, path), f"{path}: [link]"),
+                  link=link_from_table(take(d, "link", dict, {"mode": "peer", "connect": ["tcp/127.0.0.1:7447"]}, path), f"{path}: [link]"),
                   source=SourceConfig.from_table(take(d, "source", dict, {}, path), f"{path}: [source]"),
                   latency_ms=take(imp, "latency_ms", float, None, wi),
                   jitter_ms=take(imp, "jitter_ms", float, None, wi),

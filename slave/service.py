@@ -50,7 +50,7 @@ class _Stop:
 
 
 def run_slave(cfg: SlaveConfig, start_unix_s: float | None = None, stop: _Stop | None = None,
-              log=sys.stderr) -> dict:
+              start_file: str | None = None) -> dict:
     """Run until the configured duration ends or ``stop.flag``; returns the counters."""
     stop = stop or _Stop()
     start = float(cfg.source.start_unix_s if start_unix_s is None else start_unix_s)
@@ -76,9 +76,17 @@ def run_slave(cfg: SlaveConfig, start_unix_s: float | None = None, stop: _Stop |
     end_gps = epoch + cfg.duration_s if cfg.duration_s is not None else math.inf
     gps_of = (lambda wall: epoch + (wall - start))
     wall_of = (lambda t: start + (t - epoch))
+    source.warm_up()
     link = Link(cfg.link)
     pub = link.publisher(state_key(cfg.fleet, cfg.vehicle_id))
     imu_pub = link.publisher(imu_key(cfg.fleet, cfg.vehicle_id), express=False) if cfg.publish_imu else None
+    if start_file is not None:
+        from sim.launcher import signal_ready_and_wait
+        got = signal_ready_and_wait(start_file, cfg.vehicle_id, stop=stop)
+        if got is None:
+            link.close()
+            raise ConfigError(f"no start stamp in {start_file} (timeout or stopped)")
+        start = got
     queue: deque = deque()
     seq = 0
     last_send_wall = 0.0
@@ -156,6 +164,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", required=True, help="slave TOML file (see configs/slave_*.toml)")
     parser.add_argument("--start", type=float, default=None,
                         help="wall time (Unix s) of the scenario epoch, shared by all processes")
+    parser.add_argument("--start-file", default=None,
+                        help="start handshake: signal <file>.ready.<id>, then read the start stamp from <file>")
     parser.add_argument("--summary", default=None, help="write the final counters to this JSON file")
 
 
@@ -169,7 +179,7 @@ def run(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
     try:
-        counters = run_slave(cfg, args.start, stop)
+        counters = run_slave(cfg, args.start, stop, args.start_file)
     except ConfigError as exc:
         print(f"v2xpos slave: {exc}", file=sys.stderr)
         return 2

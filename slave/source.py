@@ -59,16 +59,31 @@ class _SimSensors:
 class InsSimSource:
     """Simulated sensors of one actor through the real GNSS/INS filter (see module docstring)."""
 
-    def __init__(self, sc: Scenario, actor: Actor, platform: str | None = None):
+    def __init__(self, sc: Scenario, actor: Actor, platform: str | None = None, effects: tuple = ()):
         from v2xpos.ins import InsConfig, InsFilter
         self.name = "ins"
         self.actor = actor
         self.sensors = _SimSensors(sc, actor)
         plat = platform or ("pedestrian" if actor.kind == "pedestrian" else "car")
         self.filter = InsFilter(InsConfig(platform=plat, imu_to_body=np.eye(3),
-                                          lever_arm_m=np.asarray(actor.lever_arm_m, float)))
+                                          lever_arm_m=np.asarray(actor.lever_arm_m, float),
+                                          effects=tuple(effects)))
         self._init_rng = np.random.default_rng(actor.seed + 7)
         self.initialized = False
+        self._make_filter = lambda: InsFilter(self.filter.cfg)
+
+    def warm_up(self) -> None:
+        """Run a throw-away filter over 0.3 s of data so JIT compilation (or loading the numba cache)
+        happens before real time starts."""
+        f = self._make_filter()
+        imu, gnss = self.sensors.imu, self.sensors.gnss
+        s = self.actor.truth.sample(float(imu.t_s[0]))
+        f.initialize(float(imu.t_s[0]), s["lla"][0], s["v_ned_mps"][0], s["rpy_rad"][0])
+        for k in range(1, 31):
+            f.process_imu(float(imu.t_s[k]), imu.acc_mps2[k], imu.gyro_rps[k])
+        f.update_gnss(float(gnss.t_s[1]), gnss.lla[1], gnss.sd_ned_m[1], FixStatus(int(gnss.fix[1])),
+                      vel_ned_mps=gnss.vel_ned_mps[1], vel_sd_ned_mps=gnss.vel_sd_ned_mps[1])
+        f.nav_state()
 
     def _initialize(self, t_s: float) -> None:
         s = self.actor.truth.sample(t_s)
@@ -118,6 +133,9 @@ class TruthNoiseSource:
         self.rng = np.random.default_rng(actor.seed)
         self.gm = np.zeros(3)
         self.next_t: float | None = None
+
+    def warm_up(self) -> None:
+        """Nothing to compile."""
 
     def _fix(self, t_s: float) -> FixStatus:
         rel = t_s - self.epoch

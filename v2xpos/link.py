@@ -10,8 +10,10 @@ Configuration (zenoh 1.x JSON5 keys, see the zenoh ``DEFAULT_CONFIG.json5``):
   traffic at all, peers only know the endpoints they are given;
 * ``connect/retry``: reconnection period starts at ``retry_init_ms`` (default 100 ms), grows by
   ``retry_factor`` up to ``retry_max_ms`` (default 500 ms), so a client whose router restarts
-  resumes delivery within about half a second; ``connect/timeout_ms = -1`` with
-  ``exit_on_failure = false`` keeps trying forever instead of failing ``zenoh.open``.
+  resumes delivery within about half a second; ``exit_on_failure = false``: a ``peer`` opens at
+  once and connects in the background when its router comes up (a ``client`` cannot open without
+  a reachable router unless ``connect_timeout_ms = -1``, which blocks until one answers). The
+  services therefore use ``peer`` for slaves by default.
 
 Key expressions live in ``v2xpos.wire`` (``state_key``, ``relative_key``, ``imu_key``) and are
 re-exported here together with the service keys (``status_key``, ``grades_key``).
@@ -64,7 +66,8 @@ class LinkConfig:
     """Zenoh session settings of one service.
 
     mode: router | peer | client. listen / connect: explicit locators (``tcp/127.0.0.1:PORT``).
-    retry_*: reconnection back-off [ms]. extra_json5: further ``key -> JSON value`` insertions
+    retry_*: reconnection back-off [ms]. connect_timeout_ms: zenoh ``connect/timeout_ms`` (None =
+    zenoh default; -1 = wait forever). extra_json5: further ``key -> JSON value`` insertions
     applied last (e.g. TLS ``transport/link/tls/...``), for options this class does not name.
     """
     mode: str = "peer"
@@ -73,6 +76,7 @@ class LinkConfig:
     retry_init_ms: int = 100
     retry_max_ms: int = 500
     retry_factor: float = 1.5
+    connect_timeout_ms: int | None = None
     extra_json5: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -85,7 +89,8 @@ class LinkConfig:
     @classmethod
     def from_dict(cls, d: dict, where: str = "[link]") -> "LinkConfig":
         """Build from a TOML/JSON table; unknown keys are rejected with their location."""
-        known = {"mode", "listen", "connect", "retry_init_ms", "retry_max_ms", "retry_factor", "extra_json5"}
+        known = {"mode", "listen", "connect", "retry_init_ms", "retry_max_ms", "retry_factor",
+                 "connect_timeout_ms", "extra_json5"}
         unknown = set(d) - known
         if unknown:
             raise ValueError(f"{where}: unknown key(s) {sorted(unknown)}; allowed {sorted(known)}")
@@ -108,7 +113,8 @@ class LinkConfig:
         c.insert_json5("scouting/gossip/enabled", "false")
         c.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
         c.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
-        c.insert_json5("connect/timeout_ms", "-1")
+        if self.connect_timeout_ms is not None:
+            c.insert_json5("connect/timeout_ms", str(int(self.connect_timeout_ms)))
         c.insert_json5("connect/exit_on_failure", "false")
         retry = {"period_init_ms": int(self.retry_init_ms), "period_max_ms": int(self.retry_max_ms),
                  "period_increase_factor": float(self.retry_factor)}

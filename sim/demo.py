@@ -1,0 +1,229 @@
+"""``v2xpos demo [--vehicles N] [--duration S] [--latency-ms L] [--out DIR]``: the main job end to end.
+
+Starts the master and N-1 slaves plus one pedestrian as separate OS processes on loopback (zenoh
+router embedded in the master on ``tcp/127.0.0.1:<free port>``, multicast scouting off), driven
+by the ``sim.scenarios.convoy`` scenario (curves, braking, a cut-in, fix degradation
+fixed->float->single->fixed, link delay + jitter + a delay spike). Every process runs the INS
+filter on its own simulated sensors. Shows a live table (``sim.live_table``), then writes
+``DIR/report.json`` and plots (relative position error vs time, range, latency histogram,
+statuses) from the master's recorded results evaluated against the scenario truth
+(``sim.evaluate``).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sim import evaluate
+from sim.launcher import Fleet, FleetPlan, free_tcp_port, free_udp_port, release_when_ready, write_configs
+from sim.scenarios import build
+
+STARTUP_LEAD_S = 1.5
+"""Wall time between the last process signalling ready and the scenario epoch (the filters start
+``WARMUP_S`` = 1 s before the epoch)."""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--vehicles", type=int, default=4, help="vehicles including the master (default 4)")
+    parser.add_argument("--duration", type=float, default=40.0, help="scenario duration [s] (default 40)")
+    parser.add_argument("--latency-ms", type=float, default=100.0, help="injected link latency [ms] (default 100)")
+    parser.add_argument("--jitter-ms", type=float, default=5.0, help="injected link jitter 1-sigma [ms] (default 5)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", default="out/demo", help="output directory (report.json, plots, logs)")
+    parser.add_argument("--source", choices=["ins", "truth_noise"], default="ins",
+                        help="state source of every vehicle (default ins: the real filter)")
+    parser.add_argument("--no-pedestrian", action="store_true")
+    parser.add_argument("--no-degradations", action="store_true", help="no fix degradation on any target")
+    parser.add_argument("--no-spikes", action="store_true", help="no link delay spike")
+    parser.add_argument("--no-live", action="store_true", help="do not show the live table")
+    parser.add_argument("--port", type=int, default=0, help="router TCP port on 127.0.0.1 (0 = ask the OS)")
+
+
+def run_demo(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 100.0, jitter_ms: float = 5.0,
+             seed: int = 0, out: str | Path = "out/demo", source: str = "ins", pedestrian: bool = True,
+             degradations: bool = True, spikes: bool = True, live: bool = True, port: int = 0,
+             plots: bool = True, log=sys.stderr) -> dict:
+    """Run the multi-process demo and return the report dict (also written to out/report.json)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    sc = build("convoy", vehicles=vehicles, duration_s=duration_s, latency_ms=latency_ms, jitter_ms=jitter_ms,
+               seed=seed, pedestrian=pedestrian, degradations=degradations, spikes=spikes)
+    plan = FleetPlan(out_dir=out, router_port=port or free_tcp_port(), udp_port=free_udp_port(), source_type=source)
+    write_configs(sc, plan, duration_s)
+    for stale in (plan.results_npz, plan.summary_json):
+        if stale is not None and stale.exists():
+            stale.unlink()
+    start_file = out / "start_stamp"
+    for old in out.glob("start_stamp*"):
+        old.unlink()
+    fleet = Fleet(plan, sc.master_id, start_file)
+    print(f"demo: {len(sc.actors)} processes ({vehicles} vehicles + {'1 pedestrian' if pedestrian else 'no pedestrian'}),"
+          f" router tcp/127.0.0.1:{plan.router_port}, duration {duration_s:.0f} s,"
+          f" latency {latency_ms:.0f} ms, source {source}", file=log, flush=True)
+    t_launch = time.time()
+    fleet.start()
+    start = release_when_ready(start_file, list(plan.configs), lead_s=STARTUP_LEAD_S, fleet=fleet)
+    print(f"demo: all processes ready after {start - STARTUP_LEAD_S - t_launch:.1f} s; scenario epoch at start stamp",
+          file=log, flush=True)
+    table = None
+    try:
+        if live:
+            from sim.live_table import LiveTable
+            from v2xpos.link import LinkConfig
+            table = LiveTable(LinkConfig(mode="peer", connect=[f"tcp/127.0.0.1:{plan.router_port}"]),
+                              plan.fleet, sc.master_id, scenario=sc)
+        deadline = start + duration_s + 30.0
+        while fleet.running() and time.time() < deadline:
+            time.sleep(0.5)
+            if table is not None:
+                table.refresh()
+        codes = fleet.stop()
+    finally:
+        if table is not None:
+            table.close()
+        if fleet.running():
+            fleet.stop()
+    report = make_report(sc, plan, duration_s, codes)
+    report["latency_ms_injected"] = latency_ms
+    (out / "report.json").write_text(json.dumps(report, indent=1))
+    if plots:
+        make_plots(sc, plan, out)
+    return report
+
+
+def make_report(sc, plan: FleetPlan, duration_s: float, exit_codes: dict) -> dict:
+    """report.json content (keys documented in docs/services.md)."""
+    summary = json.loads(plan.summary_json.read_text()) if plan.summary_json and plan.summary_json.exists() else {}
+    rows = {}
+    if plan.results_npz and plan.results_npz.exists():
+        with np.load(plan.results_npz) as z:
+            rows = {k[len("target_"):]: z[k] for k in z.files if k.startswith("target_")}
+    targets = []
+    for a in sc.slaves:
+        r = rows.get(a.actor_id, np.zeros((0, len(evaluate.RECORD_FIELDS))))
+        entry = evaluate.evaluate_target(sc, a.actor_id, r, sc.epoch_gps_s)
+        entry["rejected"] = (summary.get("targets", {}).get(a.actor_id, {}) or {}).get("rejected", {})
+        entry["fix_schedule_rel_s"] = [[t0, t1, st.name.lower()] for t0, t1, st in a.fix_schedule]
+        entry["delay_spikes_rel_s"] = [list(s) for s in a.link.spikes]
+        targets.append(entry)
+    clean = [t for t in targets if not t["fix_schedule_rel_s"] and t["rel_pos_err_rms_m"] is not None]
+    return {
+        "vehicles": sum(1 for a in sc.actors.values() if a.kind == "vehicle"),
+        "duration_s": duration_s,
+        "source": plan.source_type,
+        "targets": targets,
+        "master_pipeline_ms_p50": summary.get("pipeline_ms_p50"),
+        "master_pipeline_ms_p99": summary.get("pipeline_ms_p99"),
+        "e2e_ms_p50": summary.get("e2e_ms_p50"),
+        "e2e_ms_p99": summary.get("e2e_ms_p99"),
+        "can_frames": summary.get("can_frames", 0),
+        "udp_datagrams": summary.get("udp_datagrams", 0),
+        "rejected": summary.get("rejected", {}),
+        "processed": summary.get("processed", 0),
+        "master_nav_ms_p50": summary.get("nav_ms_p50"),
+        "rel_pos_err_rms_m_rtk_fixed_targets": (float(np.sqrt(np.mean([t["rel_pos_err_rms_m"] ** 2 for t in clean])))
+                                                if clean else None),
+        "exit_codes": exit_codes,
+        "notes": ("errors against the scenario truth at the master time of each VALID result, reference point "
+                  "to reference point; latency = master GPS time - target time of validity (includes the "
+                  "injected link delay); e2e = slave publish wall time to outputs written (excludes it)"),
+    }
+
+
+def make_plots(sc, plan: FleetPlan, out: Path) -> list[Path]:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    rows = {}
+    if plan.results_npz and plan.results_npz.exists():
+        with np.load(plan.results_npz) as z:
+            rows = {k[len("target_"):]: z[k] for k in z.files if k.startswith("target_")}
+    ser = {vid: evaluate.series(sc, vid, r) for vid, r in rows.items() if vid in sc.actors}
+    paths = []
+    fig, ax = plt.subplots(figsize=(10, 5))
+    for vid, s in sorted(ser.items()):
+        ax.plot(s["t_rel_s"], s["err_m"] * 100, ".", ms=1.5, label=f"{vid} compensated")
+    for vid, s in sorted(ser.items()):
+        ax.plot(s["t_rel_s"], s["unc_err_m"] * 100, ",", alpha=0.4, label=f"{vid} uncompensated")
+    ax.set_yscale("log")
+    ax.set_xlabel("time since epoch [s]")
+    ax.set_ylabel("relative position error [cm]")
+    ax.set_title("Relative position error vs truth (VALID results)")
+    ax.legend(fontsize=6, ncol=2)
+    ax.grid(True, which="both", alpha=0.3)
+    paths.append(out / "rel_pos_error.png")
+    fig.savefig(paths[-1], dpi=120)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(10, 5))
+    for vid, s in sorted(ser.items()):
+        ok = s["status"] == 0
+        ax.plot(s["t_rel_s"][ok], s["range_m"][ok], ".", ms=1.5, label=f"{vid} master")
+        ax.plot(s["t_rel_s"], s["range_true_m"], "k-", lw=0.5)
+    ax.set_xlabel("time since epoch [s]")
+    ax.set_ylabel("range [m]")
+    ax.set_title("Range to each target (dots: master output, black: truth)")
+    ax.legend(fontsize=7)
+    ax.grid(True, alpha=0.3)
+    paths.append(out / "range.png")
+    fig.savefig(paths[-1], dpi=120)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(8, 5))
+    lat = np.concatenate([s["latency_ms"][np.isfinite(s["latency_ms"])] for s in ser.values()]) if ser else np.zeros(0)
+    if len(lat):
+        ax.hist(lat, bins=100)
+    ax.set_xlabel("latency = master time - target time of validity [ms]")
+    ax.set_ylabel("results")
+    ax.set_title("Latency histogram (includes injected link delay)")
+    paths.append(out / "latency_hist.png")
+    fig.savefig(paths[-1], dpi=120)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(10, 4))
+    names = sorted(ser)
+    colors = {0: "tab:green", 1: "tab:orange", 2: "tab:red", 3: "tab:gray", 4: "tab:purple"}
+    for i, vid in enumerate(names):
+        s = ser[vid]
+        for code, col in colors.items():
+            m = s["status"] == code
+            if m.any():
+                ax.plot(s["t_rel_s"][m], np.full(m.sum(), i), "|", color=col, ms=8)
+    ax.set_yticks(range(len(names)))
+    ax.set_yticklabels(names)
+    ax.set_xlabel("time since epoch [s]")
+    ax.set_title("Target status (green valid, orange fix_invalid, red timeout, gray no_data, purple future)")
+    paths.append(out / "status.png")
+    fig.savefig(paths[-1], dpi=120)
+    plt.close(fig)
+    return paths
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.vehicles < 2:
+        print("v2xpos demo: --vehicles must be >= 2 (master + at least one slave)", file=sys.stderr)
+        return 2
+    report = run_demo(args.vehicles, args.duration, args.latency_ms, args.jitter_ms, args.seed, args.out,
+                      args.source, not args.no_pedestrian, not args.no_degradations, not args.no_spikes,
+                      not args.no_live, args.port)
+    print(f"\nreport: {Path(args.out) / 'report.json'}")
+    for t in report["targets"]:
+        def g(k, fmt=".3f"):
+            return "-" if t.get(k) is None else format(t[k], fmt)
+        print(f"  {t['id']:<4} {t['kind']:<10} samples={t['samples']:<5} valid={t['valid_fraction']:.2f} "
+              f"rel_pos_rms={g('rel_pos_err_rms_m')} m p99={g('rel_pos_err_p99_m')} m "
+              f"uncomp_rms={g('uncompensated_rel_pos_err_rms_m')} m vel_rms={g('rel_vel_err_rms_mps')} m/s "
+              f"lat p50/p99={g('latency_ms_p50', '.1f')}/{g('latency_ms_p99', '.1f')} ms rejected={t['rejected']}")
+    print(f"  master pipeline p50/p99 = {report['master_pipeline_ms_p50']}/{report['master_pipeline_ms_p99']} ms; "
+          f"e2e p50/p99 = {report['e2e_ms_p50']}/{report['e2e_ms_p99']} ms; CAN frames {report['can_frames']}, "
+          f"UDP datagrams {report['udp_datagrams']}")
+    bad = {k: v for k, v in report["exit_codes"].items() if v != 0}
+    if bad:
+        print(f"  processes with non-zero exit: {bad} (see {Path(args.out) / 'logs'})", file=sys.stderr)
+        return 1
+    return 0
