@@ -70,17 +70,23 @@ def _mounting(opts: dict, source: str) -> dict | None:
     m = opts.get("mounting_xyz_deg")
     if m is None:
         return None
+    if not isinstance(m, dict):
+        raise ValueError(f"{source}: [grade.mounting_xyz_deg] must be a table of UNIT = [a, b, c], got {m!r}")
     out = {}
     for uid, v in m.items():
-        arr = np.asarray(v, float)
+        try:
+            arr = np.asarray(v, float)
+        except (TypeError, ValueError):
+            arr = np.zeros(0)
         if arr.shape != (3,) or not np.all(np.isfinite(arr)):
             raise ValueError(f"{source}: [grade.mounting_xyz_deg] {uid} must be three finite numbers, got {v!r}")
         out[uid] = arr
     return out
 
 
-def print_table(report: dict, out=sys.stdout) -> None:
+def print_table(report: dict, out=None) -> None:
     """One line per unit: grade, gyro RMSE and PCC per axis, clock offset, rotation, failed checks."""
+    out = out or sys.stdout
     print(f"reference: {report['reference']} ({report['reference_chosen']}), {report['n_units']} units, "
           f"{report['duration_s']:.1f} s", file=out)
     print(f"{'unit':<8} {'grade':<5} {'gyro RMSE x/y/z [dps]':<23} {'gyro PCC x/y/z':<21} "
