@@ -103,7 +103,7 @@ def test_oversize_rejected_before_parsing():
     ({"g": {"k": "polygon", "p": [0.0] * 6}}, "g.p", "three vertices"),
     ({"g": {"k": "points", "p": [0.0, 0.0, 1e4]}}, "g.p", "within 100 m"),
     ({"g": {"k": "points", "p": [0.0] * (3 * 65)}}, "g.p", "more than 64"),
-    ({"g": {"k": "circle", "p": [], "r": -0.5}}, "r", "out of range"),
+    ({"g": {"k": "circle", "p": [], "r": -0.5}}, "g.r", "out of range"),
     ({"tw": "now"}, "tw", "not a number"),
     ({"iq": [1, 2]}, "iq", "imu_quality"),
 ])
@@ -139,3 +139,16 @@ def test_mutated_fields_are_decoded_or_rejected(data):
         assert err.field is not None
     else:
         assert abs(msg.lat_rad) <= math.pi / 2 and np.all(np.isfinite(msg.v_ned_mps))
+
+
+def test_relative_kinematics_errors_are_prefixed():
+    from v2xpos.wire import RelativeResult, encode_relative_body
+    res = RelativeResult(target_id="a", fleet="f", master_id="m", rel_pos_body_m=np.ones(3), rel_pos_sd_m=np.ones(3),
+                         rel_vel_body_mps=np.ones(3), rel_acc_body_mps2=np.ones(3), rel_rpy_rad=np.zeros(3),
+                         range_m=1.7, range_sd_m=0.1, bearing_rad=0.7, elevation_rad=-0.6, longitudinal_m=1,
+                         lateral_m=1, gap_m=1.4, closing_speed_mps=0.0, ttc_s=None)
+    m = msgpack.unpackb(encode_relative_body(res), raw=False)
+    m["kin"]["rng"] = -1.0
+    with pytest.raises(WireError) as info:
+        decode_relative(pack_envelope(msgpack.packb(m, use_bin_type=True)))
+    assert info.value.field == "kin.rng"

@@ -478,7 +478,10 @@ def _geometry(m: dict) -> Geometry:
     kind = g.get("k")
     if kind not in GEOMETRY_KINDS:
         raise WireError(f"geometry kind must be one of {GEOMETRY_KINDS}", "g.k")
-    radius = _num(g, "r", 0.0, MAX_GEOMETRY_M) if "r" in g else 0.0
+    try:
+        radius = _num(g, "r", 0.0, MAX_GEOMETRY_M) if "r" in g else 0.0
+    except WireError as err:
+        raise WireError(err.reason, "g.r") from None
     p = g.get("p", [])
     if type(p) is not list or len(p) % 3:
         raise WireError("geometry points must be a flat array of 3N numbers", "g.p")
@@ -558,24 +561,32 @@ def decode_relative_body(body: bytes) -> RelativeResult:
     if status == TargetStatus.VALID:
         if type(kin) is not dict:
             raise WireError("VALID result without kinematics map", "kin")
-        big = 1.0e7
-        res.rel_pos_body_m = _vec3(kin, "p", big)
-        res.rel_pos_sd_m = _vec3(kin, "ps", MAX_SD, True)
-        res.rel_vel_body_mps = _vec3(kin, "v", 10 * MAX_SPEED_MPS)
-        res.rel_acc_body_mps2 = _vec3(kin, "a", 1e4)
-        res.rel_rpy_rad = _vec3(kin, "att", 2 * math.pi)
-        res.range_m = _num(kin, "rng", 0.0, big)
-        res.range_sd_m = _num(kin, "rng_sd", 0.0, MAX_SD)
-        res.bearing_rad = _num(kin, "brg", -math.pi, math.pi)
-        res.elevation_rad = _num(kin, "elv", -0.5 * math.pi, 0.5 * math.pi)
-        res.longitudinal_m = _num(kin, "lon_d", -big, big)
-        res.lateral_m = _num(kin, "lat_d", -big, big)
-        res.gap_m = _num(kin, "gap", 0.0, big)
-        res.closing_speed_mps = _num(kin, "cls", -10 * MAX_SPEED_MPS, 10 * MAX_SPEED_MPS)
-        res.ttc_s = _opt_num(kin, "ttc", 0.0, 1e9)
+        try:
+            _decode_kinematics(kin, res)
+        except WireError as err:
+            raise WireError(err.reason, f"kin.{err.field}") from None
     elif kin is not None:
         raise WireError("kinematics present on a non-VALID result", "kin")
     return res
+
+
+def _decode_kinematics(kin: dict, res: RelativeResult) -> None:
+    """Fill the kinematic fields of ``res`` from the ``kin`` map (field names relative to it)."""
+    big = 1.0e7
+    res.rel_pos_body_m = _vec3(kin, "p", big)
+    res.rel_pos_sd_m = _vec3(kin, "ps", MAX_SD, True)
+    res.rel_vel_body_mps = _vec3(kin, "v", 10 * MAX_SPEED_MPS)
+    res.rel_acc_body_mps2 = _vec3(kin, "a", 1e4)
+    res.rel_rpy_rad = _vec3(kin, "att", 2 * math.pi)
+    res.range_m = _num(kin, "rng", 0.0, big)
+    res.range_sd_m = _num(kin, "rng_sd", 0.0, MAX_SD)
+    res.bearing_rad = _num(kin, "brg", -math.pi, math.pi)
+    res.elevation_rad = _num(kin, "elv", -0.5 * math.pi, 0.5 * math.pi)
+    res.longitudinal_m = _num(kin, "lon_d", -big, big)
+    res.lateral_m = _num(kin, "lat_d", -big, big)
+    res.gap_m = _num(kin, "gap", 0.0, big)
+    res.closing_speed_mps = _num(kin, "cls", -10 * MAX_SPEED_MPS, 10 * MAX_SPEED_MPS)
+    res.ttc_s = _opt_num(kin, "ttc", 0.0, 1e9)
 
 
 def decode_relative(data: bytes) -> RelativeResult:
