@@ -22,9 +22,9 @@ from __future__ import annotations
 import numpy as np
 
 DEFAULT_INITIAL_SD = {
-    "imu_time_offset": 0.05,           # s
+    "imu_time_offset": 0.3,            # s: serial IMU logging delays reach hundreds of ms
     "gnss_latency": 0.05,              # s
-    "misalignment": np.radians(2.0),   # rad per axis
+    "misalignment": np.radians(10.0),  # rad per axis: "nominal" mountings are off by degrees
     "gyro_scale": 0.01,
     "accel_scale": 0.01,
     "odometer_scale": 0.05,

@@ -59,12 +59,14 @@ class InsConfig:
     gyro_bias_init_sd_rps: float = 0.01
     accel_bias_init_sd_mps2: float = 0.2
     effect_initial_sd: dict = field(default_factory=dict)
+    initial_time_offset_s: float = 0.0             # starting value of imu_time_offset (e.g. from calibrate)
+    initial_misalignment_rad: np.ndarray = field(default_factory=lambda: np.zeros(3))
     effect_random_walk: dict = field(default_factory=dict)
     # initial state uncertainty
     init_vel_sd_mps: float = 0.3
     init_level_sd_rad: float = math.radians(2.0)
     init_yaw_sd_rad: float | None = None          # None: 5 deg car, 20 deg otherwise
-    align_min_speed_mps: float | None = None      # None: 3 m/s car, 0.8 m/s otherwise
+    align_min_speed_mps: float | None = None      # None: 1 m/s car, 0.8 m/s otherwise
     # GNSS measurement model
     fix_sd_scale: dict = field(default_factory=lambda: dict(DEFAULT_FIX_SD_SCALE))
     gnss_pos_sd_floor_m: float = 0.01
@@ -75,7 +77,7 @@ class InsConfig:
     gnss_max_consecutive_rejections: int = 8
     # vehicle constraints and stops
     constraint_rate_hz: float = 10.0
-    nhc_sd_mps: tuple = (0.1, 0.1)                # lateral, vertical
+    nhc_sd_mps: tuple = (0.1, 0.5)                # lateral, vertical (body pitch varies with load/braking)
     nhc_sd_per_yaw_rate_m: float = 1.0            # adds |yaw rate| x 1 m to the lateral sd (IMU off the rear axle)
     nhc_min_speed_mps: float = 0.5
     odometer_sd_mps: float = 0.05
@@ -106,7 +108,7 @@ class InsConfig:
         if self.init_yaw_sd_rad is None:
             self.init_yaw_sd_rad = math.radians(5.0 if self.platform == "car" else 20.0)
         if self.align_min_speed_mps is None:
-            self.align_min_speed_mps = 3.0 if self.platform == "car" else 0.8
+            self.align_min_speed_mps = 1.0 if self.platform == "car" else 0.8
 
 
 class InsFilter:
@@ -130,6 +132,8 @@ class InsFilter:
         self.q_c = ekf.process_noise_density(self.layout, c)
         self.kidx = self.layout.kernel_index()
         self.fx = EffectValues(c.lever_arm_m)
+        self.fx.imu_time_offset_s = float(c.initial_time_offset_s)
+        self.fx.misalignment_rad = np.asarray(c.initial_misalignment_rad, float).reshape(3).copy()
         self.initialized = False
         self.t_stamp_s: float | None = None
         self._t_cov_s: float | None = None

@@ -1,0 +1,447 @@
+"""``v2xpos replay``: run a recorded dataset through the GNSS/INS EKF with simulated GNSS outages.
+
+Outage schedule (seconds from the first GNSS epoch): outage i covers
+``[first + i every, first + i every + length)``; GNSS is not used inside. Only outages that end
+before the last GNSS epoch count. Metrics (antenna position, horizontal/vertical):
+
+* ``outage_*``: filter antenna position at the END of each outage minus the RTK-FIXED solution
+  linearly interpolated to that time (the reference pose when the dataset has no fixed epochs);
+* ``aided_h_rms_m``: the same error while GNSS is used, just before each update, at every
+  RTK-FIXED epoch.
+
+``v2xpos bench replay`` prints throughput (IMU samples/s) end to end and per stage.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from v2xpos import geo
+from v2xpos.types import Dataset, FixStatus
+
+from .filter import InsConfig, InsFilter
+
+DEFAULT_DRIVE = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "drive_0708" / "dataset.toml"
+
+
+@dataclass
+class OutageSchedule:
+    """GNSS outages of ``length_s`` every ``every_s`` from ``first_s`` after the first GNSS epoch."""
+    length_s: float = 15.0
+    every_s: float = 45.0
+    first_s: float = 40.0
+
+    def intervals(self, t_first_s: float, t_last_s: float) -> list[tuple[float, float]]:
+        if self.length_s <= 0 or self.every_s <= 0:
+            return []
+        out, k = [], 0
+        while True:
+            a = t_first_s + self.first_s + k * self.every_s
+            b = a + self.length_s
+            if b > t_last_s:
+                return out
+            out.append((a, b))
+            k += 1
+
+
+@dataclass
+class ReplayResult:
+    """Everything a replay produced: the JSON summary and time series for plots/diagnosis."""
+    summary: dict
+    series: dict = field(default_factory=dict)
+    filter: InsFilter | None = None
+
+
+def config_for(dataset: Dataset, **overrides) -> InsConfig:
+    """InsConfig from what the dataset declares (platform, mounting, lever arm) plus overrides."""
+    platform = dataset.platform if dataset.platform in ("car", "pedestrian") else "generic"
+    kw = dict(platform=platform, imu_to_body=dataset.imu_to_body, lever_arm_m=dataset.lever_arm_m,
+              lever_arm_sd_m=dataset.lever_arm_sd_m)
+    if dataset.wheel is not None and platform == "car":
+        kw["effects"] = ("lever_arm", "imu_time_offset", "misalignment", "odometer_scale")
+    kw.update(overrides)
+    return InsConfig(**kw)
+
+
+def _interp_lla(t_q: float, t: np.ndarray, lla: np.ndarray, max_gap_s: float = 1.0) -> np.ndarray | None:
+    """Linear interpolation of a reference trajectory; None when t_q is not bracketed closely."""
+    k = int(np.searchsorted(t, t_q))
+    if k == 0 or k >= len(t):
+        if k < len(t) and abs(t[k] - t_q) < 1e-6:
+            return lla[k].copy()
+        return None
+    t0, t1 = t[k - 1], t[k]
+    if t1 - t0 > max_gap_s:
+        return None
+    a = (t_q - t0) / (t1 - t0)
+    return lla[k - 1] + a * (lla[k] - lla[k - 1])
+
+
+def _ned_error(lla_est: np.ndarray, lla_ref: np.ndarray) -> np.ndarray:
+    return geo.lla_to_ned(lla_est, lla_ref)
+
+
+def replay(dataset: Dataset, schedule: OutageSchedule | None = None, cfg: InsConfig | None = None,
+           progress: bool = True, keep_series: bool = True) -> ReplayResult:
+    """Run the filter over the whole dataset; see the module docstring for the metrics."""
+    t_wall0 = time.perf_counter()
+    schedule = schedule or OutageSchedule()
+    cfg = cfg or config_for(dataset)
+    f = InsFilter(cfg)
+    imu, gn = dataset.imu, dataset.gnss
+    t_imu = np.asarray(imu.t_s, float)
+    acc = np.ascontiguousarray(imu.acc_mps2, dtype=float)
+    gyr = np.ascontiguousarray(imu.gyro_rps, dtype=float)
+    fixed = np.asarray(gn.fix) == int(FixStatus.FIXED)
+    use_fixed_ref = fixed.sum() >= 2
+    if use_fixed_ref:
+        ref_t, ref_lla = np.asarray(gn.t_s)[fixed], np.asarray(gn.lla)[fixed]
+    elif dataset.reference is not None:
+        ref_t, ref_lla = np.asarray(dataset.reference.t_s), np.asarray(dataset.reference.lla)
+    else:
+        ref_t, ref_lla = np.zeros(0), np.zeros((0, 3))
+    outages = schedule.intervals(float(gn.t_s[0]), float(gn.t_s[-1])) if len(gn) else []
+    vel, vel_sd = gn.vel_ned_mps, gn.vel_sd_ned_mps
+    if vel is None and "gnss_vel_ne_mps" in (dataset.notes or {}):
+        ne = np.asarray(dataset.notes["gnss_vel_ne_mps"], float)
+        vel = np.column_stack([ne, np.zeros(len(ne))])
+        vel_sd = np.tile([0.2, 0.2, 1.0], (len(ne), 1))
+
+    # events: (time, kind, index); kinds: 0 gnss, 1 outage end evaluation, 2 wheel
+    ev_t = [np.asarray(gn.t_s, float), np.array([b for _, b in outages], float)]
+    ev_k = [np.zeros(len(gn), int), np.ones(len(outages), int)]
+    ev_i = [np.arange(len(gn)), np.arange(len(outages))]
+    if dataset.wheel is not None and cfg.platform == "car":
+        ev_t.append(np.asarray(dataset.wheel.t_s, float))
+        ev_k.append(np.full(len(dataset.wheel.t_s), 2))
+        ev_i.append(np.arange(len(dataset.wheel.t_s)))
+    ev_t, ev_k, ev_i = np.concatenate(ev_t), np.concatenate(ev_k), np.concatenate(ev_i)
+    order = np.lexsort((-ev_k, ev_t))   # outage evaluation before a GNSS epoch at the same time
+    out_starts = np.array([a for a, _ in outages]) if outages else np.zeros(0)
+    out_ends = np.array([b for _, b in outages]) if outages else np.zeros(0)
+
+    def in_outage(t: float) -> bool:
+        k = int(np.searchsorted(out_starts, t, side="right")) - 1
+        return k >= 0 and t < out_ends[k]
+
+    S: dict[str, list] = {k: [] for k in ("t", "ant_lla", "err_ned", "aided", "bg", "ba", "dt", "lever",
+                                           "mis", "fix", "ref_t", "ref_err_ned",
+                                           "vel_err_ned", "pos_sd_m", "speed_mps", "yaw_rate_rps")}
+    outage_err = []
+    aided_err = []
+    ref_err = []
+    i_imu = 0
+    n_imu = len(t_imu)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=n_imu, unit="imu", desc=f"replay {dataset.name}", file=sys.stderr, mininterval=0.5)
+    has_ref_pose = dataset.reference is not None
+    ref_pose_t = np.asarray(dataset.reference.t_s) if has_ref_pose else None
+    ref_pose_next = 0
+
+    for e in order:
+        t_ev, kind, idx = float(ev_t[e]), int(ev_k[e]), int(ev_i[e])
+        j = int(np.searchsorted(t_imu, t_ev - f.fx.imu_time_offset_s - f.fx.gnss_latency_s * (kind == 0),
+                                side="right"))
+        if j > i_imu:
+            f.process_imu_batch(t_imu[i_imu:j], acc[i_imu:j], gyr[i_imu:j])
+            if bar is not None:
+                bar.update(j - i_imu)
+            i_imu = j
+        if kind == 1:
+            if f.initialized:
+                ref = _interp_lla(t_ev, ref_t, ref_lla)
+                if ref is not None:
+                    ant = _predicted_antenna(f, t_ev)
+                    outage_err.append(_ned_error(ant, ref))
+            continue
+        if kind == 2:
+            f.update_wheel_speed(t_ev, float(dataset.wheel.speed_mps[idx]))
+            continue
+        fix = FixStatus(int(gn.fix[idx]))
+        used = not in_outage(t_ev)
+        if f.initialized:
+            ant = _predicted_antenna(f, t_ev)
+            err = _ned_error(ant, gn.lla[idx])
+            if used and fix == FixStatus.FIXED:
+                aided_err.append(err)
+            if keep_series:
+                S["t"].append(t_ev)
+                S["ant_lla"].append(ant)
+                S["err_ned"].append(err)
+                S["aided"].append(used)
+                S["fix"].append(int(fix))
+                S["bg"].append(f.gyro_bias_rps)
+                S["ba"].append(f.accel_bias_mps2)
+                S["dt"].append(f.fx.imu_time_offset_s)
+                S["lever"].append(f.fx.lever_arm_m.copy())
+                S["mis"].append(f.fx.misalignment_rad.copy())
+                S["vel_err_ned"].append(f.nav[3:6] - vel[idx] if vel is not None else np.full(3, np.nan))
+                S["pos_sd_m"].append(np.sqrt(np.abs(np.diag(f.P)[0:3])))
+                S["speed_mps"].append(float(np.linalg.norm(f.nav[3:6])))
+                S["yaw_rate_rps"].append(float(f.mem[2]))
+            if has_ref_pose:
+                while ref_pose_next < len(ref_pose_t) and ref_pose_t[ref_pose_next] <= t_ev:
+                    ref_pose_next += 1
+                rk = ref_pose_next - 1
+                if rk >= 0 and t_ev - ref_pose_t[rk] < 0.1:
+                    r = _interp_lla(t_ev, ref_pose_t, np.asarray(dataset.reference.lla))
+                    if r is not None:
+                        e_ref = _ned_error(f.lla, r)
+                        ref_err.append(e_ref)
+                        S["ref_t"].append(t_ev)
+                        S["ref_err_ned"].append(e_ref)
+        if used:
+            f.update_gnss(t_ev, gn.lla[idx], gn.sd_ned_m[idx], fix,
+                          None if vel is None else vel[idx], None if vel_sd is None else vel_sd[idx])
+    if i_imu < n_imu:
+        f.process_imu_batch(t_imu[i_imu:], acc[i_imu:], gyr[i_imu:])
+        if bar is not None:
+            bar.update(n_imu - i_imu)
+    if bar is not None:
+        bar.close()
+    wall = time.perf_counter() - t_wall0
+
+    oe = np.array(outage_err).reshape(-1, 3)
+    ae = np.array(aided_err).reshape(-1, 3)
+    oh = np.hypot(oe[:, 0], oe[:, 1])
+    summary = {
+        "dataset": dataset.name,
+        "imu_samples": int(n_imu),
+        "gnss_epochs": int(len(gn)),
+        "malformed_lines": int(dataset.malformed_lines),
+        "outage_count": int(len(oe)),
+        "outage_h_rms_m": _rms(oh),
+        "outage_h_max_m": float(oh.max()) if len(oh) else None,
+        "outage_v_rms_m": _rms(oe[:, 2]),
+        "aided_h_rms_m": _rms(np.hypot(ae[:, 0], ae[:, 1])),
+        "wall_s": wall,
+        "imu_samples_per_s": n_imu / wall if wall > 0 else None,
+    }
+    if has_ref_pose:
+        re = np.array(ref_err).reshape(-1, 3)
+        summary["reference_h_rms_m"] = _rms(np.hypot(re[:, 0], re[:, 1]))
+        summary["reference_h_max_m"] = float(np.hypot(re[:, 0], re[:, 1]).max()) if len(re) else None
+        summary["reference_v_rms_m"] = _rms(re[:, 2])
+    summary["outage_h_m"] = oh.tolist()
+    summary["effects"] = f.effects_report()
+    summary["static_calibration"] = [e.as_dict() for e in f.calibrator.estimates]
+    summary["counts"] = dict(f.counts)
+    series = {k: np.array(v) for k, v in S.items()}
+    series["outages"] = outages
+    series["outage_err_ned"] = oe
+    series["gnss_lla"] = np.asarray(gn.lla)
+    series["gnss_t"] = np.asarray(gn.t_s)
+    series["residuals"] = f.residuals
+    return ReplayResult(summary=summary, series=series, filter=f)
+
+
+def _rms(x: np.ndarray) -> float | None:
+    x = np.asarray(x, float)
+    return float(np.sqrt(np.mean(x ** 2))) if len(x) else None
+
+
+def _predicted_antenna(f: InsFilter, t_s: float) -> np.ndarray:
+    """Filter antenna position extrapolated from its time label to GPS time t_s."""
+    ant = f.antenna_lla()
+    gap = t_s - f.t_s
+    lat, h = ant[0], ant[2]
+    r_m, r_n = geo.radii_m(lat)
+    v = f.nav[3:6]
+    return ant + gap * np.array([v[0] / (r_m + h), v[1] / ((r_n + h) * math.cos(lat)), -v[2]])
+
+
+# ---------------------------------------------------------------------- plots
+def write_plots(result: ReplayResult, out_dir: str | Path) -> list[Path]:
+    """Trajectory with outages, error vs time, innovations, bias/effect estimates (PNG)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    S = result.series
+    name = result.summary["dataset"]
+    files = []
+    if len(S["t"]) == 0:
+        return files
+    lla0 = S["gnss_lla"][0]
+    g_ned = geo.lla_to_ned(S["gnss_lla"], lla0)
+    f_ned = geo.lla_to_ned(S["ant_lla"], lla0)
+    t0 = S["gnss_t"][0]
+    t = S["t"] - t0
+
+    fig, ax = plt.subplots(figsize=(8, 8))
+    ax.plot(g_ned[:, 1], g_ned[:, 0], ".", ms=2, color="0.6", label="GNSS")
+    ax.plot(f_ned[:, 1], f_ned[:, 0], "-", lw=0.8, color="C0", label="EKF antenna")
+    for k, (a, b) in enumerate(S["outages"]):
+        m = (S["t"] >= a) & (S["t"] <= b)
+        ax.plot(f_ned[m, 1], f_ned[m, 0], "-", lw=2, color="C3", label="outage (coasting)" if k == 0 else None)
+    ax.set_xlabel("east [m]")
+    ax.set_ylabel("north [m]")
+    ax.set_aspect("equal")
+    ax.legend()
+    ax.set_title(f"{name}: trajectory, outages in red")
+    files.append(out / "trajectory.png")
+    fig.savefig(files[-1], dpi=110)
+    plt.close(fig)
+
+    err = S["err_ned"]
+    fig, ax = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
+    ax[0].plot(t, np.hypot(err[:, 0], err[:, 1]), lw=0.7, label="horizontal")
+    ax[0].plot(t, np.abs(err[:, 2]), lw=0.7, label="|vertical|")
+    for a, b in S["outages"]:
+        ax[0].axvspan(a - t0, b - t0, color="C3", alpha=0.15)
+    ax[0].set_yscale("log")
+    ax[0].set_ylabel("antenna error before update [m]")
+    ax[0].legend()
+    oe = S["outage_err_ned"]
+    if len(oe):
+        ends = np.array([b for _, b in S["outages"]])[:len(oe)] - t0
+        ax[1].bar(ends, np.hypot(oe[:, 0], oe[:, 1]), width=6, color="C3")
+    ax[1].set_ylabel("error at outage end [m]")
+    ax[1].set_xlabel("time since first GNSS epoch [s]")
+    ax[0].set_title(f"{name}: outage h RMS {result.summary['outage_h_rms_m']}")
+    files.append(out / "error_vs_time.png")
+    fig.savefig(files[-1], dpi=110)
+    plt.close(fig)
+
+    res = [r for r in S["residuals"] if r.kind == "gnss_pos" and len(r.innovation) == 3]
+    if res:
+        tt = np.array([r.t_s for r in res]) - t0
+        inn = np.array([r.innovation for r in res])
+        nis = np.array([r.nis for r in res])
+        acc = np.array([r.accepted for r in res])
+        fig, ax = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
+        for k, lab in enumerate("NED"):
+            ax[0].plot(tt, inn[:, k], ".", ms=2, label=lab)
+        ax[0].set_ylabel("position innovation [m]")
+        ax[0].set_ylim(-1, 1)
+        ax[0].legend()
+        ax[1].semilogy(tt[acc], nis[acc], ".", ms=2, label="accepted")
+        ax[1].semilogy(tt[~acc], nis[~acc], "x", ms=3, color="C3", label="rejected")
+        ax[1].set_ylabel("NIS")
+        ax[1].set_xlabel("time [s]")
+        ax[1].legend()
+        files.append(out / "innovations.png")
+        fig.savefig(files[-1], dpi=110)
+        plt.close(fig)
+
+    fig, ax = plt.subplots(4, 1, figsize=(10, 10), sharex=True)
+    ax[0].plot(t, np.degrees(S["bg"]) * 3600, lw=0.8)
+    ax[0].set_ylabel("gyro bias [deg/h]")
+    ax[1].plot(t, S["ba"], lw=0.8)
+    ax[1].set_ylabel("accel bias [m/s^2]")
+    ax[2].plot(t, S["dt"] * 1e3, lw=0.8, label="IMU time offset [ms]")
+    ax[2].plot(t, S["lever"] * 100, lw=0.8, label="lever arm [cm]")
+    ax[2].legend(fontsize=7)
+    ax[3].plot(t, np.degrees(S["mis"]), lw=0.8)
+    ax[3].set_ylabel("misalignment r/p/y [deg]")
+    ax[3].set_xlabel("time [s]")
+    for a in ax[:2]:
+        a.legend(list("xyz"), fontsize=7)
+    files.append(out / "bias_estimates.png")
+    fig.savefig(files[-1], dpi=110)
+    plt.close(fig)
+    return files
+
+
+# ---------------------------------------------------------------------- command
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("dataset", help="dataset.toml (or a dataset directory, e.g. a comma2k19 segment)")
+    parser.add_argument("--outage-length", type=float, default=15.0, help="outage length [s] (default 15)")
+    parser.add_argument("--outage-every", type=float, default=45.0, help="outage period [s] (default 45)")
+    parser.add_argument("--outage-first", type=float, default=40.0,
+                        help="start of the first outage after the first GNSS epoch [s] (default 40)")
+    parser.add_argument("--json", help="write the summary JSON here")
+    parser.add_argument("--plots", help="write PNG plots into this directory")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _load(path: str) -> Dataset:
+    from v2xpos.datasets import load_dataset
+    return load_dataset(path)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        ds = _load(args.dataset)
+    except (OSError, ValueError) as e:
+        print(f"v2xpos replay: cannot load {args.dataset}: {e}", file=sys.stderr)
+        return 2
+    sched = OutageSchedule(args.outage_length, args.outage_every, args.outage_first)
+    res = replay(ds, sched, progress=not args.no_progress)
+    keys = ("dataset", "imu_samples", "gnss_epochs", "malformed_lines", "outage_count", "outage_h_rms_m",
+            "outage_h_max_m", "outage_v_rms_m", "aided_h_rms_m", "wall_s", "imu_samples_per_s",
+            "reference_h_rms_m")
+    for k in keys:
+        if k in res.summary:
+            v = res.summary[k]
+            print(f"{k:>20}: {v:.4g}" if isinstance(v, float) else f"{k:>20}: {v}")
+    eff = res.summary["effects"]
+    print(f"{'effects':>20}: time offset {eff['imu_time_offset_s'] * 1e3:.1f} ms, lever arm "
+          f"{np.round(eff['lever_arm_m'], 3).tolist()} m, misalignment "
+          f"{np.round(np.degrees(eff['misalignment_rad']), 2).tolist()} deg")
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(res.summary, indent=2))
+    if args.plots:
+        for p in write_plots(res, args.plots):
+            print(f"{'plot':>20}: {p}")
+    return 0
+
+
+def add_bench_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("dataset", nargs="?", default=str(DEFAULT_DRIVE), help="dataset.toml (default drive_0708)")
+    parser.add_argument("--repeat", type=int, default=2, help="replays to time (best is reported)")
+
+
+def run_bench(args: argparse.Namespace) -> int:
+    from .ekf import propagate_covariance
+    from .mechanization import MEM_SIZE, strapdown_batch
+    t0 = time.perf_counter()
+    ds = _load(args.dataset)
+    t_load = time.perf_counter() - t0
+    n = len(ds.imu)
+    print(f"dataset {ds.name}: {n} IMU samples, {len(ds.gnss)} GNSS epochs, load {t_load:.2f} s")
+    cfg = config_for(ds)
+    f = InsFilter(cfg)
+    f_b = np.ascontiguousarray(ds.imu.acc_mps2 @ cfg.imu_to_body.T)
+    w_b = np.ascontiguousarray(ds.imu.gyro_rps @ cfg.imu_to_body.T)
+    t = np.ascontiguousarray(ds.imu.t_s, dtype=float)
+    nav = np.array([ds.gnss.lla[0][0], ds.gnss.lla[0][1], ds.gnss.lla[0][2], 0, 0, 0], float)
+    A = np.zeros((f.layout.n, f.layout.n))
+    for _ in range(2):   # first call compiles (or loads the cache)
+        C = np.eye(3)
+        mem = np.zeros(MEM_SIZE)
+        t1 = time.perf_counter()
+        strapdown_batch(t, f_b, w_b, 0, n, t[0], nav.copy(), C, np.zeros(12), mem, A, f.kidx, 1e-3, 1e-3)
+        t_mech = time.perf_counter() - t1
+    print(f"  strapdown + F accumulation (jitted): {n / t_mech:,.0f} samples/s")
+    P = np.eye(f.layout.n)
+    reps = 2000
+    t1 = time.perf_counter()
+    for _ in range(reps):
+        P = propagate_covariance(P * 0 + np.eye(f.layout.n), A * 0, f.q_c, 0.1)
+    t_cov = (time.perf_counter() - t1) / reps
+    print(f"  covariance propagation ({f.layout.n} states): {t_cov * 1e6:.1f} us per call, "
+          f"every {cfg.cov_every} samples -> {cfg.cov_every / t_cov:,.0f} samples/s")
+    best = None
+    for _ in range(max(1, args.repeat)):
+        r = replay(ds, OutageSchedule(), cfg=config_for(ds), progress=False, keep_series=False)
+        if best is None or r.summary["wall_s"] < best.summary["wall_s"]:
+            best = r
+    s = best.summary
+    print(f"  end to end replay (filter + updates, no loading): {s['imu_samples_per_s']:,.0f} IMU samples/s "
+          f"({s['wall_s']:.2f} s); target >= 25,000")
+    print(f"  end to end including loading: {n / (s['wall_s'] + t_load):,.0f} IMU samples/s")
+    print(f"  outage_h_rms_m {s['outage_h_rms_m']:.3f}")
+    return 0
