@@ -492,7 +492,7 @@ def plan_counts(total: int, targets: list[Target], decoder_share: float = 0.6) -
     counts = {}
     rest = [t for t in targets if t.name != "wire.state"]
     counts["wire.state"] = int(round(total * decoder_share))
-    each = max(1, (total - counts["wire.state"]) // max(1, len(rest)))
+    each = max(1, -(-(total - counts["wire.state"]) // max(1, len(rest))))
     for t in rest:
         counts[t.name] = each
     return counts

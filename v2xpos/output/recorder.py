@@ -146,9 +146,11 @@ class McapRecorder:
         self._fh.close()
 
     def _add(self, topic: str, doc: dict, log_time_ns: int, count: bool = True) -> None:
+        self._add_raw(topic, json.dumps(doc, separators=(",", ":")).encode(), log_time_ns, count)
+
+    def _add_raw(self, topic: str, data: bytes, log_time_ns: int, count: bool = True) -> None:
         self._seq += 1
-        self._writer.add_message(self._channels[topic], log_time=log_time_ns,
-                                 data=json.dumps(doc, separators=(",", ":")).encode(),
+        self._writer.add_message(self._channels[topic], log_time=log_time_ns, data=data,
                                  publish_time=log_time_ns, sequence=self._seq)
         if count:
             self.recorded[topic] += 1
@@ -170,11 +172,12 @@ class McapRecorder:
 
     def record_received(self, payload: bytes, key: str | None, t_arrival_wall_s: float,
                         t_now_gps_s: float, nav_index: int) -> None:
-        doc = {"key": key, "raw_b64": base64.b64encode(bytes(payload)).decode(),
-               "t_arrival_wall_s": float(t_arrival_wall_s), "t_now_gps_s": float(t_now_gps_s),
-               "nav_index": int(nav_index)}
+        # hand-formatted JSON (hot path, ~1 per received message); repr(float) round-trips exactly
+        text = (f'{{"key":{json.dumps(key)},"raw_b64":"{base64.b64encode(bytes(payload)).decode()}",'
+                f'"t_arrival_wall_s":{float(t_arrival_wall_s)!r},"t_now_gps_s":{float(t_now_gps_s)!r},'
+                f'"nav_index":{int(nav_index)}}}')
         with self._lock:
-            self._add(TOPIC_RX, doc, int(t_arrival_wall_s * 1e9))
+            self._add_raw(TOPIC_RX, text.encode(), int(t_arrival_wall_s * 1e9))
 
     def record_tick(self, t_now_gps_s: float, master_t_gps_s: float | None) -> None:
         doc = {"t_now_gps_s": float(t_now_gps_s),

@@ -1,0 +1,284 @@
+"""``v2xpos bench soak --slaves 32 --rate 100 --duration 60``: long run of the real master service
+with many signing slaves, as separate OS processes on loopback.
+
+Processes: one master (``master.service.MasterService`` with the MCAP recorder wrapped around its
+pipeline and a resident-memory sampler) embedding the zenoh router on ``tcp/127.0.0.1:PORT``;
+``ceil(slaves / per_process)`` slave processes, each publishing ``per_process`` vehicles'
+signed StateMessages at ``rate`` Hz with CongestionControl.BLOCK (a full queue blocks the
+publisher instead of dropping). Every vehicle has its own Ed25519 key; the master holds the
+trust list, so every message is verified.
+
+Reported: ``sent`` (slaves' put calls), ``received`` (samples the master's subscriber got),
+``recorded`` (received payloads written to MCAP), ``output`` (results the pipeline produced from
+messages), ``lost = sent - received``, and ``rss_growth_pct``: master resident memory at the end
+of publishing versus after the first ``warmup_fraction`` of the run (allocation warm-up),
+[%]. Also the achieved publish rate and the master's pipeline / end-to-end latency percentiles.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+from tqdm import tqdm
+
+SOAK_FLEET = "soak"
+
+
+def rss_bytes() -> int:
+    """Resident set size of this process [bytes] (Linux /proc/self/statm)."""
+    with open("/proc/self/statm") as fh:
+        return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+# ----------------------------------------------------------------------------- master role
+
+def _run_master(cfg_path: Path, start: float, record: Path, stats_path: Path, publish_end: float) -> int:
+    import asyncio
+
+    from master.config import MasterConfig
+    from master.service import MasterService
+    from v2xpos.output.recorder import McapRecorder, RecordingPipeline
+
+    class RecordingMasterService(MasterService):
+        """MasterService whose pipeline is wrapped by the MCAP recorder."""
+
+        def _open(self) -> None:
+            super()._open()
+            self.recorder = McapRecorder(record, max_bytes=64 * 2 ** 20)
+            self.pipeline = RecordingPipeline(self.pipeline, self.recorder)
+
+    cfg = MasterConfig.from_dict(json.loads(cfg_path.read_text()), str(cfg_path))
+    svc = RecordingMasterService(cfg, start)
+    samples: list[tuple[float, int]] = []
+    stop = threading.Event()
+
+    def sample() -> None:
+        while not stop.wait(0.5):
+            samples.append((time.time(), rss_bytes()))
+    th = threading.Thread(target=sample, daemon=True)
+    th.start()
+    final = asyncio.run(svc.run())
+    stop.set()
+    th.join()
+    svc.recorder.close()
+    final["recorded"] = dict(svc.recorder.recorded)
+    final["mcap_files"] = [str(p) for p in svc.recorder.files]
+    final["rss_samples"] = samples
+    final["publish_end_unix_s"] = publish_end
+    final["clock_skew"] = (svc.pipeline.authenticator.skew_report()
+                           if svc.pipeline.authenticator is not None else [])
+    stats_path.write_text(json.dumps(final))
+    return 0
+
+
+# ----------------------------------------------------------------------------- slave role
+
+def _run_slaves(ids: list[str], keys_dir: Path, endpoint: str, start: float, duration: float,
+                rate: float, out_path: Path) -> int:
+    import numpy as np
+
+    from sim.scenarios import DEFAULT_EPOCH_GPS_S
+    from v2xpos.link import Link, LinkConfig
+    from v2xpos.security import MessageSigner
+    from v2xpos.types import FixStatus
+    from v2xpos.wire import Geometry, StateMessage, encode_state, state_key
+
+    link = Link(LinkConfig(mode="peer", connect=[endpoint]))
+    signers = {vid: MessageSigner.from_file(keys_dir / f"{vid}.key") for vid in ids}
+    pubs = {vid: link.publisher(state_key(SOAK_FLEET, vid), block=True) for vid in ids}
+    geom = Geometry.box(3.8, 1.0, 0.9)
+    sd = np.full(3, 0.01)
+    sent = {vid: 0 for vid in ids}
+    period = 1.0 / rate
+    n_ticks = int(round(duration * rate))
+    late = 0
+    for k in range(n_ticks):
+        t_wall = start + k * period
+        delay = t_wall - time.time()
+        if delay > 0:
+            time.sleep(delay)
+        else:
+            late += 1
+        for i, vid in enumerate(ids):
+            now = time.time()
+            t_gps = DEFAULT_EPOCH_GPS_S + (now - start) - 0.002
+            along = 20.0 * (now - start)
+            msg = StateMessage(
+                fleet=SOAK_FLEET, vehicle_id=vid, seq=k, t_gps_s=t_gps, fix=FixStatus.FIXED,
+                lat_rad=0.6981317 + (along / 6.4e6), lon_rad=-1.8325957 + 1e-6 * (hash(vid) % 100),
+                height_m=1600.0, v_ned_mps=np.array([20.0, 0.0, 0.0]), acc_body_mps2=np.zeros(3),
+                rate_body_rps=np.zeros(3), rpy_rad=np.zeros(3), pos_sd_m=sd, vel_sd_mps=sd,
+                att_sd_rad=sd * 0.1, geometry=geom, t_sent_wall_s=now)
+            pubs[vid].put(encode_state(msg, sign=signers[vid]))
+            sent[vid] += 1
+    time.sleep(0.5)
+    link.close()
+    out_path.write_text(json.dumps({"sent": sent, "late_ticks": late, "ticks": n_ticks}))
+    return 0
+
+
+# ----------------------------------------------------------------------------- orchestration
+
+def run_soak(slaves: int = 32, rate: float = 100.0, duration: float = 60.0, out_dir: str | Path = "out/soak",
+             per_process: int = 8, warmup_fraction: float = 0.1, progress: bool = True,
+             lead_s: float = 4.0) -> dict:
+    """Run the soak (see module docstring) and return the report dict."""
+    from v2xpos.security import TrustList, generate_vehicle_key, load_public_key_file
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    keys = out / "keys"
+    ids = [f"s{i:02d}" for i in range(slaves)]
+    trust = TrustList()
+    for vid in ids:
+        files = generate_vehicle_key(vid, keys, overwrite=True)
+        trust.add(*load_public_key_file(files.public_path))
+    trust.save(out / "trust.json")
+    for old in out.glob("session*.mcap"):
+        old.unlink()
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    cfg = {"service": {"fleet": SOAK_FLEET, "master_id": "ego", "duration_s": duration + 3.0, "status_hz": 1.0,
+                       "tick_hz": 2.0},
+           "link": {"mode": "router", "listen": [endpoint]},
+           "source": {"type": "truth_noise", "scenario": "convoy",
+                      "params": {"vehicles": 2, "duration_s": duration + 20.0}},
+           "output": {"zenoh": {"enabled": True}},
+           "security": {"trust_list": str(out / "trust.json")}}
+    (out / "master.json").write_text(json.dumps(cfg))
+    start = time.time() + lead_s
+    py = [sys.executable, "-m", "master.bench_soak"]
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    repo = Path(__file__).resolve().parents[1]
+    master = subprocess.Popen(py + ["--role", "master", "--config", str(out / "master.json"), "--start", repr(start),
+                                    "--record", str(out / "session.mcap"), "--stats", str(out / "master_stats.json"),
+                                    "--publish-end", repr(start + duration)],
+                              cwd=repo, env=env, stdout=subprocess.DEVNULL, stderr=open(out / "master.log", "w"))
+    time.sleep(1.0)
+    groups = [ids[i:i + per_process] for i in range(0, len(ids), per_process)]
+    procs = []
+    for g, group in enumerate(groups):
+        procs.append(subprocess.Popen(py + ["--role", "slaves", "--ids", ",".join(group), "--keys", str(keys),
+                                            "--endpoint", endpoint, "--start", repr(start), "--duration",
+                                            repr(duration), "--rate", repr(rate),
+                                            "--out", str(out / f"slaves_{g}.json")],
+                                      cwd=repo, env=env, stdout=subprocess.DEVNULL,
+                                      stderr=open(out / f"slaves_{g}.log", "w")))
+    total = lead_s + duration + 4.0
+    with tqdm(total=int(total), disable=not progress, unit="s", desc="soak", file=sys.stderr) as bar:
+        t0 = time.time()
+        while master.poll() is None and time.time() - t0 < total + 60:
+            time.sleep(1.0)
+            bar.n = min(int(time.time() - t0), int(total))
+            bar.refresh()
+    for p in procs:
+        try:
+            p.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            p.kill()
+    if master.poll() is None:
+        master.terminate()
+        master.wait(timeout=30)
+    sent = {}
+    late = 0
+    for g in range(len(groups)):
+        f = out / f"slaves_{g}.json"
+        if f.exists():
+            d = json.loads(f.read_text())
+            sent.update(d["sent"])
+            late += d["late_ticks"]
+    stats_file = out / "master_stats.json"
+    if not stats_file.exists():
+        raise RuntimeError(f"master wrote no stats; see {out / 'master.log'}")
+    st = json.loads(stats_file.read_text())
+    n_sent = sum(sent.values())
+    received = int(st.get("link_received", 0))
+    recorded = int(st["recorded"].get("/v2xpos/rx", 0))
+    samples = [(t, r) for t, r in st["rss_samples"] if start <= t <= start + duration]
+    rss0 = rss1 = math.nan
+    if samples:
+        warm = start + warmup_fraction * duration
+        after = [r for t, r in samples if t >= warm] or [samples[-1][1]]
+        rss0, rss1 = after[0], samples[-1][1]
+    results = st.get("targets", {})
+    outputs_from_messages = sum(t.get("accepted", 0) for t in results.values())
+    report = {
+        "slaves": slaves, "rate_hz": rate, "duration_s": duration,
+        "sent": n_sent, "received": received, "recorded": recorded,
+        "output": outputs_from_messages, "outputs_total": int(st.get("processed", 0)),
+        "lost": n_sent - received, "lost_in_master": received - recorded,
+        "rss_growth_pct": (rss1 - rss0) / rss0 * 100.0 if samples else None,
+        "rss_start_mb": rss0 / 2 ** 20 if samples else None, "rss_end_mb": rss1 / 2 ** 20 if samples else None,
+        "achieved_rate_hz": n_sent / max(1, slaves) / duration, "late_publish_ticks": late,
+        "rejected": st.get("rejected", {}), "pipeline_ms_p50": st.get("pipeline_ms_p50"),
+        "pipeline_ms_p99": st.get("pipeline_ms_p99"), "e2e_ms_p99": st.get("e2e_ms_p99"),
+        "mcap_files": st.get("mcap_files", []),
+        "skewed_senders": [s["vehicle_id"] for s in st.get("clock_skew", []) if s.get("skewed")],
+    }
+    (out / "soak_report.json").write_text(json.dumps(report, indent=1))
+    return report
+
+
+def add_bench_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--slaves", type=int, default=32)
+    parser.add_argument("--rate", type=float, default=100.0, help="messages per second per slave")
+    parser.add_argument("--duration", type=float, default=60.0, help="publishing time [s]")
+    parser.add_argument("--per-process", type=int, default=8, help="slaves per OS process")
+    parser.add_argument("--out", default="out/soak", help="directory for keys, recording, logs, report")
+    parser.add_argument("--json", help="also write the report here")
+    parser.add_argument("--verify-replay", action="store_true",
+                        help="afterwards replay the MCAP recording and check the outputs are identical")
+
+
+def run_bench(args: argparse.Namespace) -> int:
+    report = run_soak(args.slaves, args.rate, args.duration, args.out, args.per_process)
+    if args.verify_replay:
+        from master.replay_session import replay_session
+        rep = replay_session(Path(args.out) / "session.mcap", progress=True)
+        report["replay_identical"] = rep.identical
+        report["replay_matched"] = rep.matched
+    print(json.dumps(report, indent=1))
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(report, indent=1))
+    ok = report["lost"] == 0 and report["sent"] == report["recorded"]
+    return 0 if ok else 1
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Internal entry for the soak's child processes (``python -m master.bench_soak --role ...``)."""
+    p = argparse.ArgumentParser(prog="python -m master.bench_soak")
+    p.add_argument("--role", choices=("master", "slaves"), required=True)
+    p.add_argument("--config")
+    p.add_argument("--start", type=float, required=True)
+    p.add_argument("--record")
+    p.add_argument("--stats")
+    p.add_argument("--publish-end", type=float, default=math.nan)
+    p.add_argument("--ids")
+    p.add_argument("--keys")
+    p.add_argument("--endpoint")
+    p.add_argument("--duration", type=float)
+    p.add_argument("--rate", type=float)
+    p.add_argument("--out")
+    a = p.parse_args(argv)
+    if a.role == "master":
+        return _run_master(Path(a.config), a.start, Path(a.record), Path(a.stats), a.publish_end)
+    return _run_slaves(a.ids.split(","), Path(a.keys), a.endpoint, a.start, a.duration, a.rate, Path(a.out))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
