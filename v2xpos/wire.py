@@ -454,21 +454,25 @@ def _ident(m: dict, key: str) -> str:
 
 
 def _vec3(m: dict, key: str, bound: float, nonneg: bool = False) -> np.ndarray:
-    v = _get(m, key)
+    try:
+        v = m[key]
+    except KeyError:
+        raise WireError("missing field", key) from None
     if type(v) is not list or len(v) != 3:
         raise WireError("not an array of 3 numbers", key)
     a, b, c = v
-    for x in v:
-        tx = type(x)
-        if tx is not float and tx is not int:
-            raise WireError(f"not a number ({tx.__name__})", key)
+    ta, tb, tc = type(a), type(b), type(c)
+    if not ((ta is float or ta is int) and (tb is float or tb is int) and (tc is float or tc is int)):
+        raise WireError("not a number", key)
+    lo = 0.0 if nonneg else -bound
+    # chained comparisons are False for NaN, so this also rejects non-finite values
+    if lo <= a <= bound and lo <= b <= bound and lo <= c <= bound:
+        return np.array(v, dtype=float)
     if not (math.isfinite(a) and math.isfinite(b) and math.isfinite(c)):
         raise WireError("non-finite number", key)
     if nonneg and (a < 0 or b < 0 or c < 0):
         raise WireError("negative standard deviation", key)
-    if abs(a) > bound or abs(b) > bound or abs(c) > bound:
-        raise WireError(f"out of range (|x| <= {bound:g})", key)
-    return np.array((a, b, c), dtype=float)
+    raise WireError(f"out of range (|x| <= {bound:g})", key)
 
 
 def _geometry(m: dict) -> Geometry:
