@@ -95,6 +95,8 @@ def test_oversize_rejected_before_parsing():
     ({"kind": "bicycle"}, "kind", "kind must be"),
     ({"id": ""}, "id", "identifier"),
     ({"id": "car/2"}, "id", "identifier"),
+    ({"id": "car\n"}, "id", "identifier"),
+    ({"fleet": "a*"}, "fleet", "identifier"),
     ({"fleet": "x" * 65}, "fleet", "identifier"),
     ({"id": 7}, "id", "not a string"),
     ({"g": [1, 2]}, "g", "not a map"),

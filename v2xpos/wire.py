@@ -59,9 +59,9 @@ MAX_UINT64 = 2 ** 64 - 1
 
 KINDS = ("vehicle", "pedestrian")
 GEOMETRY_KINDS = ("points", "polygon", "circle")
-_ID_RE = re.compile(r"^[A-Za-z0-9_.\-]+$")
+_ID_RE = re.compile(r"[A-Za-z0-9_.\-]+")
 
-Signer = Callable[[bytes], "tuple[bytes, str]"]
+Signer = Callable[[bytes], tuple[bytes, str]]
 
 
 def state_key(fleet: str, vehicle_id: str) -> str:
@@ -448,7 +448,7 @@ def _ident(m: dict, key: str) -> str:
     s = _get(m, key)
     if type(s) is not str:
         raise WireError(f"not a string ({type(s).__name__})", key)
-    if not s or len(s) > MAX_ID_CHARS or not _ID_RE.match(s):
+    if not s or len(s) > MAX_ID_CHARS or not _ID_RE.fullmatch(s):
         raise WireError("identifier must be 1-64 chars of [A-Za-z0-9_.-]", key)
     return s
 
