@@ -23,8 +23,8 @@ Frames: NED is the local-level frame at the *master* position; body frames x for
 z down; ``C_ab`` takes vectors from b to a. ``w_m`` is the master body rate, ``r_b`` the target
 reference point relative to the master reference point in the master body frame.
 
-Relative motion (rotating-frame kinematics, e.g. Goldstein, *Classical Mechanics*, 3rd ed.,
-eq. 4.86; Groves 2013 eq. 2.67 form):
+Relative motion (derivatives seen from the rotating master frame: Goldstein, Poole & Safko,
+*Classical Mechanics*, 3rd ed., 2002, §4.9-4.10, Coriolis and centripetal terms):
     r_b = C_bn (r_s - r_m)_n
     v_rel_b = d/dt r_b |_master = C_bn (v_s - v_m) - w_m x r_b
     a_rel_b = C_bn (a_s - a_m)_n - 2 w_m x C_bn (v_s - v_m) + w_m x (w_m x r_b)   (w_m constant)
@@ -172,8 +172,10 @@ def _so3_integrals(phi: tuple) -> tuple:
     exp = I + sin a/a K + (1-cos a)/a^2 K^2 (Rodrigues);
     Gamma1 = int_0^1 exp(s K) ds = I + (1-cos a)/a^2 K + (a - sin a)/a^3 K^2;
     Gamma2 = int_0^1 int_0^s exp(u K) du ds = I/2 + (a - sin a)/a^3 K + (a^2/2 + cos a - 1)/a^4 K^2;
-    a = |phi| (Barfoot, *State Estimation for Robotics*, 2017, §7.1; Forster et al., IEEE T-RO
-    2017, on-manifold preintegration). Taylor series below a = 1e-4.
+    a = |phi|. Gamma1 is the left Jacobian of SO(3) (Barfoot, *State Estimation for Robotics*,
+    2017, ch. 7); Gamma2 = int_0^1 (1 - s) exp(s K) ds follows from the same Rodrigues series
+    (the same integrals appear in IMU preintegration, Forster et al., IEEE T-RO 2017).
+    Taylor series below a = 1e-4.
     """
     a2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
     if a2 < 1e-8:
