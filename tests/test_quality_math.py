@@ -162,3 +162,28 @@ def test_bias_stability_between_stops():
     st = bias_stability(stop_biases(imu, stops))
     assert st["n_stops"] == 3
     assert abs(st["spread_dps"][0] - 0.5) < 0.01 and st["spread_dps"][1] < 0.01
+
+
+def test_bias_stability_from_the_ins_calibrator_and_in_the_verdict():
+    from v2xpos.quality import grade_units
+    from v2xpos.quality.bias import calibrator_stop_biases, unit_bias_stability
+
+    rate = 100.0
+    t = np.arange(0, 30, 1 / rate)
+    moving = ((t > 8) & (t < 12)) | ((t > 20) & (t < 24))
+    rng = np.random.default_rng(8)
+    g = rng.normal(0, 1e-4, (len(t), 3))
+    g[moving, 2] += 0.3
+    g[t > 16, 0] += np.radians(0.5)
+    f = np.tile([0.0, 0.0, -9.80665], (len(t), 1)) + rng.normal(0, 0.01, (len(t), 3))
+    imu = ImuData(t, f, g)
+    biases, spans = calibrator_stop_biases(imu)
+    assert len(biases) == 3 and spans[0][0] < 8
+    st = unit_bias_stability(imu)
+    assert st["method"].startswith("ins.StaticCalibrator")
+    assert abs(st["spread_dps"][0] - 0.5) < 0.01
+    steady = ImuData(t, f, g - np.where(t[:, None] > 16, [np.radians(0.5), 0.0, 0.0], 0.0))
+    rep = grade_units({"a": imu, "b": steady})
+    by_id = {u["id"]: u for u in rep["units"]}
+    assert next(c for c in by_id["a"]["checks"] if c["name"] == "bias_stability")["grade"] == "fail"
+    assert next(c for c in by_id["b"]["checks"] if c["name"] == "bias_stability")["grade"] == "pass"

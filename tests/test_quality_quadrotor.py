@@ -38,6 +38,8 @@ def test_quadrotor_units_all_pass_with_estimated_rotation_and_pcc(name):
             assert set(u["fused_diff"]["att_deg"]) == {"p50", "p90", "p99"}
             assert u["fused_diff"]["pos_m"]["p90"] < 1.0
         assert abs(u["time_offset_ms"]) < 10.0
+        # pose-aided check with the reference attitude as pose source: no anomaly on healthy units
+        assert u["rate_check"]["anomaly"] is False and abs(u["rate_check"]["relative_diff"]) < 0.01
 
 
 def test_grade_command_writes_json_and_plots(tmp_path):

@@ -65,9 +65,35 @@ def bias_stability(per_stop_bias_rps: np.ndarray) -> dict:
     return {"n_stops": int(len(b)), "spread_dps": spread.tolist(), "max_spread_dps": float(spread.max())}
 
 
-def unit_bias_stability(imu: ImuData, **kw) -> dict:
-    """``bias_stability`` of one unit from its own stops (``find_stops`` keyword arguments)."""
-    stops = find_stops(imu, **kw)
-    res = bias_stability(stop_biases(imu, stops))
-    res["stops_s"] = [[float(imu.t_s[s]), float(imu.t_s[e - 1])] for s, e in stops]
+def calibrator_stop_biases(imu: ImuData, C_body_imu: np.ndarray | None = None,
+                           chunk: int = 50) -> tuple[np.ndarray, list]:
+    """Per-stop gyro biases [rad/s] (unit axes) from the navigation filter's seed 001 calibrator
+    (``v2xpos.ins.StaticCalibrator``) fed with the unit's samples in body axes; and the stop spans."""
+    from v2xpos.ins import StaticCalibrator
+
+    C = np.eye(3) if C_body_imu is None else np.asarray(C_body_imu, float)
+    cal = StaticCalibrator()
+    t = np.asarray(imu.t_s, float)
+    f = np.asarray(imu.acc_mps2, float) @ C.T
+    w = np.asarray(imu.gyro_rps, float) @ C.T
+    for k in range(0, len(t), chunk):
+        cal.feed(t[k:k + chunk], f[k:k + chunk], w[k:k + chunk])
+    biases = np.array([e.gyro_bias_rps @ C for e in cal.estimates]).reshape(-1, 3)
+    return biases, [[e.t_start_s, e.t_end_s] for e in cal.estimates]
+
+
+def unit_bias_stability(imu: ImuData, C_body_imu: np.ndarray | None = None, **kw) -> dict:
+    """``bias_stability`` of one unit from its stops: the seed 001 calibrator's per-stop estimates
+    (``calibrator_stop_biases``); when it finds no level stop (e.g. unknown, tilted mounting), the
+    means over ``find_stops`` stops (keyword arguments of ``find_stops``)."""
+    biases, spans = calibrator_stop_biases(imu, C_body_imu)
+    method = "ins.StaticCalibrator (seed 001)"
+    if len(biases) == 0:
+        stops = find_stops(imu, **kw)
+        biases = stop_biases(imu, stops)
+        spans = [[float(imu.t_s[s]), float(imu.t_s[e - 1])] for s, e in stops]
+        method = "static-window means"
+    res = bias_stability(biases)
+    res["stops_s"] = spans
+    res["method"] = method
     return res

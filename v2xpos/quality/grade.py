@@ -104,6 +104,30 @@ def print_table(report: dict, out=None) -> None:
               f"{rot:<22} {fds:<18} {notes}", file=out)
 
 
+def reference_rate_checks(rec, window_s: float | None = None) -> dict | None:
+    """Pose-aided rate check of every unit with the recording's reference attitude as the pose
+    source (seed 003 with "another INS" as pose source). The quadrotor reference attitude comes at
+    10 Hz with 0.1 deg resolution, so by default the whole run is one window."""
+    from v2xpos.rotation import dcm_from_euler_batch
+
+    from .rate_check import rate_check
+
+    ref = rec.reference
+    if ref is None or getattr(ref, "rpy_rad", None) is None or len(ref.t_s) < 3:
+        return None
+    poses = np.tile(np.eye(4), (len(ref.t_s), 1, 1))
+    poses[:, :3, :3] = dcm_from_euler_batch(np.asarray(ref.rpy_rad, float))
+    out = {}
+    for uid, imu in rec.units.items():
+        try:
+            d = rate_check(ref.t_s, poses, imu.t_s, imu.gyro_rps, window_s=window_s).as_dict()
+        except ValueError:
+            continue
+        d["pose_source"] = "reference attitude (GT.csv)"
+        out[uid] = d
+    return out or None
+
+
 def grade_recording(path: str | Path, reference: str | None = None, cfg: GradeConfig | None = None,
                     fusion: bool = True) -> dict:
     """Load and grade a multi-IMU recording; returns the full report (with internals)."""
@@ -115,8 +139,9 @@ def grade_recording(path: str | Path, reference: str | None = None, cfg: GradeCo
     if fusion and rec.reference is not None and getattr(rec.reference, "pos_ned_m", None) is not None:
         fixes = {"t_s": rec.reference.t_s, "r_ned_m": rec.reference.pos_ned_m, "sd_m": 0.05,
                  "source": "reference trajectory (GT.csv)"}
+    rates = reference_rate_checks(rec) if fusion else None
     rep = grade_units(rec.units, reference or opts.get("reference"), _mounting(opts, str(path)), cfg=cfg,
-                      fixes=fixes)
+                      fixes=fixes, rate_check=rates)
     rep["recording"] = rec.name
     rep["malformed_lines"] = rec.malformed_lines
     return rep

@@ -18,7 +18,7 @@ from . import alignment as al
 from .bias import unit_bias_stability
 from .consistency import box_stats, pcc_stats
 from .fleet import AXES, FleetComparison, GradeConfig, compare_units
-from .verdict import Thresholds, fused_checks, unit_checks, worst
+from .verdict import Thresholds, check, fused_checks, unit_checks, worst
 
 
 def _per_axis(values: np.ndarray, scale: float = 1.0) -> list[float]:
@@ -115,7 +115,12 @@ def grade_units(units: dict[str, ImuData], reference: str | None = None,
         pcc_min = 1.0 - s["pcc_deficit"]["score"] if has_motion else None
         checks = unit_checks(uid, s, stuck, pcc_min, th)
         if bias_stops:
-            entry["bias_stability"] = unit_bias_stability(fc.units[uid])
+            m = (mounting_xyz_deg or {}).get(uid)
+            bs = unit_bias_stability(fc.units[uid], None if m is None else al.mounting_dcm(m))
+            entry["bias_stability"] = bs
+            if bs["max_spread_dps"] is not None:
+                checks.append(check("bias_stability", bs["max_spread_dps"], th.bias_spread_warn_dps,
+                                    th.bias_spread_fail_dps, "deg/s"))
         if fused and uid in fused:
             entry["fused_diff"] = fused[uid]
             checks.extend(fused_checks(uid, fused, th))

@@ -73,8 +73,9 @@ def rate_check(t_pose_s: np.ndarray, poses: np.ndarray, t_imu_s: np.ndarray, gyr
                rel_threshold: float = 0.015) -> RateCheckResult:
     """Compare the gyro norm with the pose-derived angular-rate norm (module doc).
 
-    window_s: length of the test windows (default: the whole overlap as one window); the result's
-    mean_diff_dps / anomaly are those of the window with the largest |mean difference|.
+    window_s: length of the test windows (default: the whole overlap as one window; a last window
+    shorter than half the length is dropped); the result's mean_diff_dps / anomaly are those of the
+    window with the largest |mean difference|.
     """
     t_mid, w_pose = angular_rates_from_poses(t_pose_s, poses)
     t_edges = np.asarray(t_pose_s, float)
@@ -95,10 +96,12 @@ def rate_check(t_pose_s: np.ndarray, poses: np.ndarray, t_imu_s: np.ndarray, gyr
     windows = []
     for a, b in bounds:
         sel = (t_mid >= a) & (t_mid < b)
-        if sel.sum() < 2:
+        if sel.sum() < 2 or (window_s is not None and t_mid[sel][-1] - t_mid[sel][0] < 0.5 * window_s):
             continue
         m = float(diff[sel].mean())
         thr = max(abs_threshold_dps, rel_threshold * float(n_pose[sel].mean()))
         windows.append((float(a), float(b), m, thr, abs(m) > thr))
+    if not windows:
+        raise ValueError("rate_check: no window with at least two pose intervals")
     worst_w = max(windows, key=lambda w: abs(w[2]))
     return RateCheckResult(t_mid, n_pose, n_imu, worst_w[2], worst_w[3], worst_w[4], windows)

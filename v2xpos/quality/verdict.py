@@ -8,6 +8,7 @@ Absolute checks (any number of units):
     fused difference  P90 attitude / position difference     (two units only) warn > 5 deg / 1 m,
                                                               fail > 15 deg / 3 m
     pose-aided rate   mean |w_pose| - |w_gyro| difference     anomaly -> fail
+    bias stability    spread of per-stop gyro biases (>= 2)   warn > 0.1 deg/s, fail > 0.3 deg/s
 
 Consensus checks (three or more units), ratio of the unit's score to the median of the same
 feature over the pairs of the other units (floors keep tiny differences from producing large
@@ -52,6 +53,8 @@ class Thresholds:
     drift_warn_ratio: float = 2.5
     drift_fail_ratio: float = 4.0
     drift_floor_dps: float = 0.05
+    bias_spread_warn_dps: float = 0.1
+    bias_spread_fail_dps: float = 0.3
     fused_att_warn_deg: float = 5.0
     fused_att_fail_deg: float = 15.0
     fused_pos_warn_m: float = 1.0
