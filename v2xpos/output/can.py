@@ -170,11 +170,6 @@ class SlotTable:
         return self._slot.items()
 
 
-def _clamp(sig: Any, value: float) -> float:
-    lo, hi = sig.minimum, sig.maximum
-    return lo if value < lo else hi if value > hi else value
-
-
 def _ttc_raw_value(ttc_s: float | None, scale: float) -> float:
     """TTC physical value to send: None/NaN/inf -> the "none" code; else saturated below it."""
     if ttc_s is None or not math.isfinite(ttc_s):
@@ -207,6 +202,7 @@ class CanOutput:
         self._scene_counter = 0
         self._master_counter = 0
         self._msg = {}
+        self._limits: dict[int, dict] = {}
         for slot in range(n_slots):
             for kind, (base, _) in _TARGET_MESSAGES.items():
                 self._msg[(slot, kind)] = self.db.get_message_by_frame_id(base + slot)
@@ -216,8 +212,14 @@ class CanOutput:
 
     # -- encoding (pure) --------------------------------------------------------------
     def _encode(self, message: Any, values: dict) -> can.Message:
-        sigs = {s.name: s for s in message.signals}
-        data = message.encode({k: _clamp(sigs[k], v) for k, v in values.items()}, strict=False)
+        limits = self._limits.get(message.frame_id)
+        if limits is None:
+            limits = self._limits[message.frame_id] = {s.name: (s.minimum, s.maximum) for s in message.signals}
+        clamped = {}
+        for k, v in values.items():
+            lo, hi = limits[k]
+            clamped[k] = lo if v < lo else hi if v > hi else v
+        data = message.encode(clamped, strict=False)
         return can.Message(arbitration_id=message.frame_id, data=data, is_extended_id=False)
 
     def frames_for_result(self, res: RelativeResult, slot: int, counter: int = 0) -> list:
