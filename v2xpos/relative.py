@@ -112,19 +112,25 @@ def _mtv(M: tuple, v: tuple) -> tuple:
 
 def _mm(A: tuple, B: tuple) -> tuple:
     """A B."""
-    return tuple(A[3 * i] * B[j] + A[3 * i + 1] * B[3 + j] + A[3 * i + 2] * B[6 + j]
-                 for i in range(3) for j in range(3))
+    a0, a1, a2, a3, a4, a5, a6, a7, a8 = A
+    b0, b1, b2, b3, b4, b5, b6, b7, b8 = B
+    return (a0 * b0 + a1 * b3 + a2 * b6, a0 * b1 + a1 * b4 + a2 * b7, a0 * b2 + a1 * b5 + a2 * b8,
+            a3 * b0 + a4 * b3 + a5 * b6, a3 * b1 + a4 * b4 + a5 * b7, a3 * b2 + a4 * b5 + a5 * b8,
+            a6 * b0 + a7 * b3 + a8 * b6, a6 * b1 + a7 * b4 + a8 * b7, a6 * b2 + a7 * b5 + a8 * b8)
+
+
+def _transpose(A: tuple) -> tuple:
+    return (A[0], A[3], A[6], A[1], A[4], A[7], A[2], A[5], A[8])
 
 
 def _mtm(A: tuple, B: tuple) -> tuple:
     """A^T B."""
-    return tuple(A[i] * B[j] + A[3 + i] * B[3 + j] + A[6 + i] * B[6 + j] for i in range(3) for j in range(3))
+    return _mm(_transpose(A), B)
 
 
 def _mmt(A: tuple, B: tuple) -> tuple:
     """A B^T."""
-    return tuple(A[3 * i] * B[3 * j] + A[3 * i + 1] * B[3 * j + 1] + A[3 * i + 2] * B[3 * j + 2]
-                 for i in range(3) for j in range(3))
+    return _mm(A, _transpose(B))
 
 
 def _cross(a: tuple, b: tuple) -> tuple:
