@@ -93,7 +93,7 @@ class TargetTrack:
 
 RECORD_FIELDS = ("t_gps_s", "t_slave_gps_s", "status", "latency_s", "pipeline_ms", "e2e_ms",
                  "rel_pos_x", "rel_pos_y", "rel_pos_z", "rel_vel_x", "rel_vel_y", "rel_vel_z",
-                 "range_m", "unc_pos_x", "unc_pos_y", "unc_pos_z", "fix_side", "ttc_s", "gap_m")
+                 "range_m", "unc_pos_x", "unc_pos_y", "unc_pos_z", "fix_side", "ttc_s", "gap_m", "slave_fix")
 
 
 class MasterPipeline:
@@ -235,7 +235,8 @@ class MasterPipeline:
         u = unc if unc is not None else (math.nan, math.nan, math.nan)
         rows.append((res.t_gps_s, math.nan if msg is None else msg.t_gps_s, int(res.status), res.latency_s,
                      pipe_ms, e2e, p[0], p[1], p[2], v[0], v[1], v[2], res.range_m, u[0], u[1], u[2],
-                     int(res.fix_side), math.nan if res.ttc_s is None else res.ttc_s, res.gap_m))
+                     int(res.fix_side), math.nan if res.ttc_s is None else res.ttc_s, res.gap_m,
+                     math.nan if msg is None else int(msg.fix)))
 
     # ------------------------------------------------------------------ silence
     def tick(self, t_now_gps_s: float, master_t_gps_s: float | None = None) -> list[RelativeResult]:

@@ -142,6 +142,7 @@ class MasterService:
     async def run(self) -> dict:
         self.stop_event = asyncio.Event()
         self.source.warm_up()
+        self.source.advance(self.epoch - WARMUP_S - 0.5)   # driving history before the run
         self._open()
         if self.start_file is not None:
             from sim.launcher import signal_ready_and_wait

@@ -76,6 +76,9 @@ def evaluate_target(sc: Scenario, target_id: str, rows: np.ndarray, t_from_s: fl
         eu = np.linalg.norm(u - tr["rel_pos_b_m"], axis=1)
         ev = np.linalg.norm(v - tr["rel_vel_b_mps"], axis=1)
         er = valid[:, F["range_m"]] - tr["range_m"]
+        fixed = valid[:, F["slave_fix"]] == 5
+        near = tr["range_m"] <= 50.0
+        out.update({"rel_pos_err_rms_rtk_fixed_m": _rms(e[fixed]), "rel_pos_err_rms_within_50m_m": _rms(e[near])})
         out.update({"rel_pos_err_rms_m": _rms(e), "rel_pos_err_p99_m": _pct(e, 99),
                     "rel_vel_err_rms_mps": _rms(ev), "range_err_rms_m": _rms(er),
                     "uncompensated_rel_pos_err_rms_m": _rms(eu[np.isfinite(eu)])})

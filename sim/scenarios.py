@@ -11,7 +11,8 @@ The lead path repeats a pattern with curves both ways (lateral acceleration 1.6-
 S-bend and a braking manoeuvre (20 -> 12.5 m/s at -3 m/s^2 and back at +2.5 m/s^2).
 
 Time: GPS time of the scenario is ``epoch_gps_s + (wall time - start stamp)`` in every process;
-truth covers [epoch - 2 s, epoch + duration + 10 s].
+truth covers [epoch - history_s - 2 s, epoch + duration + 10 s]: the vehicles have been driving
+(and their filters converging) for ``history_s`` before the run starts.
 
 Link model of a slave (applied by the slave before publishing): message k is sent at
 ``max(send_{k-1}, t_k + delay_k)`` with ``delay_k = latency + N(0, jitter) (clipped to +-3 sigma,
@@ -133,16 +134,16 @@ def convoy(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 100.
            speed_mps: float = 20.0, headway_s: float = 1.5, seed: int = 0, cut_in: bool = True,
            pedestrian: bool = True, degradations: bool = True, spikes: bool = True,
            imu_grade: str = "tactical", epoch_gps_s: float = DEFAULT_EPOCH_GPS_S,
-           dt_s: float = 0.01) -> Scenario:
+           dt_s: float = 0.01, history_s: float = 20.0) -> Scenario:
     """Build the convoy scenario (see module docstring). ``vehicles`` counts the master."""
     if vehicles < 1:
         raise ValueError("vehicles must be >= 1 (the master)")
     params = dict(vehicles=vehicles, duration_s=duration_s, latency_ms=latency_ms, jitter_ms=jitter_ms,
                   speed_mps=speed_mps, headway_s=headway_s, seed=seed, cut_in=cut_in, pedestrian=pedestrian,
                   degradations=degradations, spikes=spikes, imu_grade=imu_grade, epoch_gps_s=epoch_gps_s,
-                  dt_s=dt_s)
+                  dt_s=dt_s, history_s=history_s)
     n_lane = vehicles - (1 if (cut_in and vehicles >= 2) else 0)
-    pre_s = (n_lane - 1) * headway_s + 2.0
+    pre_s = (n_lane - 1) * headway_s + 2.0 + history_s
     lap = _pattern()
     lap_s = sum(s.duration_s for s in lap)
     total_s = pre_s + duration_s + 12.0
@@ -191,9 +192,10 @@ def convoy(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 100.
         yaw = float(ego.rpy_rad[k, 2])
         fwd = np.array([math.cos(yaw), math.sin(yaw), 0.0])
         meet = ego.r_ned_m[k] + 30.0 * fwd + (0.5 * LANE_WIDTH_M + 3.0) * _right_unit_ned(yaw)
-        walk_t0 = epoch_gps_s - 2.0
-        start = meet + PEDESTRIAN_SPEED_MPS * (t_meet_rel + 2.0) * fwd
-        ped_segs = [Segment(t_meet_rel + 2.0), Segment(4.0, yaw_rate_rps=0.2), Segment(duration_s + 8.0)]
+        lead_in = 2.0 + history_s
+        walk_t0 = epoch_gps_s - lead_in
+        start = meet + PEDESTRIAN_SPEED_MPS * (t_meet_rel + lead_in) * fwd
+        ped_segs = [Segment(t_meet_rel + lead_in), Segment(4.0, yaw_rate_rps=0.2), Segment(duration_s + 8.0)]
         traj = generate(ped_segs, dt_s=dt_s, speed0_mps=PEDESTRIAN_SPEED_MPS, yaw0_rad=yaw + math.pi,
                         t0_s=walk_t0, lla0=lla0, r0_ned_m=start, smooth_tau_s=0.5, roll_per_lat_acc_rad=0.0)
         actors["p1"] = Actor("p1", "pedestrian", "slave", traj, Geometry(kind="circle", radius_m=0.3),

@@ -77,6 +77,7 @@ def run_slave(cfg: SlaveConfig, start_unix_s: float | None = None, stop: _Stop |
     gps_of = (lambda wall: epoch + (wall - start))
     wall_of = (lambda t: start + (t - epoch))
     source.warm_up()
+    source.advance(sc.epoch_gps_s - WARMUP_S - 0.5)   # driving history before the run: filter converged
     link = Link(cfg.link)
     pub = link.publisher(state_key(cfg.fleet, cfg.vehicle_id))
     imu_pub = link.publisher(imu_key(cfg.fleet, cfg.vehicle_id), express=False) if cfg.publish_imu else None

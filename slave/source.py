@@ -56,6 +56,22 @@ class _SimSensors:
         self.i_gnss = int(np.searchsorted(self.gnss.t_s, t_gps_s - 1e-9))
 
 
+def filter_noise(imu_grade: str, margin: float = 3.0) -> dict:
+    """InsConfig stochastic model from the simulated IMU's specification (``ImuErrorModel.preset``,
+    the datasheet of the unit): white noise densities x ``margin``, bias priors at 3x the preset's
+    1-sigma turn-on bias, bias instability at the preset's bias / 3 (floors keep the model sane for
+    the ideal preset)."""
+    rng = np.random.default_rng(0)
+    draws = [ImuErrorModel.preset(imu_grade, rng) for _ in range(200)]
+    spec = draws[0]
+    bg = max(float(np.std([d.gyro_bias_rps for d in draws])), 1e-6)      # the preset's 1-sigma
+    ba = max(float(np.std([d.accel_bias_mps2 for d in draws])), 1e-4)
+    return {"gyro_noise_rps_rthz": max(spec.gyro_noise_rps_rthz * margin, 1e-5),
+            "accel_noise_mps2_rthz": max(spec.accel_noise_mps2_rthz * margin, 1e-4),
+            "gyro_bias_init_sd_rps": 3 * bg, "accel_bias_init_sd_mps2": 3 * ba,
+            "gyro_bias_sd_rps": bg / 3, "accel_bias_sd_mps2": ba / 3}
+
+
 class InsSimSource:
     """Simulated sensors of one actor through the real GNSS/INS filter (see module docstring)."""
 
@@ -67,7 +83,7 @@ class InsSimSource:
         plat = platform or ("pedestrian" if actor.kind == "pedestrian" else "car")
         self.filter = InsFilter(InsConfig(platform=plat, imu_to_body=np.eye(3),
                                           lever_arm_m=np.asarray(actor.lever_arm_m, float),
-                                          effects=tuple(effects)))
+                                          effects=tuple(effects), **filter_noise(actor.imu_grade)))
         self._init_rng = np.random.default_rng(actor.seed + 7)
         self.initialized = False
         self._make_filter = lambda: InsFilter(self.filter.cfg)

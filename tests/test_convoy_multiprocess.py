@@ -1,0 +1,67 @@
+"""The convoy as separate OS processes on loopback (master with embedded router, two slaves, one
+pedestrian, every one running the INS filter on its simulated sensors), evaluated against truth:
+accuracy with 100 ms link latency, compensation gain, fix degradation, delay spike, outputs."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from sim.demo import run_demo
+
+REQUIRED_TOP = {"vehicles", "duration_s", "targets", "master_pipeline_ms_p50", "master_pipeline_ms_p99",
+                "can_frames", "udp_datagrams"}
+REQUIRED_TARGET = {"id", "kind", "samples", "valid_fraction", "rel_pos_err_rms_m", "rel_pos_err_p99_m",
+                   "rel_vel_err_rms_mps", "range_err_rms_m", "uncompensated_rel_pos_err_rms_m", "latency_ms_p50",
+                   "latency_ms_p99", "rejected"}
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory):
+    out = tmp_path_factory.mktemp("convoy")
+    rep = run_demo(vehicles=3, duration_s=14.0, latency_ms=100.0, jitter_ms=5.0, seed=0, out=out, source="ins",
+                   live=False, plots=True)
+    rep["_out"] = out
+    return rep
+
+
+@pytest.mark.slow
+def test_report_layout_and_processes(report):
+    out = report["_out"]
+    assert REQUIRED_TOP <= set(report)
+    on_disk = json.loads((out / "report.json").read_text())
+    assert REQUIRED_TOP <= set(on_disk) and len(on_disk["targets"]) == 3
+    for t in report["targets"]:
+        assert REQUIRED_TARGET <= set(t)
+    assert all(code == 0 for code in report["exit_codes"].values()), report["exit_codes"]
+    assert {t["id"]: t["kind"] for t in report["targets"]} == {"t1": "vehicle", "t2": "vehicle", "p1": "pedestrian"}
+    assert report["vehicles"] == 3
+    for png in ("rel_pos_error.png", "range.png", "latency_hist.png", "status.png"):
+        assert (out / png).stat().st_size > 1000
+    assert report["can_frames"] > 1000 and report["udp_datagrams"] > 1000
+    assert report["rejected"] == {}
+
+
+@pytest.mark.slow
+def test_accuracy_and_compensation_with_100ms_latency(report):
+    t = {x["id"]: x for x in report["targets"]}
+    t1 = t["t1"]                                # cut-in vehicle, 15 m ahead, RTK fixed throughout
+    assert t1["samples"] > 1000
+    assert t1["rel_pos_err_rms_m"] <= 0.03
+    assert t1["uncompensated_rel_pos_err_rms_m"] >= 10 * t1["rel_pos_err_rms_m"]
+    assert t1["range_err_rms_m"] <= 0.03
+    assert 95.0 <= t1["latency_ms_p50"] <= 115.0
+    t2 = t["t2"]                                # 30 m ahead; float then single in the middle of the run
+    assert t2["rel_pos_err_rms_rtk_fixed_m"] <= 0.03
+    assert t2["uncompensated_rel_pos_err_rms_m"] >= 10 * t2["rel_pos_err_rms_rtk_fixed_m"]
+
+
+@pytest.mark.slow
+def test_fix_degradation_and_delay_spike_statuses(report):
+    t = {x["id"]: x for x in report["targets"]}
+    t2 = t["t2"]
+    assert t2["status_counts"].get("fix_invalid", 0) >= 100     # 2 s of SINGLE at 100 Hz
+    assert t2["valid_fraction"] >= 0.7                            # and valid again afterwards
+    t1 = t["t1"]
+    assert t1["status_counts"].get("timeout", 0) >= 50           # the 300 ms spike
+    assert t1["latency_ms_p99"] > 200.0
