@@ -97,11 +97,16 @@ def process_noise_density(layout: StateLayout, cfg) -> np.ndarray:
 def propagate_covariance(P: np.ndarray, A: np.ndarray, q_c: np.ndarray, dt_s: float) -> np.ndarray:
     """P <- Phi (P + Q/2) Phi^T + Q/2 with Phi = I + A + A^2/2 and Q = diag(q_c) dt (in place on A: reset)."""
     n = P.shape[0]
-    Phi = np.eye(n) + A + 0.5 * (A @ A)
+    Phi = A @ A
+    Phi *= 0.5
+    Phi += A
+    Phi.flat[::n + 1] += 1.0
     Qh = 0.5 * q_c * dt_s
     P1 = P.copy()
-    P1[np.diag_indices(n)] += Qh
+    P1.flat[::n + 1] += Qh
     P_new = Phi @ P1 @ Phi.T
-    P_new[np.diag_indices(n)] += Qh
+    P_new.flat[::n + 1] += Qh
     A[:] = 0.0
-    return 0.5 * (P_new + P_new.T)
+    P_new += P_new.T
+    P_new *= 0.5
+    return P_new

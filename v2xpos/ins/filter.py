@@ -138,6 +138,7 @@ class InsFilter:
         self.t_stamp_s: float | None = None
         self._t_cov_s: float | None = None
         self._since_chunk = 0
+        self._chunks_since_ortho = 0
         self._chunk_t: list = []
         self._chunk_f: list = []
         self._chunk_w: list = []
@@ -304,9 +305,12 @@ class InsFilter:
         self._t_cov_s = self.t_stamp_s
 
     def _end_chunk(self) -> None:
-        t = np.concatenate(self._chunk_t)
-        f = np.concatenate(self._chunk_f)
-        w = np.concatenate(self._chunk_w)
+        if len(self._chunk_t) == 1:
+            t, f, w = self._chunk_t[0], self._chunk_f[0], self._chunk_w[0]
+        else:
+            t = np.concatenate(self._chunk_t)
+            f = np.concatenate(self._chunk_f)
+            w = np.concatenate(self._chunk_w)
         self._chunk_t.clear()
         self._chunk_f.clear()
         self._chunk_w.clear()
@@ -316,12 +320,12 @@ class InsFilter:
         self._last_w_b = (self.mem[MEM_W:MEM_W + 3].copy() if self.initialized
                           else w[-1] - self.corr[COR_BG:COR_BG + 3])
         self._last_f_b = (f[-1] - self.corr[COR_BA:COR_BA + 3])
-        fn = np.linalg.norm(f, axis=1)
+        fn = np.sqrt(np.einsum("ij,ij->i", f, f))
         f_h = (self.C_nb @ (f.mean(axis=0) - self.corr[COR_BA:COR_BA + 3]))[:2] if self.initialized else np.zeros(2)
         self._win.append((len(t), fn.sum(), (fn * fn).sum(), w.sum(axis=0), f_h * len(t)))
         self.static = self._detect_static()
         g = geo.normal_gravity_mps2(self.nav[NAV_LAT], self.nav[NAV_H]) if self.initialized else None
-        speed = float(np.linalg.norm(self.nav[3:6])) if self.initialized else 0.0
+        speed = math.sqrt(float(self.nav[3:6] @ self.nav[3:6])) if self.initialized else 0.0
         est = self.calibrator.feed(t, f, w, moving=self.initialized and speed > 0.5, gravity_mps2=g)
         if not self.initialized:
             self.aligner.feed(t, f - self.corr[COR_BA:COR_BA + 3], w - self.corr[COR_BG:COR_BG + 3], self.static)
@@ -345,7 +349,9 @@ class InsFilter:
                 self._update_zupt()
             elif self.cfg.platform == "car" and speed > self.cfg.nhc_min_speed_mps:
                 self._update_nhc()
-        if self.mem[MEM_VALID] and np.linalg.norm(self.C_nb.T @ self.C_nb - np.eye(3)) > 1e-9:
+        self._chunks_since_ortho += 1
+        if self._chunks_since_ortho >= 100:
+            self._chunks_since_ortho = 0
             self.C_nb = orthonormalize(self.C_nb)
 
     def _detect_static(self) -> bool:

@@ -92,6 +92,7 @@ def replay(dataset: Dataset, schedule: OutageSchedule | None = None, cfg: InsCon
            progress: bool = True, keep_series: bool = True) -> ReplayResult:
     """Run the filter over the whole dataset; see the module docstring for the metrics."""
     t_wall0 = time.perf_counter()
+    t_cpu0 = time.process_time()
     schedule = schedule or OutageSchedule()
     cfg = cfg or config_for(dataset)
     f = InsFilter(cfg)
@@ -146,6 +147,8 @@ def replay(dataset: Dataset, schedule: OutageSchedule | None = None, cfg: InsCon
     has_ref_pose = dataset.reference is not None
     ref_pose_t = np.asarray(dataset.reference.t_s) if has_ref_pose else None
     ref_pose_next = 0
+    wheel_next_t = -np.inf
+    wheel_period_s = 1.0 / cfg.constraint_rate_hz
 
     for e in order:
         t_ev, kind, idx = float(ev_t[e]), int(ev_k[e]), int(ev_i[e])
@@ -163,8 +166,10 @@ def replay(dataset: Dataset, schedule: OutageSchedule | None = None, cfg: InsCon
                     ant = _predicted_antenna(f, t_ev)
                     outage_err.append(_ned_error(ant, ref))
             continue
-        if kind == 2:
-            f.update_wheel_speed(t_ev, float(dataset.wheel.speed_mps[idx]))
+        if kind == 2:   # used at the constraint rate: odometer errors are correlated at higher rates
+            if t_ev >= wheel_next_t:
+                f.update_wheel_speed(t_ev, float(dataset.wheel.speed_mps[idx]))
+                wheel_next_t = t_ev + wheel_period_s
             continue
         fix = FixStatus(int(gn.fix[idx]))
         used = not in_outage(t_ev)
@@ -209,6 +214,7 @@ def replay(dataset: Dataset, schedule: OutageSchedule | None = None, cfg: InsCon
     if bar is not None:
         bar.close()
     wall = time.perf_counter() - t_wall0
+    cpu = time.process_time() - t_cpu0
 
     oe = np.array(outage_err).reshape(-1, 3)
     ae = np.array(aided_err).reshape(-1, 3)
@@ -225,6 +231,7 @@ def replay(dataset: Dataset, schedule: OutageSchedule | None = None, cfg: InsCon
         "aided_h_rms_m": _rms(np.hypot(ae[:, 0], ae[:, 1])),
         "wall_s": wall,
         "imu_samples_per_s": n_imu / wall if wall > 0 else None,
+        "cpu_s": cpu,
     }
     if has_ref_pose:
         re = np.array(ref_err).reshape(-1, 3)
@@ -441,7 +448,8 @@ def run_bench(args: argparse.Namespace) -> int:
             best = r
     s = best.summary
     print(f"  end to end replay (filter + updates, no loading): {s['imu_samples_per_s']:,.0f} IMU samples/s "
-          f"({s['wall_s']:.2f} s); target >= 25,000")
+          f"wall ({s['wall_s']:.2f} s), {n / s['cpu_s']:,.0f} IMU samples per CPU second of one core "
+          f"({s['cpu_s']:.2f} s); target >= 25,000")
     print(f"  end to end including loading: {n / (s['wall_s'] + t_load):,.0f} IMU samples/s")
     print(f"  outage_h_rms_m {s['outage_h_rms_m']:.3f}")
     return 0

@@ -89,18 +89,17 @@ class StaticCalibrator:
         ok = self.static_frames(acc_b, gyro_b, g)
         if moving:
             ok[:] = False
+        bad = np.flatnonzero(~ok)
+        if len(bad) == 0:
+            return self._consume(t_s, acc_b, gyro_b, g)
         result = None
-        start = 0
-        n = len(t_s)
-        while start < n:
-            bad = np.flatnonzero(~ok[start:])
-            stop = start + bad[0] if len(bad) else n
-            if stop > start:
-                r = self._consume(t_s[start:stop], acc_b[start:stop], gyro_b[start:stop], g)
-                result = r or result
-            if stop < n:
-                self._reset(0, float(t_s[stop]))
-            start = stop + 1
+        if bad[0] > 0:
+            result = self._consume(t_s[:bad[0]], acc_b[:bad[0]], gyro_b[:bad[0]], g)
+        if self._phase != 0 or self._n:
+            self._reset(0, float(t_s[bad[-1]]))
+        k = bad[-1] + 1
+        if k < len(t_s):
+            result = self._consume(t_s[k:], acc_b[k:], gyro_b[k:], g) or result
         return result
 
     def _consume(self, t, f, w, g) -> StaticBiasEstimate | None:

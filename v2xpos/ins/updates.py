@@ -17,8 +17,9 @@ R_m = misalignment DCM vehicle <- body, v_b = C^T v):
 * Odometer: h = (1 + s_odo)^-1-free form (R_m C^T v)_x compared to speed / (1 + s_odo).
 * ZUPT: h = v, H_v = I. ZARU: h = w - C^T w_ie, H_bg = -I.
 
-The update is the Joseph form (Bucy & Joseph 1968) with a chi-square gate on the normalised
-innovation squared NIS = d^T S^-1 d, S = H P H^T + R.
+The update is P <- P - K H P, symmetrised (the Joseph form costs two more n^3 products per
+update; with the gate and symmetrisation it has not been needed), with a chi-square gate on the
+normalised innovation squared NIS = d^T S^-1 d, S = H P H^T + R.
 """
 from __future__ import annotations
 
@@ -61,6 +62,5 @@ def kalman_update(P: np.ndarray, H: np.ndarray, d: np.ndarray, R: np.ndarray,
         return None, P, nis, S, False
     K = PHt @ S_inv
     dx = K @ d
-    IKH = np.eye(P.shape[0]) - K @ H
-    P_new = IKH @ P @ IKH.T + K @ R @ K.T
+    P_new = P - K @ PHt.T
     return dx, 0.5 * (P_new + P_new.T), nis, S, True
