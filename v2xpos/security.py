@@ -461,7 +461,7 @@ class ClockSkewMonitor:
     * offset / drift: the minimum of ``t_rx - t_tx`` over blocks of ``block_s`` (the NTP
       minimum-delay filter, Mills, RFC 5905 sec. 10) removes queueing delay; its change from the
       first blocks (baseline) is the sender's clock offset change, and a line fitted through the
-      block minima gives the drift rate. Flagged when ``|offset change| > offset_threshold_s``
+      block minima (once they span ``drift_min_span_s``) gives the drift rate. Flagged when ``|offset change| > offset_threshold_s``
       or ``|drift| > drift_threshold_ppm``.
     A sustained rise of the network's minimum delay itself is indistinguishable from the sender
     clock falling behind and is reported as negative skew.
@@ -469,21 +469,23 @@ class ClockSkewMonitor:
 
     def __init__(self, jump_threshold_s: float = 0.02, offset_threshold_s: float = 0.02,
                  drift_threshold_ppm: float = 1000.0, block_s: float = 0.5, baseline_blocks: int = 3,
-                 jump_hold_s: float = 2.0):
+                 jump_hold_s: float = 2.0, drift_min_span_s: float = 4.0):
         self.jump_threshold_s = jump_threshold_s
         self.offset_threshold_s = offset_threshold_s
         self.drift_threshold_ppm = drift_threshold_ppm
         self.block_s = block_s
         self.baseline_blocks = baseline_blocks
         self.jump_hold_s = jump_hold_s
+        self.drift_min_span_s = drift_min_span_s
         self._tracks: dict[str, _SkewTrack] = {}
 
     def status(self, vehicle_id: str) -> ClockSkewStatus:
+        """Snapshot of one sender's clock status."""
         track = self._tracks.get(vehicle_id)
-        return track.status if track is not None else ClockSkewStatus(vehicle_id)
+        return replace(track.status) if track is not None else ClockSkewStatus(vehicle_id)
 
     def all_status(self) -> list[ClockSkewStatus]:
-        return [t.status for t in self._tracks.values()]
+        return [replace(t.status) for t in self._tracks.values()]
 
     def update(self, vehicle_id: str, seq: int, t_tx_s: float, t_rx_s: float) -> ClockSkewStatus:
         """Feed one received message; returns a snapshot of the sender's current status."""
@@ -536,7 +538,7 @@ class ClockSkewMonitor:
             tr.baseline = sorted(b for _, b in tr.blocks)[len(tr.blocks) // 2]
         if math.isfinite(tr.baseline):
             st.offset_change_s = tr.blocks[-1][1] - tr.baseline
-        if len(tr.blocks) >= 4:
+        if len(tr.blocks) >= 4 and tr.blocks[-1][0] - tr.blocks[0][0] >= self.drift_min_span_s:
             n = len(tr.blocks)
             t0 = tr.blocks[0][0]
             xs = [b[0] - t0 for b in tr.blocks]

@@ -1,0 +1,40 @@
+"""Fault scenarios over real zenoh sessions on loopback (v2xpos.security_bench): the master keeps
+running and every target's status stays correct."""
+from __future__ import annotations
+
+import pytest
+
+from v2xpos import security_bench as sb
+
+pytestmark = pytest.mark.slow
+
+
+def _run(name: str) -> sb.FaultResult:
+    result = sb.FAULTS[name]()
+    print(result.detail)
+    return result
+
+
+def test_forged_and_replayed_messages_are_never_accepted():
+    r = sb.attack_forged_and_replayed(n_each=30)
+    assert r["forged_sent"] == 120 and r["forged_accepted"] == 0
+    assert r["replayed_sent"] > 80 and r["replayed_accepted"] == 0
+    assert r["genuine_accepted"] == r["genuine_sent"]
+    for reason in ("unknown_key", "key_vehicle_mismatch", "bad_signature", "unsigned", "replay", "too_old"):
+        assert r["rejected"].get(reason, 0) > 0, reason
+
+
+@pytest.mark.parametrize("name", ["slave_dropout_and_return", "delay_spikes_and_jitter",
+                                  "reordering_and_duplicates", "slave_clock_jump_and_drift",
+                                  "gnss_outage_and_fix_downgrades", "router_killed_and_restarted"])
+def test_fault(name):
+    result = _run(name)
+    assert result.passed, result.detail
+
+
+@pytest.mark.xfail(reason="master.pipeline rejects a restarted slave (sequence back to 0) as out_of_order "
+                          "until its last sequence is exceeded; requested in docs/requests-from-trust.md",
+                   strict=False)
+def test_fault_slave_restart_sequence_reset():
+    result = _run("slave_restart_sequence_reset")
+    assert result.passed, result.detail
