@@ -258,9 +258,10 @@ class InsFilter:
 
     def process_imu_batch(self, t_s: np.ndarray, acc_mps2: np.ndarray, gyro_rps: np.ndarray) -> None:
         """Several IMU samples (IMU axes); equivalent to calling ``process_imu`` on each in order."""
-        f_b = np.ascontiguousarray(acc_mps2 @ self.cfg.imu_to_body.T)
-        w_b = np.ascontiguousarray(gyro_rps @ self.cfg.imu_to_body.T)
-        t_s = np.ascontiguousarray(t_s, dtype=float)
+        with np.errstate(invalid="ignore", over="ignore"):
+            f_b = np.ascontiguousarray(np.asarray(acc_mps2, float).reshape(-1, 3) @ self.cfg.imu_to_body.T)
+            w_b = np.ascontiguousarray(np.asarray(gyro_rps, float).reshape(-1, 3) @ self.cfg.imu_to_body.T)
+        t_s = np.ascontiguousarray(np.atleast_1d(t_s), dtype=float)
         good = np.isfinite(t_s) & np.isfinite(f_b).all(axis=1) & np.isfinite(w_b).all(axis=1)
         if self._last_sample_t is not None:
             good &= t_s > self._last_sample_t

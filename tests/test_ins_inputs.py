@@ -1,0 +1,113 @@
+"""Malformed inputs are counted and skipped, never fatal; seed 001 stop calibration; CLI."""
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sim.sensors import ImuErrorModel, simulate_imu
+from sim.trajectory import Segment, generate, static
+from v2xpos import geo
+from v2xpos.ins import InsConfig, InsFilter, StaticCalibrationConfig, StaticCalibrator
+from v2xpos.ins import replay as replay_cmd
+from v2xpos.types import FixStatus
+
+DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+
+
+def _started_filter():
+    tr = static(2.0)
+    f = InsFilter(InsConfig(platform="car"))
+    f.initialize(tr.t_s[0], tr.lla[0], np.zeros(3), np.zeros(3))
+    imu = simulate_imu(tr)
+    return f, tr, imu
+
+
+def test_malformed_imu_samples_are_counted_not_fatal():
+    f, tr, imu = _started_filter()
+    acc, gyr = imu.acc_mps2.copy(), imu.gyro_rps.copy()
+    acc[50, 1] = np.nan
+    gyr[60, 2] = np.inf
+    t = imu.t_s.copy()
+    t[70] = t[69]            # duplicate stamp
+    f.process_imu_batch(t[:100], acc[:100], gyr[:100])
+    f.process_imu(t[50], acc[0], gyr[0])        # back in time
+    f.process_imu_batch(t[100:], acc[100:], gyr[100:])
+    assert f.counts["malformed_inputs"] == 4
+    assert np.linalg.norm(geo.lla_to_ned(f.lla, tr.lla[0])) < 0.01
+
+
+@pytest.mark.parametrize("bad", [
+    dict(lla=np.array([np.nan, 0.0, 0.0])),
+    dict(lla=np.array([1.0, 2.0])),
+    dict(sd_ned_m="x"),
+    dict(fix=99),
+    dict(vel_ned_mps=[1.0, 2.0]),
+])
+def test_malformed_gnss_is_rejected_with_a_reason(bad):
+    f, tr, imu = _started_filter()
+    f.process_imu_batch(imu.t_s, imu.acc_mps2, imu.gyro_rps)
+    kw = dict(t_s=tr.t_s[-1], lla=tr.lla[-1], sd_ned_m=np.full(3, 0.01), fix=FixStatus.FIXED)
+    kw.update(bad)
+    res = f.update_gnss(**kw)
+    assert not res.accepted and "malformed" in res.reason
+    assert f.counts["malformed_inputs"] == 1
+    ok = f.update_gnss(tr.t_s[-1], tr.lla[-1], np.full(3, 0.01), FixStatus.FIXED)
+    assert ok.accepted          # the filter goes on
+
+
+def test_outlier_position_is_gated():
+    f, tr, imu = _started_filter()
+    f.process_imu_batch(imu.t_s, imu.acc_mps2, imu.gyro_rps)
+    far = geo.ned_to_lla(np.array([30.0, 0.0, 0.0]), tr.lla[-1])
+    res = f.update_gnss(tr.t_s[-1], far, np.full(3, 0.02), FixStatus.FIXED)
+    assert not res.accepted and res.nis > 100 and f.counts["gnss_pos_rejected"] == 1
+
+
+def test_seed001_static_calibration_estimates_biases():
+    tr = generate([Segment(5.0), Segment(3.0, accel_mps2=1.0), Segment(3.0), Segment(3.0, accel_mps2=-1.0),
+                   Segment(6.0)])
+    bg, ba = np.array([0.01, -0.02, 0.005]), np.array([0.05, -0.08, 0.1])
+    model = ImuErrorModel(gyro_bias_rps=bg, accel_bias_mps2=ba, gyro_noise_rps_rthz=2e-4,
+                          accel_noise_mps2_rthz=2e-3)
+    imu = simulate_imu(tr, model, rng=np.random.default_rng(2))
+    g = geo.normal_gravity_mps2(tr.lla0[0], tr.lla0[2])
+    cal = StaticCalibrator(StaticCalibrationConfig(gravity_mps2=g))
+    for k in range(0, len(imu), 10):      # the filter vetoes chunks with its speed estimate
+        cal.feed(imu.t_s[k:k + 10], imu.acc_mps2[k:k + 10], imu.gyro_rps[k:k + 10],
+                 moving=bool(tr.speed_mps[k:k + 10].max() > 0.1))
+    assert len(cal.estimates) == 2            # one per stop, none while moving
+    for est in cal.estimates:
+        assert np.allclose(est.gyro_bias_rps, bg, atol=5e-4)       # + Earth rate (7e-5)
+        assert np.allclose(est.accel_bias_mps2, ba, atol=5e-3)
+        assert est.t_start_s < tr.t_s[0] + 5.0 or est.t_start_s > tr.t_s[0] + 14.0
+    tilted = simulate_imu(static(5.0, pitch0_rad=np.radians(5.0)), model)
+    cal2 = StaticCalibrator(StaticCalibrationConfig(gravity_mps2=g))
+    cal2.feed(tilted.t_s, tilted.acc_mps2, tilted.gyro_rps)
+    assert cal2.estimates == []               # not level -> no estimate
+
+
+def test_replay_cli_writes_json_and_plots(tmp_path):
+    toml = DATA / "walk_0827" / "dataset.toml"
+    if not toml.exists():
+        pytest.skip(f"shared data not found: {toml}")
+    p = argparse.ArgumentParser()
+    replay_cmd.add_arguments(p)
+    args = p.parse_args([str(toml), "--json", str(tmp_path / "r.json"), "--plots", str(tmp_path / "plots"),
+                         "--no-progress", "--outage-first", "30", "--outage-every", "40", "--outage-length", "10"])
+    assert replay_cmd.run(args) == 0
+    s = json.loads((tmp_path / "r.json").read_text())
+    assert s["dataset"] == "walk_0827" and s["outage_count"] == 2
+    assert sorted(x.name for x in (tmp_path / "plots").glob("*.png")) == [
+        "bias_estimates.png", "error_vs_time.png", "innovations.png", "trajectory.png"]
+
+
+def test_replay_cli_reports_unloadable_dataset(tmp_path, capsys):
+    bad = tmp_path / "dataset.toml"
+    bad.write_text('name = "x"\nplatform = "car"\n[imu]\nfile = "missing.csv"\nformat = "csv_g_dps_ms"\n'
+                   '[gnss]\nfile = "missing.pos"\nformat = "rtklib_pos"\n')
+    p = argparse.ArgumentParser()
+    replay_cmd.add_arguments(p)
+    assert replay_cmd.run(p.parse_args([str(bad), "--no-progress"])) == 2
+    assert "cannot load" in capsys.readouterr().err
