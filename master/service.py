@@ -7,7 +7,9 @@ asyncio tasks in one thread (the zenoh callbacks only stamp arrival time and han
 
 * ``nav``: every 10 ms advance the own source to the current scenario GPS time
   (``epoch + wall - start``) and keep the latest NavState (time t_m);
-* ``consume``: await the next sample, then drain the queue, running the pipeline on each;
+* ``consume`` (``dispatch = "asyncio"``): await the next sample, then drain the queue, running the
+  pipeline on each; with ``dispatch = "inline"`` (default) the pipeline runs on the zenoh callback
+  thread instead, under a lock shared with ``tick`` and ``status``;
 * ``tick``: ``tick_hz`` status-only results for silent targets (NO_DATA / TIMEOUT);
 * ``status``: ``status_hz`` JSON summary on ``v2xpos/<fleet>/master/<id>/status`` for monitors.
 
@@ -23,6 +25,7 @@ import json
 import math
 import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -64,6 +67,8 @@ class MasterService:
         self.link: Link | None = None
         self.sinks: list = []
         self.pipeline: MasterPipeline | None = None
+        self.lock = threading.Lock()
+        self.closing = False
 
     def gps_now(self) -> float:
         return self.epoch + (time.time() - self.start)
@@ -120,7 +125,8 @@ class MasterService:
         while not self.stop_event.is_set():
             await asyncio.sleep(period)
             if self.nav is not None:
-                self.pipeline.tick(self.gps_now(), float(self.nav.t_s))
+                with self.lock:
+                    self.pipeline.tick(self.gps_now(), float(self.nav.t_s))
 
     def status(self, window: int | None = 2000) -> dict:
         """Summary for monitors; percentiles over the last ``window`` messages (None = all)."""
@@ -137,7 +143,9 @@ class MasterService:
         period = 1.0 / self.cfg.status_hz
         while not self.stop_event.is_set():
             await asyncio.sleep(period)
-            self.status_pub.put(json.dumps(self.status()).encode())
+            with self.lock:
+                st = self.status()
+            self.status_pub.put(json.dumps(st).encode())
 
     async def run(self) -> dict:
         self.stop_event = asyncio.Event()
@@ -157,20 +165,29 @@ class MasterService:
                 loop.add_signal_handler(sig, self.stop_event.set)
             except (NotImplementedError, RuntimeError):  # not the main thread (tests)
                 pass
-        sub = self.link.subscribe_async(STATE_KEY_ALL(self.cfg.fleet), loop)
+        if self.cfg.dispatch == "inline":
+            sub = _InlineDispatch(self)
+            self.link.subscribe(STATE_KEY_ALL(self.cfg.fleet), sub.on_sample)
+        else:
+            sub = self.link.subscribe_async(STATE_KEY_ALL(self.cfg.fleet), loop)
         gc.collect()
         gc.freeze()                       # long-lived setup objects leave the collector's scans
         gc.set_threshold(50_000, 50, 100)  # fewer young-generation pauses in the message path
-        tasks = [asyncio.create_task(c) for c in (self._nav_task(), self._consume_task(sub), self._tick_task(),
-                                                  self._status_task())]
+        coros = [self._nav_task(), self._tick_task(), self._status_task()]
+        if self.cfg.dispatch != "inline":
+            coros.append(self._consume_task(sub))
+        tasks = [asyncio.create_task(c) for c in coros]
         try:
             await self.stop_event.wait()
         finally:
             for t in tasks:
                 t.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
-            final = self.status(window=None)
+            with self.lock:
+                self.closing = True
+                final = self.status(window=None)
             final["link_received"] = sub.received
+            final["dispatch"] = self.cfg.dispatch
             self._write_outputs(final)
             for s in self.sinks:
                 s.close()
@@ -186,6 +203,26 @@ class MasterService:
         if cfg.summary_json:
             Path(cfg.summary_json).parent.mkdir(parents=True, exist_ok=True)
             Path(cfg.summary_json).write_text(json.dumps(final, indent=1))
+
+
+class _InlineDispatch:
+    """Run the pipeline directly on the zenoh callback thread (no hand-over to the event loop):
+    lowest latency; ``MasterService.lock`` serialises it with the loop's tick and status tasks."""
+
+    def __init__(self, svc: MasterService):
+        self.svc = svc
+        self.received = 0
+
+    def on_sample(self, payload: bytes, key: str, attachment: bytes | None, t_arrival_wall_s: float) -> None:
+        svc = self.svc
+        with svc.lock:
+            self.received += 1
+            if svc.closing:
+                return
+            if svc.nav is None:
+                svc.pipeline.rejected[REJECT_MASTER_NOT_READY] += 1
+                return
+            svc.pipeline.handle(payload, key, svc.nav, svc.gps_now(), t_arrival_wall_s)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
