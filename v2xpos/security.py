@@ -385,12 +385,19 @@ class MessageAuthenticator:
             return REJECT_BAD_SIGNATURE
         return None
 
-    def check(self, msg, now_gps_s: float) -> str | None:
+    def check(self, msg, now_gps_s: float, t_arrival_gps_s: float | None = None) -> str | None:
+        """Admit (None) or reject (reason) ``msg`` at receiver GPS time ``now_gps_s``.
+
+        ``t_arrival_gps_s``: when the message arrived (receiver GPS time) if it waited in a queue
+        before this call; the clock-skew monitor uses it so that the receiver's own queueing is
+        not mistaken for sender clock skew (default: ``now_gps_s``).
+        """
         reason = self.verify_signature(msg)
         if reason is not None:
             return self._reject(reason)
         t = float(msg.t_gps_s)
-        self.clock.update(msg.vehicle_id, int(msg.seq), t, now_gps_s)
+        self.clock.update(msg.vehicle_id, int(msg.seq), t,
+                          now_gps_s if t_arrival_gps_s is None else float(t_arrival_gps_s))
         if t > now_gps_s + self.future_tolerance_s:
             return self._reject(REJECT_FUTURE)
         if t < now_gps_s - self.max_age_s:
