@@ -75,3 +75,23 @@ def test_inject_fault_kinds():
     np.testing.assert_allclose(s.t_s - imu.t_s, 0.01, atol=1e-6)
     with pytest.raises(ValueError):
         inject_fault(imu, FaultSpec("melted", 1.0))
+
+
+def test_second_parameter_with_gnss_separates_a_scale_fault():
+    from sim.sensors import simulate_gnss
+    from v2xpos import geo
+
+    v = simulate_vehicle(3, "gyro_scale", seed=0)
+    gn = simulate_gnss(v.trajectory, rng=np.random.default_rng(0))
+    fixes = {"t_s": gn.t_s, "r_ned_m": geo.lla_to_ned(gn.lla, v.trajectory.lla0), "sd_m": 0.02,
+             "source": "simulated RTK GNSS"}
+    rep = grade_units(v.units, mounting_xyz_deg=v.mounting_xyz_deg, fixes=fixes)
+    fused = {u["id"]: u["fused_diff"] for u in rep["units"] if "fused_diff" in u}
+    assert len(fused) == 2 and rep["reference"] not in fused
+    healthy = next(k for k in fused if k != v.faulty)
+    assert fused[healthy]["att_deg"]["p90"] < 0.3 and fused[healthy]["pos_m"]["p90"] < 0.05
+    assert fused[v.faulty]["att_deg"]["p90"] > 3 * fused[healthy]["att_deg"]["p90"]
+    bad = next(u for u in rep["units"] if u["id"] == v.faulty)
+    assert next(c for c in bad["checks"] if c["name"] == "fused_attitude")["grade"] == "fail"
+    good = next(u for u in rep["units"] if u["id"] == healthy)
+    assert all(c["grade"] == "pass" for c in good["checks"])

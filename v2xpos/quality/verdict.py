@@ -17,8 +17,8 @@ ratios):
     accel noise       ratio warn > 1.6, fail > 2.5   (floor 0.01 m/s^2)
     gyro bias drift   ratio warn > 2.5, fail > 4.0   (floor 0.05 deg/s)
     fused attitude    P90 against the reference / median P90 of the other units,
-                      ratio warn > 2.0, fail > 3.0   (floor 0.5 deg)
-    fused position    same with position, warn > 2.0, fail > 3.0 (floor 0.2 m)
+                      ratio warn > 2.0, fail > 3.0   (floor 0.1 deg)
+    fused position    same with position, warn > 2.0, fail > 3.0 (floor 0.02 m)
 
 The grade is the worst outcome over the checks. Reasons for the chosen levels are in
 docs/quality.md (noise x5 -> ratio ~3.6; 0.5 deg/s step vs. the healthy window-mean spread; the
@@ -61,8 +61,8 @@ class Thresholds:
     fused_pos_fail_m: float = 3.0
     fused_warn_ratio: float = 2.0
     fused_fail_ratio: float = 3.0
-    fused_att_floor_deg: float = 0.5
-    fused_pos_floor_m: float = 0.2
+    fused_att_floor_deg: float = 0.1
+    fused_pos_floor_m: float = 0.02
 
     def as_dict(self) -> dict:
         return asdict(self)
