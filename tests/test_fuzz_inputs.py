@@ -123,3 +123,26 @@ def test_real_data_seeds_are_used_when_present():
     targets = {t.name: t for t in fuzz.build_targets(Path("/tmp"))}
     assert targets["rtklib_pos"].seeds[0].startswith(b"%")
     assert targets["timetag"].seeds[0].startswith(b"TIMETAG")
+
+
+def test_bad_slave_config_and_dataset_toml_name_file_and_field(tmp_path):
+    from slave.config import ConfigError, SlaveConfig
+    from v2xpos.datasets.loader import load_dataset
+    p = tmp_path / "slave.toml"
+    p.write_text('[service]\nrate_hz = "fast"\n')
+    with pytest.raises(ConfigError, match=r"slave.toml.*rate_hz"):
+        SlaveConfig.load(p)
+    p.write_text('[security]\nkey_file = 3\n')
+    with pytest.raises(ConfigError, match=r"slave.toml.*key_file"):
+        SlaveConfig.load(p)
+    seed = fuzz._dataset_toml_seed(tmp_path, fuzz._synthetic_imu_csv(), fuzz._synthetic_pos()).decode()
+    d = tmp_path / "dataset.toml"
+    d.write_text(seed.replace('lever_arm_m = [0.0, 0.0, 0.0]', 'lever_arm_m = [0.0, "x"]'))
+    with pytest.raises(ValueError, match=r"dataset.toml.*lever_arm_m"):
+        load_dataset(d)
+    d.write_text(seed.replace('platform = "car"\n', ''))
+    with pytest.raises(ValueError, match=r"dataset.toml.*platform"):
+        load_dataset(d)
+    d.write_bytes(seed.encode().replace(b"fuzz", b"\xff\xfe"))
+    with pytest.raises(ValueError, match=r"dataset.toml"):
+        load_dataset(d)

@@ -22,7 +22,8 @@ Targets and what counts as "rejected with a reason":
 * ``master.pipeline``: ``MasterPipeline.handle`` with an authenticator never raises; the
   rejection reason is read from its counters;
 * readers (``rtklib_pos``, ``timetag``, ``imu_csv``, ``ubx``) and loaders (``geojson`` scene,
-  ``master_config`` TOML, ``trust_list`` JSON): return normally (malformed records skipped and
+  ``master_config`` TOML, ``trust_list`` JSON, ``dataset_toml`` descriptors over small data
+  files): return normally (malformed records skipped and
   counted) or raise ``ValueError`` (incl. its subclasses SceneError, ConfigError, ...) or
   ``OSError`` with a message.
 Seeds for the readers are the first records of the shared recordings (read, never copied into
@@ -32,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
 import os
 import random
@@ -308,6 +310,26 @@ trust_list = "keys/trust.json"
 """
 
 
+def _dataset_toml_seed(workdir: Path, imu_csv: bytes, pos: bytes) -> bytes:
+    """A dataset.toml over small IMU / GNSS files written into ``workdir``."""
+    (workdir / "seed_imu.csv").write_bytes(imu_csv)
+    (workdir / "seed_gnss.pos").write_bytes(pos)
+    return b"""name = "fuzz"
+platform = "car"
+
+[imu]
+file = "seed_imu.csv"
+format = "csv_g_dps_ms"
+imu_to_body = [[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]]
+
+[gnss]
+file = "seed_gnss.pos"
+format = "rtklib_pos"
+lever_arm_m = [0.0, 0.0, 0.0]
+lever_arm_sd_m = 0.1
+"""
+
+
 def _trust_seed() -> bytes:
     from v2xpos.security import Ed25519PrivateKey, TrustList
     t = TrustList()
@@ -431,6 +453,8 @@ def build_targets(workdir: Path, data_dir: Path = DATA_DIR) -> list[Target]:
     from v2xpos.scene import Scene
     from v2xpos.security import load_trust_list
 
+    from v2xpos.datasets.loader import load_dataset
+
     state, trust = seed_state_payloads()
     drive, walk = data_dir / "drive_0708", data_dir / "walk_0827"
     pos = [s for s in (_head_lines(drive / "gnss_1934.pos", 20, "%"), _head_lines(walk / "gnss_1730.pos", 20, "%"))
@@ -451,6 +475,8 @@ def build_targets(workdir: Path, data_dir: Path = DATA_DIR) -> list[Target]:
         _file_target("geojson", [GEOJSON_SEED], mutate_text, Scene.load, workdir, ".geojson", 1.0),
         _file_target("master_config", [MASTER_TOML_SEED], mutate_text, MasterConfig.load, workdir, ".toml", 1.0),
         _file_target("trust_list", [_trust_seed()], mutate_text, load_trust_list, workdir, ".json", 1.0),
+        _file_target("dataset_toml", [_dataset_toml_seed(workdir, csv[0], pos[0])], mutate_text, load_dataset,
+                     workdir, ".toml", 0.3),
     ]
 
 
@@ -488,13 +514,14 @@ def run_target(target: Target, n: int, rng: random.Random, crash_dir: Path | Non
 
 
 def plan_counts(total: int, targets: list[Target], decoder_share: float = 0.6) -> dict[str, int]:
-    """Inputs per target: ``decoder_share`` of ``total`` to wire.state, the rest spread evenly."""
+    """Inputs per target: ``decoder_share`` of ``total`` to wire.state, the rest in proportion to
+    the targets' weights (rounded up, so the sum is at least ``total``)."""
     counts = {}
     rest = [t for t in targets if t.name != "wire.state"]
     counts["wire.state"] = int(round(total * decoder_share))
-    each = max(1, -(-(total - counts["wire.state"]) // max(1, len(rest))))
+    weight = sum(t.weight for t in rest) or 1.0
     for t in rest:
-        counts[t.name] = each
+        counts[t.name] = max(1, math.ceil((total - counts["wire.state"]) * t.weight / weight))
     return counts
 
 
@@ -502,6 +529,7 @@ def run_fuzz(total: int = 100_000, seed: int = 1, crash_dir: Path | None = None,
              only: list[str] | None = None, data_dir: Path = DATA_DIR) -> dict:
     """Run every target; returns the report dict (``fuzz_inputs``, ``fuzz_crashes``, per target)."""
     rng = random.Random(seed)
+    logging.disable(logging.WARNING)  # readers log each skipped record; the counts are in the report
     base = Path("/dev/shm") if Path("/dev/shm").is_dir() and os.access("/dev/shm", os.W_OK) else None
     workdir = Path(tempfile.mkdtemp(prefix="v2xpos_fuzz_", dir=base))
     try:
@@ -515,6 +543,7 @@ def run_fuzz(total: int = 100_000, seed: int = 1, crash_dir: Path | None = None,
             for t in targets:
                 per[t.name] = run_target(t, counts[t.name], rng, crash_dir, bar)
     finally:
+        logging.disable(logging.NOTSET)
         shutil.rmtree(workdir, ignore_errors=True)
     unnamed = {k: sum(n for r, n in v.reasons.items() if r.startswith(UNNAMED)) for k, v in per.items()}
     return {"fuzz_inputs": sum(s.inputs for s in per.values()),
