@@ -34,6 +34,7 @@
 
     [scene]
     geojson = "scene.geojson"         # optional V2L lane lines / points / polygons
+    rate_hz = 10                      # scene evaluations per second
 
     [record]
     results_npz = "out/master_results.npz"   # per-result rows for the report (optional)
@@ -73,6 +74,7 @@ class MasterConfig:
     udp_port: int = 47001
     zenoh_enabled: bool = True
     geojson: str | None = None
+    scene_hz: float = 10.0
     results_npz: str | None = None
     summary_json: str | None = None
     evaluate_uncompensated: bool = False
@@ -115,7 +117,10 @@ class MasterConfig:
         if not 0 < port < 65536:
             raise ConfigError(f"{wu}.port: {port} outside 1..65535")
         sc = take(d, "scene", dict, {}, path)
-        check_keys(sc, {"geojson"}, f"{path}: [scene]")
+        check_keys(sc, {"geojson", "rate_hz"}, f"{path}: [scene]")
+        scene_hz = take(sc, "rate_hz", float, 10.0, f"{path}: [scene]")
+        if not 0 < scene_hz <= 100:
+            raise ConfigError(f"{path}: [scene].rate_hz: {scene_hz} outside (0, 100]")
         rec = take(d, "record", dict, {}, path)
         wr = f"{path}: [record]"
         check_keys(rec, {"results_npz", "summary_json", "evaluate_uncompensated"}, wr)
@@ -133,7 +138,7 @@ class MasterConfig:
             can_channel=take(can_t, "channel", str, "v2xpos", wc),
             udp_enabled=take(udp_t, "enabled", bool, False, wu), udp_host=take(udp_t, "host", str, "127.0.0.1", wu),
             udp_port=port, zenoh_enabled=take(zen_t, "enabled", bool, True, wz),
-            geojson=take(sc, "geojson", str, None, f"{path}: [scene]"),
+            geojson=take(sc, "geojson", str, None, f"{path}: [scene]"), scene_hz=scene_hz,
             results_npz=take(rec, "results_npz", str, None, wr), summary_json=take(rec, "summary_json", str, None, wr),
             evaluate_uncompensated=take(rec, "evaluate_uncompensated", bool, False, wr),
             trust_list=take(sec, "trust_list", str, None, f"{path}: [security]"), path=path)

@@ -1,10 +1,14 @@
 """Output sinks of the master pipeline: each has ``write(result)`` and counts what it sent.
 
 * ``CanSink`` -- ``v2xpos.output.can.CanOutput`` (DBC frames; python-can ``virtual`` or socketcan);
-* ``UdpSink`` -- ``v2xpos.output.udp.UdpOutput``, one datagram per result (layout in docs/protocol.md);
+  scene results as LANE / OBJECT frames (``write_scene``);
+* ``UdpSink`` -- ``v2xpos.output.udp.UdpOutput``, one datagram per result (layout in docs/protocol.md)
+  and one datagram of lane / object records per scene update;
 * ``ZenohSink`` -- ``encode_relative`` republished on ``v2xpos/<fleet>/master/<id>/relative``.
 """
 from __future__ import annotations
+
+import math
 
 from v2xpos.link import Publisher
 from v2xpos.wire import RelativeResult, encode_relative
@@ -24,6 +28,14 @@ class CanSink:
     def write(self, result: RelativeResult) -> None:
         self.out.send_result(result)
 
+    def write_scene(self, scene_result, t_gps_s: float, seq: int) -> None:
+        r = scene_result
+        if len(r.lane_index):
+            self.out.send_lanes(r.lane_index, r.lane_lateral_m, r.lane_lateral_speed_mps)
+        if len(r.object_index):
+            ttc = [None if not math.isfinite(t) else float(t) for t in r.object_ttc_s]
+            self.out.send_objects(r.object_index, r.object_distance_m, r.object_bearing_rad, ttc)
+
     def close(self) -> None:
         self.out.close()
 
@@ -41,6 +53,12 @@ class UdpSink:
 
     def write(self, result: RelativeResult) -> None:
         self.out.send([result], result.seq, result.t_gps_s)
+
+    def write_scene(self, scene_result, t_gps_s: float, seq: int) -> None:
+        """One datagram with no targets and the lane / object records."""
+        from v2xpos.output.udp import records_from_scene
+        lanes, objects = records_from_scene(scene_result)
+        self.out.send([], seq, t_gps_s, lanes, objects)
 
     def close(self) -> None:
         self.out.close()

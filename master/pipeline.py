@@ -19,6 +19,9 @@ For every received slave payload ``handle(payload, key, master, t_now_gps_s, t_a
 4. degrade flag from IMU grading (``degraded_vehicles``), sequence number, fleet/master ids.
 5. outputs: every sink's ``write(result)`` (CAN, UDP, zenoh republish, recorder).
 
+``process_scene(scene, master)`` evaluates the surveyed lanes / points / polygons (V2L / V2X) for
+the master state and sends them to the sinks (CAN LANE/OBJECT frames, UDP lane/object records).
+
 ``tick(t_now_gps_s)`` reports targets that went silent: NO_DATA for a known vehicle never heard,
 TIMEOUT once the last message is older than the timeout (status only; never kinematics).
 
@@ -113,6 +116,10 @@ class MasterPipeline:
         self.pipeline_ms: list[float] = []
         self.e2e_ms: list[float] = []
         self.records: dict[str, list] = defaultdict(list)
+        self.scene_updates = 0
+        self.last_scene = None
+        self.last_scene_t_gps_s = math.nan
+        self.scene_records: list[tuple] = []
         self._mpoint = np.asarray(config.measurement_point_m, dtype=float)
         self._known = set(config.known_vehicles)
         for vid in self._known:
@@ -238,6 +245,35 @@ class MasterPipeline:
                      int(res.fix_side), math.nan if res.ttc_s is None else res.ttc_s, res.gap_m,
                      math.nan if msg is None else int(msg.fix)))
 
+    # ------------------------------------------------------------------ scene (V2L / V2X)
+    def process_scene(self, scene: Any, master: Any) -> Any:
+        """Evaluate the surveyed scene (``v2xpos.scene.Scene``) for the master state from the
+        measurement point and send it to every sink that has ``write_scene``."""
+        res = scene.evaluate(master, self._mpoint)
+        self.scene_updates += 1
+        self.last_scene = res
+        self.last_scene_t_gps_s = float(master.t_s)
+        if self.config.record:
+            self.scene_records.append((float(master.t_s), *map(float, res.lane_lateral_m),
+                                       *map(float, res.object_distance_m)))
+        for sink in self.sinks:
+            write = getattr(sink, "write_scene", None)
+            if write is not None:
+                write(res, float(master.t_s), self.scene_updates)
+        return res
+
+    def scene_summary(self) -> dict | None:
+        r = self.last_scene
+        if r is None:
+            return None
+        fin = (lambda x: None if not np.isfinite(x) else float(x))
+        return {"updates": self.scene_updates, "t_gps_s": self.last_scene_t_gps_s,
+                "lanes": {str(i): {"lateral_m": fin(d), "lateral_speed_mps": fin(v)}
+                          for i, d, v in zip(r.lane_ids, r.lane_lateral_m, r.lane_lateral_speed_mps)},
+                "objects": {str(i): {"distance_m": fin(d), "bearing_deg": fin(math.degrees(b)), "ttc_s": fin(t)}
+                            for i, d, b, t in zip(r.object_ids, r.object_distance_m, r.object_bearing_rad,
+                                                  r.object_ttc_s)}}
+
     # ------------------------------------------------------------------ silence
     def tick(self, t_now_gps_s: float, master_t_gps_s: float | None = None) -> list[RelativeResult]:
         """Status-only results for targets without fresh data: NO_DATA (never heard) or TIMEOUT
@@ -268,6 +304,7 @@ class MasterPipeline:
             "processed": self.processed, "rejected": dict(self.rejected),
             "pipeline_ms_p50": pct(self.pipeline_ms, 50), "pipeline_ms_p99": pct(self.pipeline_ms, 99),
             "e2e_ms_p50": pct(self.e2e_ms, 50), "e2e_ms_p99": pct(self.e2e_ms, 99),
+            "scene": self.scene_summary(),
             "targets": {vid: {"kind": t.kind, "status": t.status.name.lower(), "fix_side": int(t.fix_side),
                               "accepted": t.accepted, "results": dict(t.results),
                               "rejected": dict(t.rejected), "degraded": vid in self.degraded_vehicles,

@@ -11,6 +11,8 @@ asyncio tasks in one thread (the zenoh callbacks only stamp arrival time and han
   pipeline on each; with ``dispatch = "inline"`` (default) the pipeline runs on the zenoh callback
   thread instead, under a lock shared with ``tick`` and ``status``;
 * ``tick``: ``tick_hz`` status-only results for silent targets (NO_DATA / TIMEOUT);
+* scene: at ``scene_hz`` the nav task evaluates the GeoJSON scene (V2L lane lines, points,
+  polygons) for the master state and sends it (``MasterPipeline.process_scene``);
 * ``status``: ``status_hz`` JSON summary on ``v2xpos/<fleet>/master/<id>/status`` for monitors.
 
 On exit (epoch + duration or SIGTERM/SIGINT) it writes the summary JSON and the per-result rows
@@ -59,6 +61,13 @@ class MasterService:
         self.actor = self.sc.actors[actor_id]
         self.source = make_source(cfg.source.type, self.sc, self.actor)
         self.epoch = self.sc.epoch_gps_s
+        self.scene = None
+        if cfg.geojson:
+            from v2xpos.scene import Scene, SceneError
+            try:
+                self.scene = Scene.load(cfg.geojson)
+            except (SceneError, OSError) as exc:
+                raise ConfigError(f"{cfg.path}: [scene].geojson: {exc}") from None
         self.end_gps = self.epoch + cfg.duration_s if cfg.duration_s is not None else math.inf
         self.nav = None
         self.nav_steps = 0
@@ -69,6 +78,7 @@ class MasterService:
         self.pipeline: MasterPipeline | None = None
         self.lock = threading.Lock()
         self.closing = False
+        self._next_scene_t = -math.inf
 
     def gps_now(self) -> float:
         return self.epoch + (time.time() - self.start)
@@ -105,6 +115,10 @@ class MasterService:
                     self.nav = states[-1]
                     self.nav_steps += len(states)
                     self.nav_ms.append((time.perf_counter() - t0) * 1e3 / len(states))
+                    if self.scene is not None and self.nav.t_s >= self._next_scene_t:
+                        self._next_scene_t = self.nav.t_s + 1.0 / self.cfg.scene_hz
+                        with self.lock:
+                            self.pipeline.process_scene(self.scene, self.nav)
             if t > self.end_gps:
                 self.stop_event.set()
                 return
@@ -199,6 +213,8 @@ class MasterService:
         if cfg.results_npz:
             Path(cfg.results_npz).parent.mkdir(parents=True, exist_ok=True)
             arrays = {f"target_{vid}": a for vid, a in self.pipeline.records_arrays().items()}
+            if self.pipeline.scene_records and len({len(r) for r in self.pipeline.scene_records}) == 1:
+                arrays["scene"] = np.asarray(self.pipeline.scene_records, dtype=float)
             np.savez_compressed(cfg.results_npz, fields=np.array(RECORD_FIELDS), **arrays)
         if cfg.summary_json:
             Path(cfg.summary_json).parent.mkdir(parents=True, exist_ok=True)

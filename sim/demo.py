@@ -112,6 +112,7 @@ def make_report(sc, plan: FleetPlan, duration_s: float, exit_codes: dict) -> dic
         entry["delay_spikes_rel_s"] = [list(s) for s in a.link.spikes]
         targets.append(entry)
     clean = [t for t in targets if not t["fix_schedule_rel_s"] and t["rel_pos_err_rms_m"] is not None]
+    scene = evaluate_scene(sc, plan)
     return {
         "vehicles": sum(1 for a in sc.actors.values() if a.kind == "vehicle"),
         "duration_s": duration_s,
@@ -128,11 +129,45 @@ def make_report(sc, plan: FleetPlan, duration_s: float, exit_codes: dict) -> dic
         "master_nav_ms_p50": summary.get("nav_ms_p50"),
         "rel_pos_err_rms_m_rtk_fixed_targets": (float(np.sqrt(np.mean([t["rel_pos_err_rms_m"] ** 2 for t in clean])))
                                                 if clean else None),
+        "scene": scene,
         "exit_codes": exit_codes,
         "notes": ("errors against the scenario truth at the master time of each VALID result, reference point "
                   "to reference point; latency = master GPS time - target time of validity (includes the "
                   "injected link delay); e2e = slave publish wall time to outputs written (excludes it)"),
     }
+
+
+def evaluate_scene(sc, plan: FleetPlan) -> dict | None:
+    """V2L / V2X errors: the master's recorded lane lateral distances and object distances against
+    the same scene evaluated with the master's true state."""
+    if not (plan.results_npz and plan.results_npz.exists() and plan.geojson and plan.geojson.exists()):
+        return None
+    with np.load(plan.results_npz) as z:
+        if "scene" not in z.files:
+            return None
+        rec = z["scene"]
+    from v2xpos.scene import Scene
+    from v2xpos.types import NavState
+    scene = Scene.load(plan.geojson)
+    mp = np.array([float(sc.master.geometry.points_body_m[:, 0].max()), 0.0, 0.0])
+    rec = rec[rec[:, 0] >= sc.epoch_gps_s]
+    if not len(rec):
+        return None
+    tr = sc.master.truth.sample(rec[:, 0])
+    truth = []
+    for i in range(len(rec)):
+        st = NavState(t_s=float(rec[i, 0]), lla=tr["lla"][i], v_ned_mps=tr["v_ned_mps"][i],
+                      acc_body_mps2=tr["acc_body_mps2"][i], rate_body_rps=tr["w_nb_b_rps"][i], rpy_rad=tr["rpy_rad"][i])
+        r = scene.evaluate(st, mp)
+        truth.append([*r.lane_lateral_m, *r.object_distance_m])
+    truth = np.asarray(truth)
+    n_lanes = len(scene.evaluate(st, mp).lane_lateral_m)
+    err = rec[:, 1:] - truth
+    names = [*scene.lane_ids, *scene.evaluate(st, mp).object_ids]
+    return {"updates": int(len(rec)),
+            "lane_lateral_err_rms_m": {str(n): float(np.sqrt(np.mean(err[:, i] ** 2))) for i, n in enumerate(names[:n_lanes])},
+            "object_distance_err_rms_m": {str(n): float(np.sqrt(np.mean(err[:, n_lanes + i] ** 2)))
+                                          for i, n in enumerate(names[n_lanes:])}}
 
 
 def make_plots(sc, plan: FleetPlan, out: Path) -> list[Path]:

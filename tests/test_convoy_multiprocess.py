@@ -40,6 +40,10 @@ def test_report_layout_and_processes(report):
         assert (out / png).stat().st_size > 1000
     assert report["can_frames"] > 1000 and report["udp_datagrams"] > 1000
     assert report["rejected"] == {}
+    scene = report["scene"]                     # V2L / V2X from the GeoJSON the demo wrote
+    assert scene["updates"] >= 100
+    assert max(scene["lane_lateral_err_rms_m"].values()) < 0.05
+    assert max(scene["object_distance_err_rms_m"].values()) < 0.05
 
 
 @pytest.mark.slow
