@@ -5,7 +5,6 @@ and the figures."""
 import json
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from v2xpos.cli import main

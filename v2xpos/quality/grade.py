@@ -90,7 +90,7 @@ def print_table(report: dict, out=None) -> None:
     print(f"reference: {report['reference']} ({report['reference_chosen']}), {report['n_units']} units, "
           f"{report['duration_s']:.1f} s", file=out)
     print(f"{'unit':<8} {'grade':<5} {'gyro RMSE x/y/z [dps]':<23} {'gyro PCC x/y/z':<21} "
-          f"{'dt [ms]':>7}  {'rotation XYZ [deg]':<22} {'fused att/pos P90':<18} notes", file=out)
+          f"{'dt [ms]':>7}  {'rotation XYZ [deg]':<22} {'fused att/pos P90':<18} {'rate chk':<9} notes", file=out)
     for u in report["units"]:
         rm = "/".join(f"{v:.2f}" for v in u["rmse"]["gyro"])
         pc = "/".join(f"{v:.3f}" for v in u["pcc"]["gyro"])
@@ -100,8 +100,10 @@ def print_table(report: dict, out=None) -> None:
         notes = ", ".join(f"{c['name']}={c['value']:.3g} {c['grade']}" for c in u["checks"]
                           if c["grade"] != "pass" and c["value"] is not None)
         tag = " (ref)" if u["reference"] else ""
+        rc = u.get("rate_check")
+        rcs = f"{100 * rc['relative_diff']:+.2f}%" if rc else "-"
         print(f"{u['id'] + tag:<8} {u['grade']:<5} {rm:<23} {pc:<21} {u['time_offset_ms']:7.2f}  "
-              f"{rot:<22} {fds:<18} {notes}", file=out)
+              f"{rot:<22} {fds:<18} {rcs:<9} {notes}", file=out)
 
 
 def reference_rate_checks(rec, window_s: float | None = None) -> dict | None:
