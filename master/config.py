@@ -40,9 +40,15 @@
     results_npz = "out/master_results.npz"   # per-result rows for the report (optional)
     summary_json = "out/master_summary.json"
     evaluate_uncompensated = false
+    mcap = "out/session.mcap"         # optional: every input and output (v2xpos replay-session)
+    mcap_max_mb = 256                 # rotation size
 
-    [security]
-    trust_list = "keys/trust.json"    # optional: require signed messages from listed keys
+    [security]                        # admission control (v2xpos.security.MessageAuthenticator)
+    trust_list = "keys/trust.json"    # optional; without it unsigned messages are admitted
+    require_signature = true          # with a trust list
+    max_age_s = 5.0                   # older: too_old (replay)
+    future_tolerance_s = 0.05         # newer than now + this: future
+    replay_window = 1024              # anti-replay sequence window
 """
 from __future__ import annotations
 
@@ -79,6 +85,12 @@ class MasterConfig:
     summary_json: str | None = None
     evaluate_uncompensated: bool = False
     trust_list: str | None = None
+    require_signature: bool = True
+    max_age_s: float = 5.0
+    future_tolerance_s: float = 0.05
+    replay_window: int = 1024
+    mcap: str | None = None
+    mcap_max_mb: float = 256.0
     path: str = "<defaults>"
 
     @classmethod
@@ -123,9 +135,16 @@ class MasterConfig:
             raise ConfigError(f"{path}: [scene].rate_hz: {scene_hz} outside (0, 100]")
         rec = take(d, "record", dict, {}, path)
         wr = f"{path}: [record]"
-        check_keys(rec, {"results_npz", "summary_json", "evaluate_uncompensated"}, wr)
+        check_keys(rec, {"results_npz", "summary_json", "evaluate_uncompensated", "mcap", "mcap_max_mb"}, wr)
         sec = take(d, "security", dict, {}, path)
-        check_keys(sec, {"trust_list"}, f"{path}: [security]")
+        ws = f"{path}: [security]"
+        check_keys(sec, {"trust_list", "require_signature", "max_age_s", "future_tolerance_s", "replay_window"}, ws)
+        mcap_mb = take(rec, "mcap_max_mb", float, 256.0, wr)
+        if not mcap_mb > 0:
+            raise ConfigError(f"{wr}.mcap_max_mb: must be > 0, got {mcap_mb}")
+        window = take(sec, "replay_window", int, 1024, ws)
+        if not 1 <= window <= 1 << 20:
+            raise ConfigError(f"{ws}.replay_window: {window} outside 1..1048576")
         return cls(
             fleet=take(s, "fleet", str, "demo", w), master_id=take(s, "master_id", str, "ego", w),
             timeout_ms=timeout, measurement_point_m=tuple(float(x) for x in mp), known_vehicles=tuple(known),
@@ -141,4 +160,9 @@ class MasterConfig:
             geojson=take(sc, "geojson", str, None, f"{path}: [scene]"), scene_hz=scene_hz,
             results_npz=take(rec, "results_npz", str, None, wr), summary_json=take(rec, "summary_json", str, None, wr),
             evaluate_uncompensated=take(rec, "evaluate_uncompensated", bool, False, wr),
-            trust_list=take(sec, "trust_list", str, None, f"{path}: [security]"), path=path)
+            mcap=take(rec, "mcap", str, None, wr), mcap_max_mb=mcap_mb,
+            trust_list=take(sec, "trust_list", str, None, ws),
+            require_signature=take(sec, "require_signature", bool, True, ws),
+            max_age_s=take(sec, "max_age_s", float, 5.0, ws),
+            future_tolerance_s=take(sec, "future_tolerance_s", float, 0.05, ws), replay_window=window,
+            path=path)

@@ -7,7 +7,9 @@ For every received slave payload ``handle(payload, key, master, t_now_gps_s, t_a
    equals the body's, the fleet matches, the vehicle is known (``known_vehicles``; empty = any),
    optional admission control (``authenticator.check(msg, now)``: signatures, replay windows);
    per vehicle the sequence number must increase (equal = ``duplicate``, lower =
-   ``out_of_order``) and so must the time of validity (``out_of_order``).
+   ``out_of_order``, except a restarted sender: far lower with a later time) and so must the time of
+   validity (``out_of_order``). These read-only checks come before the authenticator, and the track
+   is only updated after it, so forged traffic cannot move the windows.
    Rejections are counted by reason, globally and per vehicle (the id is taken from the key when
    the body cannot be decoded), and never touch another target's state.
 2. staleness: age = master GPS time now - slave time of validity; age > ``timeout_s`` gives
@@ -33,7 +35,7 @@ from __future__ import annotations
 import math
 import re
 import time
-from collections import Counter, defaultdict
+from collections import Counter, defaultdict, deque
 from dataclasses import dataclass, field
 from typing import Any, Callable, Protocol
 
@@ -49,6 +51,11 @@ REJECT_UNKNOWN_VEHICLE = "unknown_vehicle"
 REJECT_DUPLICATE = "duplicate"
 REJECT_OUT_OF_ORDER = "out_of_order"
 REJECT_SELF = "own_id"
+RESTART_SEQ_GAP = 1024
+"""A sequence number this far below the last one, with a later time of validity, is a restarted
+sender (its counter began again), not a replay or reordering."""
+LATENCY_WINDOW = 100_000
+"""Latency samples kept for the percentiles (ring buffer: memory stays bounded)."""
 
 _KEY_RE = re.compile(r"^v2xpos/([^/]+)/vehicle/([^/]+)/state$")
 
@@ -90,6 +97,7 @@ class TargetTrack:
     fix_side: FixSide = FixSide.NONE
     last_result: RelativeResult | None = None
     accepted: int = 0
+    restarts: int = 0
     results: Counter = field(default_factory=Counter)
     rejected: Counter = field(default_factory=Counter)
 
@@ -113,8 +121,8 @@ class MasterPipeline:
         self.degraded_vehicles: set[str] = set()
         self.seq = 0
         self.processed = 0
-        self.pipeline_ms: list[float] = []
-        self.e2e_ms: list[float] = []
+        self.pipeline_ms: deque = deque(maxlen=LATENCY_WINDOW)
+        self.e2e_ms: deque = deque(maxlen=LATENCY_WINDOW)
         self.records: dict[str, list] = defaultdict(list)
         self.scene_updates = 0
         self.last_scene = None
@@ -131,7 +139,8 @@ class MasterPipeline:
         if vehicle_id is not None and vehicle_id in self.tracks:
             self.tracks[vehicle_id].rejected[reason] += 1
 
-    def _admit(self, payload: bytes, key: str | None, t_now_gps_s: float) -> StateMessage | None:
+    def _admit(self, payload: bytes, key: str | None, t_now_gps_s: float,
+               t_arrival_wall_s: float) -> StateMessage | None:
         key_id = None
         key_fleet = None
         if key is not None:
@@ -156,20 +165,24 @@ class MasterPipeline:
         if self._known and vid not in self._known:
             self._reject(REJECT_UNKNOWN_VEHICLE, None)
             return None
-        if self.authenticator is not None:
-            reason = self.authenticator.check(msg, t_now_gps_s)
-            if reason is not None:
-                self._reject(reason, vid if vid in self.tracks else None)
-                return None
         track = self.tracks.get(vid)
         if track is None:
             track = self.tracks[vid] = TargetTrack(vid)
+        restart = msg.seq < track.last_seq - RESTART_SEQ_GAP and msg.t_gps_s > track.last_t_gps_s
         if msg.seq == track.last_seq:
             self._reject(REJECT_DUPLICATE, vid)
             return None
-        if msg.seq < track.last_seq or msg.t_gps_s <= track.last_t_gps_s:
+        if (msg.seq < track.last_seq and not restart) or msg.t_gps_s <= track.last_t_gps_s:
             self._reject(REJECT_OUT_OF_ORDER, vid)
             return None
+        if self.authenticator is not None:
+            t_arr_gps = t_now_gps_s - (self.clock_wall() - t_arrival_wall_s)
+            reason = self.authenticator.check(msg, t_now_gps_s, t_arr_gps)
+            if reason is not None:
+                self._reject(reason, vid)
+                return None
+        if restart:
+            track.restarts += 1
         track.last_seq = msg.seq
         track.last_t_gps_s = msg.t_gps_s
         track.kind = msg.kind
@@ -184,7 +197,7 @@ class MasterPipeline:
         master: the master's latest filter state (StateMessage or NavState, time t_m <= now).
         """
         t_arr = self.clock_wall() if t_arrival_wall_s is None else t_arrival_wall_s
-        msg = self._admit(payload, key, t_now_gps_s)
+        msg = self._admit(payload, key, t_now_gps_s, t_arr)
         if msg is None:
             return None
         return self.handle_message(msg, master, t_now_gps_s, t_arr)
@@ -297,8 +310,8 @@ class MasterPipeline:
     def summary(self, window: int | None = None) -> dict:
         """Counters and per-target status for monitors (JSON-serialisable); latency percentiles over
         the last ``window`` messages (None = all)."""
-        def pct(a: list, q: float) -> float | None:
-            a = a if window is None else a[-window:]
+        def pct(a: deque, q: float) -> float | None:
+            a = list(a) if window is None else list(a)[-window:]
             return float(np.percentile(a, q)) if a else None
         return {
             "processed": self.processed, "rejected": dict(self.rejected),
@@ -306,7 +319,7 @@ class MasterPipeline:
             "e2e_ms_p50": pct(self.e2e_ms, 50), "e2e_ms_p99": pct(self.e2e_ms, 99),
             "scene": self.scene_summary(),
             "targets": {vid: {"kind": t.kind, "status": t.status.name.lower(), "fix_side": int(t.fix_side),
-                              "accepted": t.accepted, "results": dict(t.results),
+                              "accepted": t.accepted, "restarts": t.restarts, "results": dict(t.results),
                               "rejected": dict(t.rejected), "degraded": vid in self.degraded_vehicles,
                               "last": _result_brief(t.last_result)}
                         for vid, t in self.tracks.items()},

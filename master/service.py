@@ -94,15 +94,23 @@ class MasterService:
             self.sinks.append(self.udp)
         if cfg.zenoh_enabled:
             self.sinks.append(ZenohSink(self.link.publisher(relative_key(cfg.fleet, cfg.master_id))))
-        auth = None
-        if cfg.trust_list:
-            from v2xpos.security import MessageAuthenticator, load_trust_list
-            auth = MessageAuthenticator(load_trust_list(cfg.trust_list))
+        from v2xpos.security import MessageAuthenticator, TrustList, load_trust_list
+        trust = load_trust_list(cfg.trust_list) if cfg.trust_list else TrustList()
+        auth = MessageAuthenticator(trust, require_signature=cfg.require_signature and bool(cfg.trust_list),
+                                    max_age_s=cfg.max_age_s, future_tolerance_s=cfg.future_tolerance_s,
+                                    replay_window=cfg.replay_window)
+        self.authenticator = auth
         pcfg = PipelineConfig(fleet=cfg.fleet, master_id=cfg.master_id, timeout_s=cfg.timeout_ms / 1e3,
                               measurement_point_m=cfg.measurement_point_m, known_vehicles=cfg.known_vehicles,
                               evaluate_uncompensated=cfg.evaluate_uncompensated,
                               record=cfg.results_npz is not None)
         self.pipeline = MasterPipeline(pcfg, self.sinks, authenticator=auth)
+        self.recorder = None
+        if cfg.mcap:
+            from v2xpos.output.recorder import McapRecorder, RecordingPipeline
+            Path(cfg.mcap).parent.mkdir(parents=True, exist_ok=True)
+            self.recorder = McapRecorder(cfg.mcap, max_bytes=int(cfg.mcap_max_mb * 2 ** 20))
+            self.pipeline = RecordingPipeline(self.pipeline, self.recorder)
         self.status_pub = self.link.publisher(status_key(cfg.fleet, cfg.master_id), express=False)
 
     async def _nav_task(self) -> None:
@@ -150,7 +158,8 @@ class MasterService:
                   "nav_ms_p50": float(np.percentile(self.nav_ms, 50)) if self.nav_ms else None,
                   "can_frames": self.can.frames if self.cfg.can_enabled else 0,
                   "udp_datagrams": self.udp.datagrams if self.cfg.udp_enabled else 0,
-                  "source": self.source.name})
+                  "source": self.source.name, "clock_skew": self.authenticator.skew_report(),
+                  "admission": self.authenticator.stats.as_dict()})
         return s
 
     async def _status_task(self) -> None:
@@ -197,6 +206,9 @@ class MasterService:
             for t in tasks:
                 t.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
+            if self.cfg.dispatch != "inline" and self.nav is not None:
+                for item in sub.drain():          # nothing received is left unprocessed
+                    self.pipeline.handle(item.payload, item.key, self.nav, self.gps_now(), item.t_arrival_wall_s)
             with self.lock:
                 self.closing = True
                 final = self.status(window=None)
@@ -205,6 +217,8 @@ class MasterService:
             self._write_outputs(final)
             for s in self.sinks:
                 s.close()
+            if self.recorder is not None:
+                self.recorder.close()
             self.link.close()
         return final
 

@@ -30,7 +30,7 @@ STARTUP_LEAD_S = 1.5
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--vehicles", type=int, default=4, help="vehicles including the master (default 4)")
-    parser.add_argument("--duration", type=float, default=40.0, help="scenario duration [s] (default 40)")
+    parser.add_argument("--duration", type=float, default=30.0, help="scenario duration [s] (default 30)")
     parser.add_argument("--latency-ms", type=float, default=100.0, help="injected link latency [ms] (default 100)")
     parser.add_argument("--jitter-ms", type=float, default=5.0, help="injected link jitter 1-sigma [ms] (default 5)")
     parser.add_argument("--seed", type=int, default=0)
