@@ -17,7 +17,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from v2xpos import geo
-from v2xpos.rotation import dcm_from_euler, euler_from_dcm, exp_so3, orthonormalize
+from v2xpos.rotation import dcm_from_euler, euler_from_dcm, exp_so3, orthonormalize, rot_z
 from v2xpos.types import FixStatus, NavState
 
 from . import ekf
@@ -91,6 +91,9 @@ class InsConfig:
     static_max_gnss_speed_mps: float = 0.2
     static_calibration: StaticCalibrationConfig = field(default_factory=StaticCalibrationConfig)
     apply_static_calibration: bool = True
+    timing_min_speed_mps: float = 1.0             # below it the timing states get no H (noise would pass for signal)
+    acc_smoothing_tau_s: float = 0.2              # low-pass of the kinematic acceleration used in H and output
+    static_start: bool = True                     # start at a stop with the yaw open (see _try_align)
     # numerics
     cov_every: int = 10
     coast_after_s: float = 1.0
@@ -135,6 +138,7 @@ class InsFilter:
         self.fx.imu_time_offset_s = float(c.initial_time_offset_s)
         self.fx.misalignment_rad = np.asarray(c.initial_misalignment_rad, float).reshape(3).copy()
         self.initialized = False
+        self.heading_known = True
         self.t_stamp_s: float | None = None
         self._t_cov_s: float | None = None
         self._since_chunk = 0
@@ -163,6 +167,9 @@ class InsFilter:
         self._last_w_b = np.zeros(3)
         self._last_f_b = np.zeros(3)
         self._last_sample_t: float | None = None
+        self.acc_ned_mps2 = np.zeros(3)
+        self._v_prev_chunk: np.ndarray | None = None
+        self._t_prev_chunk = -np.inf
         self._last_raw_f_b: np.ndarray | None = None
         self._last_raw_w_b: np.ndarray | None = None
 
@@ -249,6 +256,9 @@ class InsFilter:
             self.t_stamp_s = t_s - self.fx.imu_time_offset_s
         self._t_cov_s = self.t_stamp_s
         self.initialized = True
+        self.heading_known = True
+        self._v_prev_chunk = None
+        self.acc_ned_mps2 = np.zeros(3)
 
     # ------------------------------------------------------------------ IMU
     def process_imu(self, t_s: float, acc_mps2: np.ndarray, gyro_rps: np.ndarray) -> None:
@@ -303,7 +313,17 @@ class InsFilter:
         dt = self.t_stamp_s - self._t_cov_s
         if dt > 0 or np.any(self.A):
             self.P = ekf.propagate_covariance(self.P, self.A, self.q_c, max(dt, 0.0))
+            if not self.heading_known:
+                self._decouple_yaw()
         self._t_cov_s = self.t_stamp_s
+
+    def _decouple_yaw(self) -> None:
+        """While the heading is unknown its error state is kept out of every other state."""
+        k = ATT + 2
+        d = self.P[k, k]
+        self.P[k, :] = 0.0
+        self.P[:, k] = 0.0
+        self.P[k, k] = d
 
     def _end_chunk(self) -> None:
         if len(self._chunk_t) == 1:
@@ -325,6 +345,14 @@ class InsFilter:
         f_h = (self.C_nb @ (f.mean(axis=0) - self.corr[COR_BA:COR_BA + 3]))[:2] if self.initialized else np.zeros(2)
         self._win.append((len(t), fn.sum(), (fn * fn).sum(), w.sum(axis=0), f_h * len(t)))
         self.static = self._detect_static()
+        if self.initialized:
+            v_now = self.nav[3:6].copy()
+            if self._v_prev_chunk is not None and t[-1] > self._t_prev_chunk:
+                dt_c = float(t[-1] - self._t_prev_chunk)
+                a_c = (v_now - self._v_prev_chunk) / dt_c
+                k = min(1.0, dt_c / max(self.cfg.acc_smoothing_tau_s, 1e-6))
+                self.acc_ned_mps2 = self.acc_ned_mps2 + k * (a_c - self.acc_ned_mps2)
+            self._v_prev_chunk, self._t_prev_chunk = v_now, float(t[-1])
         g = geo.normal_gravity_mps2(self.nav[NAV_LAT], self.nav[NAV_H]) if self.initialized else None
         speed = math.sqrt(float(self.nav[3:6] @ self.nav[3:6])) if self.initialized else 0.0
         est = self.calibrator.feed(t, f, w, moving=self.initialized and speed > 0.5, gravity_mps2=g)
@@ -348,7 +376,7 @@ class InsFilter:
             self._last_constraint_t = self.t_stamp_s
             if self.static:
                 self._update_zupt()
-            elif self.cfg.platform == "car" and speed > self.cfg.nhc_min_speed_mps:
+            elif self.cfg.platform == "car" and speed > self.cfg.nhc_min_speed_mps and self.heading_known:
                 self._update_nhc()
         self._chunks_since_ortho += 1
         if self._chunks_since_ortho >= 100:
@@ -431,6 +459,13 @@ class InsFilter:
             self._gnss_speed_t_s = float(t_s)
         if not self.initialized:
             return self._try_align(t_s, lla, sd, fix, vel_ned_mps)
+        if not self.heading_known:
+            vel = vel_ned_mps if vel_ned_mps is not None else self._velocity_from_positions(t_s, lla)
+            self._prev_gnss = (t_s, lla)
+            if vel is not None and float(np.hypot(vel[0], vel[1])) >= c.align_min_speed_mps:
+                return self._heading_reset(t_s, lla, sd, fix, vel)
+            if vel is None or float(np.hypot(vel[0], vel[1])) > c.static_max_gnss_speed_mps:
+                return UpdateResult("gnss_pos", t_s, False, np.nan, reason="moving, heading pending")
         self._flush_covariance()
         gap = self._gap_s(t_s)
         n = self.layout.n
@@ -438,7 +473,7 @@ class InsFilter:
         l_b = self.fx.lever_arm_m
         Cl = C @ l_b
         v = self.nav[3:6]
-        a = self.mem[MEM_AN:MEM_AN + 3]
+        a = self.acc_ned_mps2
         lat, h = self.nav[NAV_LAT], self.nav[NAV_H]
         r_m, r_n = geo.radii_m(lat)
         pred_ned = Cl + v * gap
@@ -448,7 +483,8 @@ class InsFilter:
         H = np.zeros((3, n))
         H[:, POS:POS + 3] = np.eye(3)
         H[:, ATT:ATT + 3] = skew(Cl)
-        self._effect_rows(H, C, -v)
+        timing = not self.static and float(v @ v) > self.cfg.timing_min_speed_mps ** 2
+        self._effect_rows(H, C, -v if timing else np.zeros(3))
         scale = c.fix_sd_scale.get(fix, 2.0)
         R = np.diag(np.maximum(sd * scale, c.gnss_pos_sd_floor_m) ** 2)
         force = self._gnss_rejections >= c.gnss_max_consecutive_rejections
@@ -476,7 +512,7 @@ class InsFilter:
                 H[:, i:i + 3] = C @ skew(w)
             for name in ("imu_time_offset", "gnss_latency"):
                 i = self.layout.at(name)
-                if i >= 0:
+                if i >= 0 and timing:
                     H[:, i] = -a
             R = np.diag(np.maximum(vel_sd_ned_mps * c.gnss_vel_sd_scale * scale, c.gnss_vel_sd_floor_mps) ** 2)
             rv = self._update("gnss_vel", t_s, H, d, R)
@@ -492,35 +528,75 @@ class InsFilter:
             if i >= 0:
                 H[:, i] = timing_col
 
+    def _velocity_from_positions(self, t_s, lla) -> np.ndarray | None:
+        if self._prev_gnss is None:
+            return None
+        t0, lla0 = self._prev_gnss
+        if not 0 < t_s - t0 < 2.0:
+            return None
+        r_m, r_n = geo.radii_m(lla[0])
+        return np.array([(lla[0] - lla0[0]) * (r_m + lla[2]), (lla[1] - lla0[1]) * (r_n + lla[2]) * math.cos(lla[0]),
+                         -(lla[2] - lla0[2])]) / (t_s - t0)
+
+    def _imu_point_at_label(self, t_s, lla, vel, C) -> np.ndarray:
+        """IMU position from an antenna fix at t_s, moved to the state label with the GNSS velocity."""
+        r_m, r_n = geo.radii_m(lla[0])
+        Cl = C @ self.fx.lever_arm_m
+        lla_imu = lla - np.array([Cl[0] / (r_m + lla[2]), Cl[1] / ((r_n + lla[2]) * math.cos(lla[0])), -Cl[2]])
+        gap = self.t_s - t_s
+        return lla_imu + np.array([vel[0] / (r_m + lla[2]), vel[1] / ((r_n + lla[2]) * math.cos(lla[0])),
+                                   -vel[2]]) * gap
+
     def _try_align(self, t_s, lla, sd, fix, vel) -> UpdateResult:
         c = self.cfg
-        if vel is None and self._prev_gnss is not None:
-            t0, lla0 = self._prev_gnss
-            if 0 < t_s - t0 < 2.0:
-                r_m, r_n = geo.radii_m(lla[0])
-                vel = np.array([(lla[0] - lla0[0]) * (r_m + lla[2]), (lla[1] - lla0[1]) * (r_n + lla[2]) * math.cos(lla[0]),
-                                -(lla[2] - lla0[2])]) / (t_s - t0)
+        if vel is None:
+            vel = self._velocity_from_positions(t_s, lla)
         self._prev_gnss = (t_s, lla)
         if vel is None or self.t_stamp_s is None:
             return UpdateResult("gnss_pos", t_s, False, np.nan, reason="aligning: no velocity yet")
         speed = float(np.hypot(vel[0], vel[1]))
+        pos_sd = np.maximum(sd * c.fix_sd_scale.get(fix, 2.0), 0.05)
+        if (c.static_start and speed < c.static_max_gnss_speed_mps and self.static
+                and self.aligner.levelled_static):
+            # stopped and levelled: start now with the yaw left open, so that ZUPT/ZARU estimate the
+            # biases during the stop; the heading is set when the platform moves (_heading_reset)
+            C = self.aligner.C_nb
+            self._start(self.t_s, self._imu_point_at_label(t_s, lla, np.zeros(3), C), np.zeros(3), C, pos_sd,
+                        c.init_vel_sd_mps, np.array([c.init_level_sd_rad, c.init_level_sd_rad, math.pi]))
+            self.heading_known = False
+            self.last_fix = fix
+            self.last_gnss_t_s = t_s
+            return UpdateResult("gnss_pos", t_s, False, np.nan, reason="initialised at a stop, heading pending")
         if speed < c.align_min_speed_mps:
             return UpdateResult("gnss_pos", t_s, False, np.nan, reason="aligning: too slow for heading")
         C = self.aligner.attitude_with_heading(float(np.arctan2(vel[1], vel[0])))
         if C is None:
             return UpdateResult("gnss_pos", t_s, False, np.nan, reason="aligning: not levelled yet")
-        r_m, r_n = geo.radii_m(lla[0])
-        Cl = C @ self.fx.lever_arm_m
-        lla_imu = lla - np.array([Cl[0] / (r_m + lla[2]), Cl[1] / ((r_n + lla[2]) * math.cos(lla[0])), -Cl[2]])
-        # move the IMU point from the GNSS time to the current state label with the GNSS velocity
-        gap = self.t_s - t_s
-        lla_imu = lla_imu + np.array([vel[0] / (r_m + lla[2]), vel[1] / ((r_n + lla[2]) * math.cos(lla[0])), -vel[2]]) * gap
-        pos_sd = np.maximum(sd * c.fix_sd_scale.get(fix, 2.0), 0.05)
-        self._start(self.t_s, lla_imu, vel, C, pos_sd, c.init_vel_sd_mps,
+        self._start(self.t_s, self._imu_point_at_label(t_s, lla, vel, C), vel, C, pos_sd, c.init_vel_sd_mps,
                     np.array([c.init_level_sd_rad, c.init_level_sd_rad, c.init_yaw_sd_rad]))
         self.last_fix = fix
         self.last_gnss_t_s = t_s
         return UpdateResult("gnss_pos", t_s, False, np.nan, reason="initialised from this epoch")
+
+    def _heading_reset(self, t_s, lla, sd, fix, vel) -> UpdateResult:
+        """First epoch fast enough for a course: turn the attitude about down so that the body x axis
+        points along the course, take position and velocity from GNSS, and reset their covariance
+        (biases and level keep what the stop taught them)."""
+        c = self.cfg
+        yaw_now = float(euler_from_dcm(self.C_nb)[2])
+        self.C_nb = rot_z(float(np.arctan2(vel[1], vel[0])) - yaw_now) @ self.C_nb
+        self.nav[:3] = self._imu_point_at_label(t_s, lla, vel, self.C_nb)
+        self.nav[3:6] = vel
+        self._v_prev_chunk = None
+        idx = np.r_[POS:POS + 3, VEL:VEL + 3, ATT + 2]
+        self.P[idx, :] = 0.0
+        self.P[:, idx] = 0.0
+        pos_sd = np.maximum(sd * c.fix_sd_scale.get(fix, 2.0), 0.05)
+        self.P[idx, idx] = np.r_[pos_sd ** 2, np.full(3, c.init_vel_sd_mps ** 2), c.init_yaw_sd_rad ** 2]
+        self.heading_known = True
+        self.last_fix = fix
+        self.last_gnss_t_s = t_s
+        return UpdateResult("gnss_pos", t_s, False, np.nan, reason="heading set from the GNSS course")
 
     # ------------------------------------------------------------------ vehicle constraints
     def _vehicle_rows(self):
@@ -597,7 +673,7 @@ class InsFilter:
         if i >= 0:
             H[0, i] = v_v[0]
         gap = t_s - self.t_s
-        a_fwd = (self.misalignment_dcm() @ self.C_nb.T @ self.mem[MEM_AN:MEM_AN + 3])[0]
+        a_fwd = (self.misalignment_dcm() @ self.C_nb.T @ self.acc_ned_mps2)[0]
         d = np.array([(1 + s) * (v_v[0] + a_fwd * gap) - speed_mps])
         r = self._update("odometer", t_s, H, d, np.array([[self.cfg.odometer_sd_mps ** 2]]))
         self.counts["odometer" if r.accepted else "odometer_rejected"] += 1
@@ -608,7 +684,7 @@ class InsFilter:
         """Current solution at the IMU point (vehicle axes when misalignment is estimated)."""
         Rm = self.misalignment_dcm()
         C_nv = self.C_nb @ Rm.T
-        a_n = self.mem[MEM_AN:MEM_AN + 3]
+        a_n = self.acc_ned_mps2
         sd = np.sqrt(np.abs(np.diag(self.P)))
         coasting = (self.t_s - self.last_gnss_t_s) > self.cfg.coast_after_s
         fix = FixStatus.DEAD_RECKONING if (coasting and self.initialized) else self.last_fix
