@@ -69,3 +69,37 @@ async def test_async_bridge_delivers_all_in_order_through_router():
         router.close()
     assert router.session.is_closed() and slave.session.is_closed()
     router.close()                                                  # idempotent
+
+
+def test_router_mesh_by_config_only():
+    """Standalone router process A, in-process router B meshed to A; the 'master' is a peer on A,
+    the 'slave' a peer on B: states and results flow across the mesh."""
+    import subprocess
+    import sys
+    from pathlib import Path
+    pa, pb = free_tcp_port(), free_tcp_port()
+    root = Path(__file__).resolve().parents[1]
+    proc = subprocess.Popen([sys.executable, "-m", "v2xpos.link", "--router", loopback_endpoint(pa)], cwd=root,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    links = []
+    try:
+        links.append(Link(LinkConfig(mode="router", listen=[loopback_endpoint(pb)], connect=[loopback_endpoint(pa)])))
+        master = Link(LinkConfig(mode="peer", connect=[loopback_endpoint(pa)]))
+        slave = Link(LinkConfig(mode="peer", connect=[loopback_endpoint(pb)]))
+        links += [master, slave]
+        got, back = [], []
+        master.subscribe(STATE_KEY_ALL("mesh"), lambda p, k, a, t: got.append(p))
+        slave.subscribe("v2xpos/mesh/master/*/relative", lambda p, k, a, t: back.append(p))
+        pub = slave.publisher(state_key("mesh", "t1"))
+        rel = master.publisher("v2xpos/mesh/master/ego/relative")
+        t_end = time.time() + 10.0
+        while (not got or not back) and time.time() < t_end:
+            pub.put(b"state")
+            rel.put(b"result")
+            time.sleep(0.05)
+        assert got and back and proc.poll() is None
+    finally:
+        for link in reversed(links):
+            link.close()
+        proc.terminate()
+        assert proc.wait(timeout=10) == 0

@@ -240,3 +240,30 @@ class AsyncSubscriber:
                 out.append(self.queue.get_nowait())
             except asyncio.QueueEmpty:
                 return out
+
+
+def run_router(listen: list[str], connect: list[str] | None = None) -> int:
+    """A standalone zenoh router (for a router mesh) until SIGTERM/SIGINT: ``python -m v2xpos.link
+    --router tcp/127.0.0.1:7447 [--connect tcp/127.0.0.1:7448 ...]``."""
+    import signal
+    import threading
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    link = Link(LinkConfig(mode="router", listen=list(listen), connect=list(connect or [])))
+    print(f"v2xpos router listening on {listen}, connecting to {connect or []}", flush=True)
+    try:
+        stop.wait()
+    finally:
+        link.close()
+    return 0
+
+
+if __name__ == "__main__":
+    import argparse
+    import sys
+    ap = argparse.ArgumentParser(prog="python -m v2xpos.link", description="standalone loopback zenoh router")
+    ap.add_argument("--router", action="append", required=True, metavar="ENDPOINT", help="listen endpoint")
+    ap.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="other routers")
+    a = ap.parse_args()
+    sys.exit(run_router(a.router, a.connect))
