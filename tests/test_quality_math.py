@@ -187,3 +187,18 @@ def test_bias_stability_from_the_ins_calibrator_and_in_the_verdict():
     by_id = {u["id"]: u for u in rep["units"]}
     assert next(c for c in by_id["a"]["checks"] if c["name"] == "bias_stability")["grade"] == "fail"
     assert next(c for c in by_id["b"]["checks"] if c["name"] == "bias_stability")["grade"] == "pass"
+
+
+def test_quantised_axis_at_rest_is_not_stuck_but_a_frozen_axis_while_turning_is():
+    from v2xpos.quality.consistency import turning_mask
+    t = np.arange(2000) * 0.01
+    g = np.zeros((2000, 3))
+    g[1000:, 2] = 0.3                                  # turning in the second half
+    g[:, 0] = np.round(np.random.default_rng(9).normal(0, 1e-4, 2000), 3)  # quantised, quiet: repeats
+    active = turning_mask(t, g)
+    assert not active[:900].any() and active[1100:].all()
+    runs = longest_constant_run_s(t, g, active)
+    assert runs[0] > 5.0          # x repeats while turning too (it is frozen by the quantisation)
+    g[:, 0] += np.random.default_rng(10).normal(0, 1e-2, 2000)
+    assert longest_constant_run_s(t, g, active)[0] == 0.0
+    assert longest_constant_run_s(t[:1000], g[:1000], active[:1000])[0] == 0.0

@@ -131,16 +131,21 @@ def robust_range(values: np.ndarray, lo_pct: float = 5.0, hi_pct: float = 95.0) 
     return hi - lo
 
 
-def longest_constant_run_s(t_s: np.ndarray, x: np.ndarray) -> np.ndarray:
+def longest_constant_run_s(t_s: np.ndarray, x: np.ndarray, active: np.ndarray | None = None) -> np.ndarray:
     """Per axis, the longest time [s] over which the raw samples repeat exactly (a stuck channel;
-    a live, noisy sensor changes its output within a few samples even when quantised)."""
+    a live, noisy sensor changes its output within a few samples even when quantised).
+
+    active: optional boolean mask per sample; only runs of consecutive active samples count (e.g.
+    while the unit turns, so that a quiet, coarsely quantised axis at rest is not called stuck).
+    """
     x = np.asarray(x, float)
     t = np.asarray(t_s, float)
     out = np.zeros(x.shape[1])
     if len(x) < 2:
         return out
+    both = np.ones(len(x) - 1, bool) if active is None else (active[1:] & active[:-1])
     for k in range(x.shape[1]):
-        same = np.diff(x[:, k]) == 0.0
+        same = (np.diff(x[:, k]) == 0.0) & both
         if not same.any():
             continue
         edges = np.diff(np.concatenate([[0], same.astype(np.int8), [0]]))
@@ -148,3 +153,16 @@ def longest_constant_run_s(t_s: np.ndarray, x: np.ndarray) -> np.ndarray:
         ends = np.flatnonzero(edges == -1)
         out[k] = float(np.max(t[ends] - t[starts]))
     return out
+
+
+def turning_mask(t_s: np.ndarray, gyro_rps: np.ndarray, min_rate_dps: float = 2.0,
+                 smooth_s: float = 0.2) -> np.ndarray:
+    """Samples where the moving-average angular-rate norm exceeds min_rate_dps."""
+    g = np.asarray(gyro_rps, float)
+    if len(g) < 3:
+        return np.ones(len(g), bool)
+    rate = 1.0 / float(np.median(np.diff(np.asarray(t_s, float))))
+    n = max(1, int(round(smooth_s * rate)))
+    kern = np.ones(n) / n
+    sm = np.stack([np.convolve(g[:, i], kern, mode="same") for i in range(3)], axis=1)
+    return np.linalg.norm(sm, axis=1) > np.radians(min_rate_dps)

@@ -26,7 +26,8 @@ import numpy as np
 from v2xpos.types import ImuData
 
 from . import alignment as al
-from .consistency import (WindowSeries, longest_constant_run_s, relative_scale, robust_range,
+from .consistency import (WindowSeries, longest_constant_run_s, relative_scale,
+                          turning_mask, robust_range,
                           sliding_window_metrics)
 from .timesync import common_grid, gyro_norm_offset_s, median_rate_hz, resample, vector_offset_s
 
@@ -267,8 +268,12 @@ def compare_units(units: dict[str, ImuData], cfg: GradeConfig | None = None,
         C_decl = (al.relative_from_mounting(al.mounting_dcm(ma), al.mounting_dcm(mb))
                   if ma is not None and mb is not None else None)
         pairs[(a, b)] = compare_pair(a, clean[a], b, clean[b], cfg, C_decl)
-    flat = {u: {"gyro": longest_constant_run_s(clean[u].t_s, clean[u].gyro_rps),
-                "accel": longest_constant_run_s(clean[u].t_s, clean[u].acc_mps2)} for u in ids}
+    flat = {}
+    for u in ids:
+        c = clean[u]
+        turning = turning_mask(c.t_s, c.gyro_rps)
+        flat[u] = {"gyro": longest_constant_run_s(c.t_s, c.gyro_rps, turning),
+                   "accel": longest_constant_run_s(c.t_s, c.acc_mps2, turning)}
     t0 = max(float(c.t_s[0]) for c in clean.values())
     t1 = min(float(c.t_s[-1]) for c in clean.values())
     return FleetComparison(unit_ids=ids, pairs=pairs, flatline=flat, units=clean, dropped_samples=dropped,

@@ -2,6 +2,7 @@
 
 Absolute checks (any number of units):
     stuck channel     longest run of identical raw samples    warn > 0.2 s,  fail > 0.5 s
+                      while the unit turns (|w| > 2 deg/s)
     clock offset      |offset| to the agreeing partner        warn > 8 ms,   fail > 9 ms
     gyro scale        |TLS slope - 1| (low-passed, >= 3 dps)  warn > 1.5 %,  fail > 2 %
     gyro similarity   median window PCC, axes with motion     warn < 0.75,   fail < 0.5
