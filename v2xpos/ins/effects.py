@@ -9,6 +9,9 @@ Conventions (shared with ``v2xpos calibrate``):
   inertial navigation", IJRR 33(7), adapted to GNSS).
 * ``gnss_latency`` [s]: the GNSS solution stamped t describes t - latency (opposite sign of the
   above; the two are not separable from GNSS alone: enable one of them).
+* ``gnss_vel_latency`` [s]: the GNSS *velocity* stamped t describes t - latency, on top of the
+  position timing (receivers/RTKLIB often report the mean velocity over the last epoch interval,
+  i.e. half an interval late). H = -a.
 * ``lever_arm`` [m]: antenna relative to the IMU in the vehicle/body frame [forward, right, down].
 * ``misalignment`` (roll, pitch, yaw) [rad]: ``v_vehicle = R v_body``, ``R = Rz(y) Ry(p) Rx(r)``;
   only the vehicle constraints (NHC, odometer) and the reported vehicle attitude see it.
@@ -24,6 +27,7 @@ import numpy as np
 DEFAULT_INITIAL_SD = {
     "imu_time_offset": 0.3,            # s: serial IMU logging delays reach hundreds of ms
     "gnss_latency": 0.05,              # s
+    "gnss_vel_latency": 0.2,           # s
     "misalignment": np.radians(10.0),  # rad per axis: "nominal" mountings are off by degrees
     "gyro_scale": 0.01,
     "accel_scale": 0.01,
@@ -34,6 +38,7 @@ DEFAULT_INITIAL_SD = {
 DEFAULT_RANDOM_WALK = {
     "imu_time_offset": 2e-5,           # s/sqrt(s): absorbs a residual clock drift of ~ tens of ppm
     "gnss_latency": 0.0,
+    "gnss_vel_latency": 0.0,
     "lever_arm": 0.0,
     "misalignment": 2e-6,              # rad/sqrt(s)
     "gyro_scale": 0.0,
@@ -42,9 +47,9 @@ DEFAULT_RANDOM_WALK = {
 }
 
 PLATFORM_EFFECTS = {
-    "car": ("lever_arm", "imu_time_offset", "misalignment"),
-    "pedestrian": ("lever_arm", "imu_time_offset"),
-    "generic": ("lever_arm",),
+    "car": ("lever_arm", "imu_time_offset", "misalignment", "gnss_vel_latency"),
+    "pedestrian": ("lever_arm", "imu_time_offset", "gnss_vel_latency"),
+    "generic": ("lever_arm", "gnss_vel_latency"),
 }
 """Effects estimated by default per platform (misalignment only matters with vehicle constraints)."""
 
@@ -56,6 +61,7 @@ class EffectValues:
         self.lever_arm_m = np.asarray(lever_arm_m, float).copy()
         self.imu_time_offset_s = 0.0
         self.gnss_latency_s = 0.0
+        self.gnss_vel_latency_s = 0.0
         self.misalignment_rad = np.zeros(3)
         self.odometer_scale = 0.0
 
@@ -70,6 +76,8 @@ class EffectValues:
                 self.imu_time_offset_s -= dx[i]
             elif name == "gnss_latency":
                 self.gnss_latency_s -= dx[i]
+            elif name == "gnss_vel_latency":
+                self.gnss_vel_latency_s -= dx[i]
             elif name == "misalignment":
                 self.misalignment_rad -= dx[i:i + 3]
             elif name == "gyro_scale":
@@ -82,6 +90,7 @@ class EffectValues:
     def as_dict(self, corr: np.ndarray) -> dict:
         from .mechanization import COR_SA, COR_SG
         return {"lever_arm_m": self.lever_arm_m.tolist(), "imu_time_offset_s": self.imu_time_offset_s,
-                "gnss_latency_s": self.gnss_latency_s, "misalignment_rad": self.misalignment_rad.tolist(),
+                "gnss_latency_s": self.gnss_latency_s, "gnss_vel_latency_s": self.gnss_vel_latency_s,
+                "misalignment_rad": self.misalignment_rad.tolist(),
                 "gyro_scale": corr[COR_SG:COR_SG + 3].tolist(), "accel_scale": corr[COR_SA:COR_SA + 3].tolist(),
                 "odometer_scale": self.odometer_scale}

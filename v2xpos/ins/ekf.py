@@ -39,6 +39,7 @@ EFFECT_SIZES: dict[str, int] = {
     "gyro_scale": 3,         # per axis, measured = (1 + s) true
     "accel_scale": 3,
     "gnss_latency": 1,       # the GNSS solution stamped t describes t - latency [s]
+    "gnss_vel_latency": 1,   # the GNSS velocity stamped t describes t - latency [s] (e.g. a mean over the epoch)
     "odometer_scale": 1,     # wheel speed measured = (1 + s) true
 }
 

@@ -502,7 +502,7 @@ class InsFilter:
             w = self.mem[MEM_W:MEM_W + 3].copy()
             wl = np.cross(w, l_b)
             Cwl = C @ wl
-            d = v + Cwl + a * gap - vel_ned_mps
+            d = v + Cwl + a * (gap - self.fx.gnss_vel_latency_s) - vel_ned_mps
             H = np.zeros((3, n))
             H[:, VEL:VEL + 3] = np.eye(3)
             H[:, ATT:ATT + 3] = skew(Cwl)
@@ -510,7 +510,7 @@ class InsFilter:
             i = self.layout.at("lever_arm")
             if i >= 0:
                 H[:, i:i + 3] = C @ skew(w)
-            for name in ("imu_time_offset", "gnss_latency"):
+            for name in ("imu_time_offset", "gnss_latency", "gnss_vel_latency"):
                 i = self.layout.at(name)
                 if i >= 0 and timing:
                     H[:, i] = -a
