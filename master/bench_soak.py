@@ -20,6 +20,7 @@ import argparse
 import json
 import math
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -46,7 +47,7 @@ def free_port() -> int:
 
 # ----------------------------------------------------------------------------- master role
 
-def _run_master(cfg_path: Path, start: float, record: Path, stats_path: Path, publish_end: float) -> int:
+def _run_master(cfg_path: Path, start: float, record: Path | None, stats_path: Path, publish_end: float) -> int:
     import asyncio
 
     from master.config import MasterConfig
@@ -56,10 +57,13 @@ def _run_master(cfg_path: Path, start: float, record: Path, stats_path: Path, pu
     class RecordingMasterService(MasterService):
         """MasterService whose pipeline is wrapped by the MCAP recorder."""
 
+        recorder = None
+
         def _open(self) -> None:
             super()._open()
-            self.recorder = McapRecorder(record, max_bytes=64 * 2 ** 20)
-            self.pipeline = RecordingPipeline(self.pipeline, self.recorder)
+            if record is not None:
+                self.recorder = McapRecorder(record, max_bytes=64 * 2 ** 20)
+                self.pipeline = RecordingPipeline(self.pipeline, self.recorder)
 
     cfg = MasterConfig.from_dict(json.loads(cfg_path.read_text()), str(cfg_path))
     svc = RecordingMasterService(cfg, start)
@@ -71,12 +75,20 @@ def _run_master(cfg_path: Path, start: float, record: Path, stats_path: Path, pu
             samples.append((time.time(), rss_bytes()))
     th = threading.Thread(target=sample, daemon=True)
     th.start()
-    final = asyncio.run(svc.run())
+    prof_path = os.environ.get("V2XPOS_SOAK_PROFILE")
+    if prof_path:
+        import cProfile
+        prof = cProfile.Profile()
+        final = prof.runcall(asyncio.run, svc.run())
+        prof.dump_stats(prof_path)
+    else:
+        final = asyncio.run(svc.run())
     stop.set()
     th.join()
-    svc.recorder.close()
-    final["recorded"] = dict(svc.recorder.recorded)
-    final["mcap_files"] = [str(p) for p in svc.recorder.files]
+    if svc.recorder is not None:
+        svc.recorder.close()
+    final["recorded"] = dict(svc.recorder.recorded) if svc.recorder is not None else {}
+    final["mcap_files"] = [str(p) for p in svc.recorder.files] if svc.recorder is not None else []
     final["rss_samples"] = samples
     final["publish_end_unix_s"] = publish_end
     final["clock_skew"] = (svc.pipeline.authenticator.skew_report()
@@ -98,7 +110,8 @@ def _run_slaves(ids: list[str], keys_dir: Path, endpoint: str, start: float, dur
     from v2xpos.wire import Geometry, StateMessage, encode_state, state_key
 
     link = Link(LinkConfig(mode="peer", connect=[endpoint]))
-    signers = {vid: MessageSigner.from_file(keys_dir / f"{vid}.key") for vid in ids}
+    signers = {vid: (MessageSigner.from_file(keys_dir / f"{vid}.key") if keys_dir is not None else None)
+               for vid in ids}
     pubs = {vid: link.publisher(state_key(SOAK_FLEET, vid), block=True) for vid in ids}
     geom = Geometry.box(3.8, 1.0, 0.9)
     sd = np.full(3, 0.01)
@@ -125,9 +138,10 @@ def _run_slaves(ids: list[str], keys_dir: Path, endpoint: str, start: float, dur
                 att_sd_rad=sd * 0.1, geometry=geom, t_sent_wall_s=now)
             pubs[vid].put(encode_state(msg, sign=signers[vid]))
             sent[vid] += 1
+    end = time.time()
     time.sleep(0.5)
     link.close()
-    out_path.write_text(json.dumps({"sent": sent, "late_ticks": late, "ticks": n_ticks}))
+    out_path.write_text(json.dumps({"sent": sent, "late_ticks": late, "ticks": n_ticks, "end_unix_s": end}))
     return 0
 
 
@@ -135,7 +149,7 @@ def _run_slaves(ids: list[str], keys_dir: Path, endpoint: str, start: float, dur
 
 def run_soak(slaves: int = 32, rate: float = 100.0, duration: float = 60.0, out_dir: str | Path = "out/soak",
              per_process: int = 8, warmup_fraction: float = 0.1, progress: bool = True,
-             lead_s: float = 4.0) -> dict:
+             lead_s: float = 4.0, drain_s: float = 1.5, record: bool = True, signed: bool = True) -> dict:
     """Run the soak (see module docstring) and return the report dict."""
     from v2xpos.security import TrustList, generate_vehicle_key, load_public_key_file
 
@@ -152,37 +166,40 @@ def run_soak(slaves: int = 32, rate: float = 100.0, duration: float = 60.0, out_
         old.unlink()
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    cfg = {"service": {"fleet": SOAK_FLEET, "master_id": "ego", "duration_s": duration + 3.0, "status_hz": 1.0,
+    cfg = {"service": {"fleet": SOAK_FLEET, "master_id": "ego", "duration_s": duration + 600.0, "status_hz": 1.0,
                        "tick_hz": 2.0},
            "link": {"mode": "router", "listen": [endpoint]},
            "source": {"type": "truth_noise", "scenario": "convoy",
                       "params": {"vehicles": 2, "duration_s": duration + 20.0}},
            "output": {"zenoh": {"enabled": True}},
-           "security": {"trust_list": str(out / "trust.json")}}
+           "security": {"trust_list": str(out / "trust.json")} if signed else {}}
     (out / "master.json").write_text(json.dumps(cfg))
     start = time.time() + lead_s
     py = [sys.executable, "-m", "master.bench_soak"]
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     repo = Path(__file__).resolve().parents[1]
     master = subprocess.Popen(py + ["--role", "master", "--config", str(out / "master.json"), "--start", repr(start),
-                                    "--record", str(out / "session.mcap"), "--stats", str(out / "master_stats.json"),
-                                    "--publish-end", repr(start + duration)],
+                                    "--stats", str(out / "master_stats.json"), "--publish-end", repr(start + duration)]
+                              + (["--record", str(out / "session.mcap")] if record else []),
                               cwd=repo, env=env, stdout=subprocess.DEVNULL, stderr=open(out / "master.log", "w"))
     time.sleep(1.0)
     groups = [ids[i:i + per_process] for i in range(0, len(ids), per_process)]
     procs = []
     for g, group in enumerate(groups):
-        procs.append(subprocess.Popen(py + ["--role", "slaves", "--ids", ",".join(group), "--keys", str(keys),
+        procs.append(subprocess.Popen(py + ["--role", "slaves", "--ids", ",".join(group)]
+                                      + (["--keys", str(keys)] if signed else []) + [
                                             "--endpoint", endpoint, "--start", repr(start), "--duration",
                                             repr(duration), "--rate", repr(rate),
                                             "--out", str(out / f"slaves_{g}.json")],
                                       cwd=repo, env=env, stdout=subprocess.DEVNULL,
                                       stderr=open(out / f"slaves_{g}.log", "w")))
-    total = lead_s + duration + 4.0
+    # the master runs until every slave has finished (publishers may be slowed down by BLOCK
+    # back-pressure), then gets SIGTERM after a drain pause
+    total = lead_s + duration + 1.0
     with tqdm(total=int(total), disable=not progress, unit="s", desc="soak", file=sys.stderr) as bar:
         t0 = time.time()
-        while master.poll() is None and time.time() - t0 < total + 60:
-            time.sleep(1.0)
+        while any(p.poll() is None for p in procs) and master.poll() is None and time.time() - t0 < total + 300:
+            time.sleep(0.5)
             bar.n = min(int(time.time() - t0), int(total))
             bar.refresh()
     for p in procs:
@@ -190,25 +207,31 @@ def run_soak(slaves: int = 32, rate: float = 100.0, duration: float = 60.0, out_
             p.wait(timeout=30)
         except subprocess.TimeoutExpired:
             p.kill()
+    time.sleep(drain_s)
     if master.poll() is None:
-        master.terminate()
-        master.wait(timeout=30)
+        master.send_signal(signal.SIGTERM)
+    try:
+        master.wait(timeout=60)
+    except subprocess.TimeoutExpired:
+        master.kill()
     sent = {}
     late = 0
+    publish_end = start + duration
     for g in range(len(groups)):
         f = out / f"slaves_{g}.json"
         if f.exists():
             d = json.loads(f.read_text())
             sent.update(d["sent"])
             late += d["late_ticks"]
+            publish_end = max(publish_end, d.get("end_unix_s", publish_end))
     stats_file = out / "master_stats.json"
     if not stats_file.exists():
         raise RuntimeError(f"master wrote no stats; see {out / 'master.log'}")
     st = json.loads(stats_file.read_text())
     n_sent = sum(sent.values())
     received = int(st.get("link_received", 0))
-    recorded = int(st["recorded"].get("/v2xpos/rx", 0))
-    samples = [(t, r) for t, r in st["rss_samples"] if start <= t <= start + duration]
+    recorded = int(st["recorded"].get("/v2xpos/rx", 0)) if record else None
+    samples = [(t, r) for t, r in st["rss_samples"] if start <= t <= publish_end]
     rss0 = rss1 = math.nan
     if samples:
         warm = start + warmup_fraction * duration
@@ -220,10 +243,12 @@ def run_soak(slaves: int = 32, rate: float = 100.0, duration: float = 60.0, out_
         "slaves": slaves, "rate_hz": rate, "duration_s": duration,
         "sent": n_sent, "received": received, "recorded": recorded,
         "output": outputs_from_messages, "outputs_total": int(st.get("processed", 0)),
-        "lost": n_sent - received, "lost_in_master": received - recorded,
+        "lost": n_sent - received, "lost_in_master": None if recorded is None else received - recorded,
+        "signed": signed, "recorded_to_mcap": record,
         "rss_growth_pct": (rss1 - rss0) / rss0 * 100.0 if samples else None,
         "rss_start_mb": rss0 / 2 ** 20 if samples else None, "rss_end_mb": rss1 / 2 ** 20 if samples else None,
-        "achieved_rate_hz": n_sent / max(1, slaves) / duration, "late_publish_ticks": late,
+        "achieved_rate_hz": n_sent / max(1, slaves) / max(duration, publish_end - start),
+        "publish_time_s": publish_end - start, "late_publish_ticks": late,
         "rejected": st.get("rejected", {}), "pipeline_ms_p50": st.get("pipeline_ms_p50"),
         "pipeline_ms_p99": st.get("pipeline_ms_p99"), "e2e_ms_p99": st.get("e2e_ms_p99"),
         "mcap_files": st.get("mcap_files", []),
@@ -240,13 +265,16 @@ def add_bench_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--per-process", type=int, default=8, help="slaves per OS process")
     parser.add_argument("--out", default="out/soak", help="directory for keys, recording, logs, report")
     parser.add_argument("--json", help="also write the report here")
+    parser.add_argument("--no-record", action="store_true", help="diagnosis: master without the MCAP recorder")
+    parser.add_argument("--unsigned", action="store_true", help="diagnosis: slaves do not sign, no trust list")
     parser.add_argument("--verify-replay", action="store_true",
                         help="afterwards replay the MCAP recording and check the outputs are identical")
 
 
 def run_bench(args: argparse.Namespace) -> int:
-    report = run_soak(args.slaves, args.rate, args.duration, args.out, args.per_process)
-    if args.verify_replay:
+    report = run_soak(args.slaves, args.rate, args.duration, args.out, args.per_process,
+                      record=not args.no_record, signed=not args.unsigned)
+    if args.verify_replay and not args.no_record:
         from master.replay_session import replay_session
         rep = replay_session(Path(args.out) / "session.mcap", progress=True)
         report["replay_identical"] = rep.identical
@@ -255,7 +283,7 @@ def run_bench(args: argparse.Namespace) -> int:
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(report, indent=1))
-    ok = report["lost"] == 0 and report["sent"] == report["recorded"]
+    ok = report["lost"] == 0 and (args.no_record or report["sent"] == report["recorded"])
     return 0 if ok else 1
 
 
@@ -276,8 +304,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out")
     a = p.parse_args(argv)
     if a.role == "master":
-        return _run_master(Path(a.config), a.start, Path(a.record), Path(a.stats), a.publish_end)
-    return _run_slaves(a.ids.split(","), Path(a.keys), a.endpoint, a.start, a.duration, a.rate, Path(a.out))
+        return _run_master(Path(a.config), a.start, Path(a.record) if a.record else None, Path(a.stats),
+                           a.publish_end)
+    return _run_slaves(a.ids.split(","), Path(a.keys) if a.keys else None, a.endpoint, a.start, a.duration, a.rate,
+                       Path(a.out))
 
 
 if __name__ == "__main__":
