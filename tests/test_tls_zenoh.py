@@ -57,9 +57,10 @@ def test_zenoh_tls_and_mtls_on_loopback(tmp_path):
     pki = tls.make_test_pki(tmp_path / "pki")
     port = _free_port()
     ep = tls.tls_endpoint(port)
-    router = LinkConfig(mode="router", listen=[ep],
-                        extra_json5=tls.zenoh_tls_settings(pki.ca.cert_path, listen=pki.router,
-                                                           mtls=True))
+    # as a service config table would give it ([link] mode/listen/extra_json5)
+    router = LinkConfig.from_dict({"mode": "router", "listen": [ep],
+                                   "extra_json5": tls.zenoh_tls_settings(pki.ca.cert_path, listen=pki.router,
+                                                                         mtls=True)}, "master.toml: [link]")
     client = LinkConfig(mode="client", connect=[ep],
                         extra_json5=tls.zenoh_tls_settings(pki.ca.cert_path, connect=pki.client,
                                                            mtls=True))
