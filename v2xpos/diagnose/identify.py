@@ -90,8 +90,19 @@ def cost(prob: LinearProblem, theta: np.ndarray) -> float:
     return float(rr @ rr)
 
 
+def jackknife_var(prob: LinearProblem, active: np.ndarray, n_blocks: int = 8) -> np.ndarray:
+    """Delete-one-block jackknife variance over contiguous time blocks (Kunsch 1989, Ann. Stat.
+    17(3)): covers slow changes of the effects and of the residual statistics along the drive."""
+    if n_blocks < 3 or len(prob.r) < 10 * n_blocks:
+        return np.zeros(N_PARAMS)
+    edges = np.quantile(prob.t_s, np.linspace(0, 1, n_blocks + 1))
+    blk = np.clip(np.searchsorted(edges, prob.t_s, side="right") - 1, 0, n_blocks - 1)
+    th = np.array([_solve(prob.subset(blk != b), active)[0] for b in range(n_blocks)])
+    return (n_blocks - 1) / n_blocks * np.sum((th - th.mean(axis=0)) ** 2, axis=0)
+
+
 def fit(prob: LinearProblem, block_s: float = 10.0, systematic_sd: np.ndarray | None = None,
-        active: np.ndarray | None = None) -> Fit:
+        active: np.ndarray | None = None, jackknife_blocks: int = 8) -> Fit:
     """One MAP step on the linearised problem, with the robust covariance described above."""
     active = prob.active if active is None else active
     theta, Hinv = _solve(prob, active)
@@ -109,7 +120,9 @@ def fit(prob: LinearProblem, block_s: float = 10.0, systematic_sd: np.ndarray | 
         G += np.outer(g, g)
     cov_sand = Hinv @ G @ Hinv
     var_stat = np.maximum(np.diag(cov_naive), np.diag(cov_sand))
+    var_stat = np.maximum(var_stat, jackknife_var(prob, active, n_blocks=jackknife_blocks))
     sys = np.zeros(N_PARAMS) if systematic_sd is None else np.asarray(systematic_sd, float)
+    var_stat = np.where(active, var_stat, prob.prior_sd ** 2)
     sd_stat = np.sqrt(var_stat)
     sd = np.sqrt(var_stat + sys ** 2)
     scale = np.where(np.sqrt(np.diag(cov_naive)) > 0, sd_stat / np.maximum(np.sqrt(np.diag(cov_naive)), 1e-300), 1.0)

@@ -1,0 +1,436 @@
+"""``v2xpos calibrate``: residuals -> missing effects -> calibrated model, before and after.
+
+Pipeline (docs/calibration.md gives the reasoning):
+
+1. *before*: replay with the declared model only (no effect states), with the outage schedule.
+2. *coarse*: one replay with the filter's own augmented effect states (lever arm, IMU time offset,
+   misalignment, gyro and accelerometer scale) gives a starting point theta_c for large effects.
+3. *batch fit*: at theta_c the inputs are corrected (``inject.correct``) and replayed without
+   outages; the whitened innovations r(theta) and their finite-difference Jacobian through the
+   replay give a Gauss-Newton/MAP estimate (``identify``), refined by chord iterations with the
+   same Jacobian. Robust sd, 3-sd + cross-validated significance, first/second half estimates.
+4. *after*: the significant effects are corrected and the outage replay is run again.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from v2xpos.types import Dataset
+
+from . import identify, structure
+from .identify import Fit, LinearProblem
+from .inject import (N_PARAMS, P_ACCEL_SCALE, P_CLOCK_DRIFT, P_GNSS_LATENCY, P_GYRO_SCALE, P_LEVER_ARM,
+                     P_MISALIGN, P_TIME_OFFSET, EffectSet, correct)
+from .residuals import ResidualLog
+from .runner import OutageSchedule, ReplayOutcome, replay
+
+ROLL_BLOCK_S = 30.0
+ROLL_MIN_SPEED_MPS = 3.0
+ROLL_SYSTEMATIC_SD_RAD = np.radians(0.5)
+"""Road cross-slope left in the mean vehicle roll of a drive (crowned roads, driving on one side)."""
+
+FD_STEP = np.zeros(N_PARAMS)
+FD_STEP[P_TIME_OFFSET] = 0.02
+FD_STEP[P_MISALIGN] = 0.01
+FD_STEP[P_LEVER_ARM] = 0.1
+FD_STEP[P_GYRO_SCALE] = 0.01
+FD_STEP[P_ACCEL_SCALE] = 0.01
+"""Finite-difference steps (s, rad, m, fraction): large against replay round-off, small against
+the curvature of the innovation sequence."""
+
+
+
+def active_parameters(platform: str) -> np.ndarray:
+    """Parameters estimated per platform. Left out (value 0, sd = prior, never significant):
+    roll/pitch-axis gyro scale (a car or a walker barely rotates about them) and the vertical
+    accelerometer scale (against ~1 g it is the vertical accelerometer bias the filter already
+    estimates); for a pedestrian or a generic platform also the mounting misalignment, which
+    only the vehicle constraints see."""
+    a = np.ones(N_PARAMS, bool)
+    a[P_GYRO_SCALE.start:P_GYRO_SCALE.start + 2] = False
+    a[P_ACCEL_SCALE.stop - 1] = False
+    if platform != "car":
+        a[P_MISALIGN] = False
+    return a
+
+
+def default_prior_sd(ds: Dataset) -> np.ndarray:
+    """Weakly informative priors; dataset notes may override the timing ones:
+    ``imu_time_offset_prior_sd_s`` (default 0.1 s) and ``gnss_latency_prior_sd_s`` (default 1 ms:
+    post-processed RTK solutions are tagged with their measurement epoch)."""
+    p = np.zeros(N_PARAMS)
+    p[P_TIME_OFFSET] = float(ds.notes.get("imu_time_offset_prior_sd_s", 0.1))
+    p[P_CLOCK_DRIFT] = float(ds.notes.get("imu_clock_drift_prior_sd_ppm", 200.0))
+    p[P_GNSS_LATENCY] = float(ds.notes.get("gnss_latency_prior_sd_s", 1e-3))
+    p[P_MISALIGN] = np.radians(10.0)
+    p[P_LEVER_ARM] = max(float(ds.lever_arm_sd_m), 0.5)
+    p[P_GYRO_SCALE] = 0.02
+    p[P_ACCEL_SCALE] = 0.02
+    return p
+
+
+# ---------------------------------------------------------------------------------- residual rows
+@dataclass
+class RowSet:
+    """Whitened residual rows of one replay: keys identify the same row across replays."""
+    keys: np.ndarray
+    r: np.ndarray
+    t_s: np.ndarray
+
+
+def _roll_rows(log: ResidualLog, t0_s: float, roll_sd_rad: float) -> tuple[list, list, list]:
+    g = log["gnss_pos"]
+    moving = g.speed_mps > ROLL_MIN_SPEED_MPS
+    roll = g.rpy_rad[:, 0]
+    blocks = np.floor((g.t_s - t0_s) / ROLL_BLOCK_S).astype(int)
+    keys, vals, ts = [], [], []
+    for b in np.unique(blocks[moving]):
+        sel = moving & (blocks == b)
+        if sel.sum() >= 20:
+            keys.append(("roll", int(b), 0))
+            vals.append(float(np.mean(roll[sel])) / roll_sd_rad)
+            ts.append(float(np.mean(g.t_s[sel])))
+    return keys, vals, ts
+
+
+def residual_rows(log: ResidualLog, applied: EffectSet, weights: dict | None, t0_s: float,
+                  roll_sd_rad: float) -> tuple[RowSet, dict]:
+    """Rows from GNSS position/velocity and NHC innovations (each component divided by the
+    baseline innovation sd in ``weights``, or by its own sd when weights is None) plus the block
+    mean vehicle roll. Keys remove the time shifts applied by ``correct``."""
+    keys, vals, ts = [], [], []
+    new_w = {}
+    tau, drift = applied.imu_time_offset_s, applied.imu_clock_drift_ppm
+    for kind in ("gnss_pos", "gnss_vel", "nhc"):
+        if kind not in log:
+            continue
+        s = log[kind]
+        if kind.startswith("gnss"):
+            t_orig = s.t_s + applied.gnss_latency_s
+        else:
+            t_orig = s.t_s - tau - 1e-6 * drift * (s.t_s - t0_s)
+        kms = np.round(t_orig * 1000.0).astype(np.int64)
+        for i in range(len(s)):
+            for c in range(s.innovation.shape[1]):
+                key = (kind, int(kms[i]), c)
+                sd = s.sd[i, c]
+                if weights is None:
+                    if not s.accepted[i] or not np.isfinite(sd) or sd <= 0:
+                        continue
+                    new_w[key] = sd
+                    w = sd
+                else:
+                    w = weights.get(key)
+                    if w is None:
+                        continue
+                val = s.innovation[i, c] / w
+                if np.isfinite(val):
+                    keys.append(key)
+                    vals.append(val)
+                    ts.append(float(s.t_s[i]))
+    k, v, t = _roll_rows(log, t0_s, roll_sd_rad)
+    keys += k
+    vals += v
+    ts += t
+    if weights is None:
+        for kk in k:
+            new_w[kk] = roll_sd_rad
+    arr = np.empty(len(keys), dtype=object)
+    arr[:] = keys
+    return RowSet(arr, np.asarray(vals), np.asarray(ts)), new_w
+
+
+def _align(base: RowSet, other: RowSet) -> np.ndarray:
+    """other's values on base's keys (NaN where other lacks the row)."""
+    idx = {k: i for i, k in enumerate(other.keys)}
+    out = np.full(len(base.keys), np.nan)
+    for i, k in enumerate(base.keys):
+        j = idx.get(k)
+        if j is not None:
+            out[i] = other.r[j]
+    return out
+
+
+def _roll_block_sd(log: ResidualLog, t0_s: float) -> float:
+    _, vals, _ = _roll_rows(log, t0_s, 1.0)
+    return float(max(np.std(vals), np.radians(0.2))) if len(vals) > 2 else np.radians(1.0)
+
+
+# ---------------------------------------------------------------------------------- calibration
+@dataclass
+class Calibration:
+    """Everything the report needs."""
+    dataset: str
+    fit: Fit
+    problem: LinearProblem
+    theta_coarse: np.ndarray
+    fit_first: Fit
+    fit_second: Fit
+    effects_significant: EffectSet
+    before: dict = field(default_factory=dict)
+    after: dict = field(default_factory=dict)
+    log_before: ResidualLog | None = None
+    log_after: ResidualLog | None = None
+    coarse_report: dict = field(default_factory=dict)
+    replays: int = 0
+
+
+CALIBRATION_REPLAY_CONFIG = {"gate_probability": 1.0}
+"""Replays that feed the fit run without the chi-square gate: a gate decision that flips between
+two replays would make the innovation sequence jump and spoil the finite differences."""
+
+
+def metrics_replay(ds: Dataset, schedule: OutageSchedule, progress: bool) -> dict:
+    """Outage metrics exactly as ``v2xpos replay`` computes them (default filter configuration),
+    plus ``nis_mean`` of the accepted GNSS position and velocity updates."""
+    from v2xpos.ins.replay import OutageSchedule as InsSchedule
+    from v2xpos.ins.replay import replay as ins_replay
+    sched = InsSchedule(schedule.length_s, schedule.every_s, schedule.first_s)
+    res = ins_replay(ds, sched, progress=progress, keep_series=False)
+    out = dict(res.summary)
+    nis = [r.nis for r in res.filter.residuals if r.accepted and r.kind in ("gnss_pos", "gnss_vel")]
+    out["nis_mean"] = float(np.mean(nis)) if nis else float("nan")
+    return out
+
+
+class Estimator:
+    """Batch estimator bound to one recording; keeps the Jacobian so that recordings derived from
+    the same drive (e.g. with injected effects) can be fitted with a couple of replays."""
+
+    def __init__(self, ds: Dataset, progress: bool = False, prior_sd: np.ndarray | None = None):
+        self.ds = ds
+        self.progress = progress
+        self.prior_sd = default_prior_sd(ds) if prior_sd is None else prior_sd
+        self.t0_s = float(ds.imu.t_s[0])
+        self.replays = 0
+        self.weights: dict | None = None
+        self.roll_sd = np.radians(1.0)
+        self.base_rows: RowSet | None = None
+        self.theta_lin = np.zeros(N_PARAMS)
+        self.J: np.ndarray | None = None
+        self.coarse_report: dict = {}
+        self.active = active_parameters(ds.platform)
+
+    def _replay(self, ds: Dataset, theta: np.ndarray, label: str) -> ReplayOutcome:
+        self.replays += 1
+        return replay(correct(ds, EffectSet.from_vector(theta)), None, config=CALIBRATION_REPLAY_CONFIG,
+                      progress=self.progress, label=label)
+
+    def coarse(self) -> np.ndarray:
+        """Starting point from the filter's own augmented effect states (lever arm, IMU time offset,
+        misalignment), one ``v2xpos replay`` run without outages."""
+        from v2xpos.ins.replay import OutageSchedule as InsSchedule
+        from v2xpos.ins.replay import config_for
+        from v2xpos.ins.replay import replay as ins_replay
+        cfg = config_for(self.ds, effects=("lever_arm", "imu_time_offset", "misalignment"))
+        res = ins_replay(self.ds, InsSchedule(0.0, 0.0, 0.0), cfg=cfg, progress=self.progress, keep_series=False)
+        self.replays += 1
+        rep = res.summary.get("effects", {})
+        self.coarse_report = {k: v for k, v in rep.items() if k != "sd"}
+        th = np.zeros(N_PARAMS)
+        th[P_TIME_OFFSET] = float(rep.get("imu_time_offset_s", 0.0))
+        if self.active[P_MISALIGN].all():
+            th[P_MISALIGN] = np.asarray(rep.get("misalignment_rad", np.zeros(3)), float)
+        th[P_LEVER_ARM] = np.asarray(rep.get("lever_arm_m", self.ds.lever_arm_m), float) - np.asarray(self.ds.lever_arm_m)
+        return th
+
+    def true_cost(self, ds: Dataset, theta: np.ndarray, label: str) -> tuple[float, RowSet]:
+        """Residual cost of a replay at theta over the rows shared with the linearisation point;
+        rows missing in the replay count with their linearisation value."""
+        rows, _ = self.rows(ds, theta, label)
+        r = _align(self.base_rows, rows)
+        r = np.where(np.isfinite(r), r, self.base_rows.r)
+        return float(r @ r), rows
+
+    def rows(self, ds: Dataset, theta: np.ndarray, label: str) -> tuple[RowSet, ReplayOutcome]:
+        out = self._replay(ds, theta, label)
+        rows, _ = residual_rows(out.log, EffectSet.from_vector(theta), self.weights, self.t0_s, self.roll_sd)
+        return rows, out
+
+    def linearize(self, theta0: np.ndarray, keep_weights: bool = False) -> RowSet:
+        """Rows at theta0 and the finite-difference Jacobian there (one replay per parameter)."""
+        out = self._replay(self.ds, theta0, "linearisation point")
+        if not keep_weights or self.weights is None:
+            self.roll_sd = _roll_block_sd(out.log, self.t0_s)
+            self.base_rows, self.weights = residual_rows(out.log, EffectSet.from_vector(theta0), None,
+                                                         self.t0_s, self.roll_sd)
+            rows0 = self.base_rows
+        else:
+            rows0, _ = residual_rows(out.log, EffectSet.from_vector(theta0), self.weights, self.t0_s, self.roll_sd)
+        r0 = _align(self.base_rows, rows0)
+        self.theta_lin = theta0.copy()
+        J = np.zeros((len(self.base_rows.r), N_PARAMS))
+        it = [p for p in np.flatnonzero(FD_STEP > 0) if self.active[p]]
+        if self.progress:
+            from tqdm import tqdm
+            it = tqdm(it, desc="jacobian", unit="replay", leave=False)
+        for p in it:
+            th = theta0.copy()
+            th[p] += FD_STEP[p]
+            rows, _ = self.rows(self.ds, th, f"d/d{p}")
+            J[:, p] = (_align(self.base_rows, rows) - r0) / FD_STEP[p]
+        # identical relative timing: GNSS latency (tags moved back) = IMU offset (stamps moved on);
+        # a slow clock drift acts as the local offset 1e-6 d (t - t0) (filter memory << drive)
+        J[:, P_GNSS_LATENCY] = J[:, P_TIME_OFFSET]
+        J[:, P_CLOCK_DRIFT] = J[:, P_TIME_OFFSET] * 1e-6 * (self.base_rows.t_s - self.t0_s)
+        self.J = J
+        return rows0
+
+    def problem(self, rows: RowSet, theta: np.ndarray) -> LinearProblem:
+        """Linear problem at theta from residual rows of a replay at theta and the stored J."""
+        r = _align(self.base_rows, rows)
+        ok = np.isfinite(r) & np.all(np.isfinite(self.J), axis=1)
+        return LinearProblem(r=r[ok], J=self.J[ok], theta0=theta.copy(), t_s=self.base_rows.t_s[ok],
+                             prior_sd=self.prior_sd, active=self.active.copy())
+
+    def systematic_sd(self) -> np.ndarray:
+        s = np.zeros(N_PARAMS)
+        s[P_MISALIGN.start] = ROLL_SYSTEMATIC_SD_RAD
+        return s
+
+    def gauss_newton(self, theta_start: np.ndarray, iterations: int = 2) -> np.ndarray:
+        """Gauss-Newton with the Jacobian taken again at every iterate (on ``self.ds``); each step
+        is accepted only if the replayed cost drops, else halved (backtracking, at most 3 times)."""
+        theta = theta_start.copy()
+        for k in range(iterations):
+            rows0 = self.linearize(theta, keep_weights=k > 0)
+            c0 = float(np.nansum(_align(self.base_rows, rows0) ** 2))
+            step = identify.fit(self.problem(rows0, theta), systematic_sd=self.systematic_sd()).theta - theta
+            for _ in range(4):
+                c1, _rows = self.true_cost(self.ds, theta + step, f"GN {k + 1} trial")
+                if c1 < c0:
+                    theta = theta + step
+                    break
+                step = step / 2.0
+            else:
+                break
+        return theta
+
+    def refine(self, ds: Dataset, theta_start: np.ndarray, iterations: int = 1) -> tuple[Fit, LinearProblem, ReplayOutcome]:
+        """Chord iterations on ``ds`` with the stored Jacobian, then the fit at the final point."""
+        theta = theta_start.copy()
+        for k in range(iterations):
+            rows, _ = self.rows(ds, theta, f"chord {k + 1}")
+            theta = identify.fit(self.problem(rows, theta), systematic_sd=self.systematic_sd()).theta
+        rows, out = self.rows(ds, theta, "at estimate")
+        prob = self.problem(rows, theta)
+        f = identify.fit(prob, systematic_sd=self.systematic_sd())
+        f = identify.decide(prob, f)
+        return f, prob, out
+
+    def confirm(self, ds: Dataset, f: Fit, prob: LinearProblem) -> Fit:
+        """Real error reduction: for every effect beyond 3 sd, replay with that effect removed; it
+        stays significant only if the residual cost of BOTH halves of the recording is lower with it."""
+        cand = np.flatnonzero(prob.active & (np.abs(f.theta) > 3.0 * f.sd))
+        t_mid = float(np.median(prob.t_s))
+        sig = np.zeros(N_PARAMS, bool)
+        gain = np.zeros(N_PARAMS)
+        rows_with, _ = self.rows(ds, f.theta, "with all effects")
+        r_with = _align(self.base_rows, rows_with)
+        first = self.base_rows.t_s < t_mid
+        for i in cand:
+            th = f.theta.copy()
+            th[i] = 0.0
+            rows, _ = self.rows(ds, th, f"without {i}")
+            r_wo = _align(self.base_rows, rows)
+            ok = np.isfinite(r_wo) & np.isfinite(r_with)
+            c_with = np.array([np.sum(r_with[ok & h] ** 2) for h in (first, ~first)])
+            c_wo = np.array([np.sum(r_wo[ok & h] ** 2) for h in (first, ~first)])
+            gain[i] = float(np.sum(c_wo - c_with))
+            sig[i] = bool(np.all(c_wo > c_with))
+        f.cv_gain = gain
+        f.significant = sig
+        return f
+
+
+def calibrate_dataset(ds: Dataset, schedule: OutageSchedule, progress: bool = True,
+                      gn_iterations: int = 2) -> Calibration:
+    """The full pipeline of the module docstring."""
+    est = Estimator(ds, progress=progress)
+    before = metrics_replay(ds, schedule, progress)
+    theta_c = est.coarse()
+    theta = est.gauss_newton(theta_c, iterations=gn_iterations)
+    f, prob, out_fit = est.refine(ds, theta, iterations=0)
+    f = est.confirm(ds, f, prob)
+    a, b = identify.halves(prob)
+    f1 = identify.fit(a, systematic_sd=est.systematic_sd())
+    f2 = identify.fit(b, systematic_sd=est.systematic_sd())
+    sig = EffectSet.from_vector(np.where(f.significant, f.theta, 0.0))
+    after = metrics_replay(correct(ds, sig), schedule, progress)
+    base_fit = replay(ds, None, config=CALIBRATION_REPLAY_CONFIG, progress=progress, label="declared model")
+    est.replays += 3
+    return Calibration(dataset=ds.name, fit=f, problem=prob, theta_coarse=theta_c, fit_first=f1,
+                       fit_second=f2, effects_significant=sig, before=before, after=after,
+                       log_before=base_fit.log, log_after=out_fit.log, coarse_report=est.coarse_report,
+                       replays=est.replays)
+
+
+# ---------------------------------------------------------------------------------- JSON
+def _entry(f: Fit, sl, scale: float = 1.0) -> dict:
+    if isinstance(sl, slice):
+        return {"value": (f.theta[sl] * scale).tolist(), "sd": (f.sd[sl] * scale).tolist(),
+                "significant": [bool(x) for x in f.significant[sl]]}
+    return {"value": float(f.theta[sl] * scale), "sd": float(f.sd[sl] * scale), "significant": bool(f.significant[sl])}
+
+
+def effects_json(f: Fit) -> dict:
+    """The ``effects`` object of the calibrate JSON (angles in degrees)."""
+    deg = 180.0 / np.pi
+    return {"imu_time_offset_s": _entry(f, P_TIME_OFFSET),
+            "imu_clock_drift_ppm": _entry(f, P_CLOCK_DRIFT),
+            "gnss_latency_s": _entry(f, P_GNSS_LATENCY),
+            "imu_misalignment_deg": _entry(f, P_MISALIGN, deg),
+            "gnss_lever_arm_m": _entry(f, P_LEVER_ARM),
+            "gyro_scale": _entry(f, P_GYRO_SCALE),
+            "accel_scale": _entry(f, P_ACCEL_SCALE)}
+
+
+METRIC_KEYS = ("outage_h_rms_m", "outage_h_max_m", "aided_h_rms_m", "nis_mean")
+
+
+def to_json(cal: Calibration) -> dict:
+    return {"dataset": cal.dataset,
+            "effects": effects_json(cal.fit),
+            "before": {k: cal.before[k] for k in METRIC_KEYS},
+            "after": {k: cal.after[k] for k in METRIC_KEYS}}
+
+
+# ---------------------------------------------------------------------------------- command
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("dataset", help="dataset.toml of the recording")
+    parser.add_argument("--json", help="write the result JSON here")
+    parser.add_argument("--plots", help="directory for the report (PNG figures + report.md)")
+    parser.add_argument("--outage-length", type=float, default=15.0, help="GNSS outage length [s] (default 15)")
+    parser.add_argument("--outage-every", type=float, default=45.0, help="outage period [s] (default 45)")
+    parser.add_argument("--outage-first", type=float, default=40.0,
+                        help="first outage start after the first GNSS epoch [s] (default 40)")
+    parser.add_argument("--iterations", type=int, default=2, help="Gauss-Newton iterations (default 2)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def run(args: argparse.Namespace) -> int:
+    from v2xpos.datasets import load_dataset
+    try:
+        ds = load_dataset(args.dataset)
+    except (OSError, ValueError) as e:
+        print(f"calibrate: cannot load {args.dataset}: {e}", file=sys.stderr)
+        return 2
+    schedule = OutageSchedule(args.outage_length, args.outage_every, args.outage_first)
+    cal = calibrate_dataset(ds, schedule, progress=not args.no_progress, gn_iterations=args.iterations)
+    out = to_json(cal)
+    text = json.dumps(out, indent=2)
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(text + "\n")
+    print(text)
+    if args.plots:
+        from .report import write_report
+        path = write_report(cal, Path(args.plots))
+        print(f"report: {path}", file=sys.stderr)
+    return 0

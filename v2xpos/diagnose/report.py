@@ -1,0 +1,202 @@
+"""The calibrate report: per effect, the residual before and after against the motion signal that
+reveals it; the error table before/after; estimates, sd, halves. PNG (matplotlib Agg) + report.md.
+
+Residual <-> signal pairs (innovations z - h(x) resolved in the filter's body frame; Groves 2013
+ch. 14 for the GNSS/INS measurement models, Shin 2001 for NHC):
+* IMU time offset / GNSS latency: along-track velocity innovation ~ a_x dt.
+* IMU clock drift: the along-track slope above, per 60 s block, against time.
+* misalignment pitch / yaw: NHC vertical / lateral innovation ~ -speed * angle.
+* misalignment roll: block-mean vehicle roll (level-road assumption) against time.
+* lever arm x / y: lateral / along-track velocity innovation ~ yaw rate x lever.
+* lever arm z: vertical position innovation (a bias).
+* gyro z scale: lateral velocity innovation ~ heading error built up in turns ~ speed * yaw rate.
+* accelerometer x / y scale: along-track / lateral velocity innovation ~ specific force.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from . import structure
+from .inject import PARAM_NAMES
+from .residuals import ResidualLog
+
+MIN_SPEED_MPS = 2.0
+
+
+def _vel_body(log: ResidualLog) -> tuple:
+    s = log["gnss_vel"]
+    ok = s.accepted & (s.speed_mps > MIN_SPEED_MPS)
+    return s.select(ok), s.select(ok).in_body()
+
+
+def _pairs(log: ResidualLog) -> dict[str, tuple]:
+    """effect name -> (residual, signal, residual label, signal label, t_s)."""
+    out = {}
+    if "gnss_vel" in log:
+        s, vb = _vel_body(log)
+        ax = s.acc_body_mps2[:, 0]
+        yr = s.rate_body_rps[:, 2]
+        out["imu_time_offset_s"] = (vb[:, 0], ax, "along-track vel. innovation [m/s]", "a_x [m/s^2]", s.t_s)
+        out["gnss_latency_s"] = out["imu_time_offset_s"]
+        out["lever_arm_x_m"] = (vb[:, 1], yr, "lateral vel. innovation [m/s]", "yaw rate [rad/s]", s.t_s)
+        out["lever_arm_y_m"] = (vb[:, 0], yr, "along-track vel. innovation [m/s]", "yaw rate [rad/s]", s.t_s)
+        out["gyro_scale_z"] = (vb[:, 1], s.speed_mps * yr, "lateral vel. innovation [m/s]",
+                               "speed x yaw rate [m/s^2]", s.t_s)
+        out["accel_scale_x"] = (vb[:, 0], s.f_body_mps2[:, 0], "along-track vel. innovation [m/s]", "f_x [m/s^2]", s.t_s)
+        out["accel_scale_y"] = (vb[:, 1], s.f_body_mps2[:, 1], "lateral vel. innovation [m/s]", "f_y [m/s^2]", s.t_s)
+    if "gnss_pos" in log:
+        p = log["gnss_pos"]
+        ok = p.accepted & (p.speed_mps > MIN_SPEED_MPS)
+        p = p.select(ok)
+        pb = p.in_body()
+        out["lever_arm_z_m"] = (pb[:, 2], p.speed_mps, "vertical pos. innovation [m]", "speed [m/s]", p.t_s)
+        out["misalign_roll_rad"] = (np.degrees(p.rpy_rad[:, 0]), p.t_s - p.t_s[0] if len(p) else p.t_s,
+                                    "vehicle roll [deg]", "time [s]", p.t_s)
+    if "nhc" in log:
+        n = log["nhc"]
+        ok = n.accepted & (n.speed_mps > MIN_SPEED_MPS)
+        n = n.select(ok)
+        out["misalign_pitch_rad"] = (n.innovation[:, 1], n.speed_mps, "NHC vertical innovation [m/s]", "speed [m/s]", n.t_s)
+        out["misalign_yaw_rad"] = (n.innovation[:, 0], n.speed_mps, "NHC lateral innovation [m/s]", "speed [m/s]", n.t_s)
+    if "imu_time_offset_s" in out:
+        r, a, _, _, t = out["imu_time_offset_s"]
+        out["imu_clock_drift_ppm"] = _block_slopes(r, a, t)
+    return out
+
+
+def _block_slopes(r: np.ndarray, a: np.ndarray, t: np.ndarray, block_s: float = 60.0) -> tuple:
+    """Along-track slope residual/a_x [s] per block, against block time: a drift makes it a ramp."""
+    if len(t) == 0:
+        return (np.zeros(0), np.zeros(0), "slope dv/a_x per block [s]", "time [s]", np.zeros(0))
+    b = np.floor((t - t[0]) / block_s).astype(int)
+    sl, tt = [], []
+    for k in np.unique(b):
+        sel = b == k
+        if sel.sum() > 20 and np.std(a[sel]) > 0.05:
+            c = structure.correlation(r[sel], a[sel])
+            sl.append(c.detail["slope"])
+            tt.append(float(np.mean(t[sel] - t[0])))
+    return (np.asarray(sl), np.asarray(tt), "slope dv/a_x per 60 s block [s]", "time [s]", np.asarray(tt) + t[0])
+
+
+def residual_structure(log: ResidualLog) -> dict:
+    """For every effect: correlation of its residual with its signal (structure.correlation) and the
+    whiteness / bias of the residual."""
+    out = {}
+    for name, (r, x, *_rest) in _pairs(log).items():
+        if len(r) < 5:
+            continue
+        out[name] = {"correlation": structure.correlation(r, x).as_dict(),
+                     "ljung_box": structure.ljung_box(r).as_dict(),
+                     "mean_bias": structure.mean_bias(r).as_dict()}
+    return out
+
+
+def _binned(x: np.ndarray, y: np.ndarray, n_bins: int = 15) -> tuple:
+    ok = np.isfinite(x) & np.isfinite(y)
+    x, y = x[ok], y[ok]
+    if len(x) < 2 * n_bins:
+        return x, y, np.zeros_like(y)
+    edges = np.quantile(x, np.linspace(0, 1, n_bins + 1))
+    idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, n_bins - 1)
+    xm, ym, ye = [], [], []
+    for k in range(n_bins):
+        sel = idx == k
+        if sel.sum() >= 3:
+            xm.append(x[sel].mean())
+            ym.append(y[sel].mean())
+            ye.append(y[sel].std(ddof=1) / np.sqrt(sel.sum()))
+    return np.array(xm), np.array(ym), np.array(ye)
+
+
+def write_report(cal, out_dir: Path) -> Path:
+    """Write the figures and report.md for a ``calibrate.Calibration``; returns the markdown path."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    f = cal.fit
+    before = _pairs(cal.log_before) if cal.log_before is not None else {}
+    after = _pairs(cal.log_after) if cal.log_after is not None else {}
+    s_before = residual_structure(cal.log_before) if cal.log_before is not None else {}
+    s_after = residual_structure(cal.log_after) if cal.log_after is not None else {}
+    figures = []
+    for name in PARAM_NAMES:
+        if name not in before or name not in after:
+            continue
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+        for ax, pairs, title in ((axes[0], before, "declared model"), (axes[1], after, "calibrated model")):
+            r, x, ylab, xlab, _t = pairs[name]
+            ax.plot(x, r, ".", ms=1.5, alpha=0.25, color="0.5")
+            xm, ym, ye = _binned(np.asarray(x), np.asarray(r))
+            ax.errorbar(xm, ym, yerr=ye, fmt="o-", color="C3" if title.startswith("declared") else "C2", ms=4)
+            c = structure.correlation(r, x)
+            ax.set_title(f"{title}: r={c.detail['r']:+.2f}, p={c.p_value:.1e}", fontsize=9)
+            ax.set_xlabel(xlab)
+            ax.grid(alpha=0.3)
+            lo, hi = np.nanpercentile(r, [1, 99]) if len(r) else (0, 1)
+            pad = 0.2 * (hi - lo + 1e-9)
+            ax.set_ylim(lo - pad, hi + pad)
+        axes[0].set_ylabel(before[name][2])
+        i = PARAM_NAMES.index(name)
+        fig.suptitle(f"{name}: {f.theta[i]:+.4g} +- {f.sd[i]:.2g}  "
+                     f"({'significant' if f.significant[i] else 'not significant'})", fontsize=10)
+        fig.tight_layout()
+        p = out_dir / f"effect_{name}.png"
+        fig.savefig(p, dpi=110)
+        plt.close(fig)
+        figures.append((name, p.name))
+
+    ob = np.asarray(cal.before.get("outage_h_m") or [], float)
+    oa = np.asarray(cal.after.get("outage_h_m") or [], float)
+    if len(ob) and len(oa):
+        fig, ax = plt.subplots(figsize=(8, 3.5))
+        k = np.arange(max(len(ob), len(oa)))
+        ax.bar(k[:len(ob)] - 0.2, ob, 0.4, label=f"before (RMS {cal.before['outage_h_rms_m']:.2f} m)", color="C3")
+        ax.bar(k[:len(oa)] + 0.2, oa, 0.4, label=f"after (RMS {cal.after['outage_h_rms_m']:.2f} m)", color="C2")
+        ax.set_xlabel("outage #")
+        ax.set_ylabel("horizontal error at outage end [m]")
+        ax.legend()
+        ax.grid(alpha=0.3, axis="y")
+        fig.tight_layout()
+        fig.savefig(out_dir / "outage_errors.png", dpi=110)
+        plt.close(fig)
+
+    md = [f"# Calibration report: {cal.dataset}", "",
+          "Effects estimated by a batch maximum-likelihood fit over the EKF innovations "
+          "(docs/calibration.md). Significant = |value| > 3 sd AND lower residual cost in both "
+          "halves of the recording when the effect is applied.", "",
+          "## Errors before / after", "",
+          "| metric | before | after |", "|---|---|---|"]
+    for k in ("outage_h_rms_m", "outage_h_max_m", "aided_h_rms_m", "nis_mean"):
+        b, a = cal.before.get(k), cal.after.get(k)
+        md.append(f"| {k} | {b:.3f} | {a:.3f} |" if b is not None and a is not None else f"| {k} | {b} | {a} |")
+    md += ["", "![outage errors](outage_errors.png)" if len(ob) else "", "",
+           "## Effects", "",
+           "| effect | value | sd | significant | residual-cost gain | first half | second half | halves diff / combined sd |",
+           "|---|---|---|---|---|---|---|---|"]
+    from .identify import compare
+    z = compare(cal.fit_first, cal.fit_second)
+    for i, name in enumerate(PARAM_NAMES):
+        md.append(f"| {name} | {f.theta[i]:+.5g} | {f.sd[i]:.3g} | {'**yes**' if f.significant[i] else 'no'} | "
+                  f"{f.cv_gain[i]:.3g} | {cal.fit_first.theta[i]:+.4g} | {cal.fit_second.theta[i]:+.4g} | {z[i]:.2f} |")
+    md += ["", f"Rows in the fit: {f.n_rows}; reduced chi-square {f.reduced_chi2:.2f}; "
+           f"replays: {cal.replays}.", "",
+           "## Residual against the signal that reveals each effect", "",
+           "| effect | signal | r before | p before | r after | p after |", "|---|---|---|---|---|---|"]
+    for name, png in figures:
+        cb = s_before.get(name, {}).get("correlation", {})
+        ca = s_after.get(name, {}).get("correlation", {})
+        md.append(f"| {name} | {before[name][3]} | {cb.get('detail', {}).get('r', float('nan')):+.3f} | "
+                  f"{cb.get('p_value', float('nan')):.1e} | {ca.get('detail', {}).get('r', float('nan')):+.3f} | "
+                  f"{ca.get('p_value', float('nan')):.1e} |")
+    md.append("")
+    for name, png in figures:
+        md += [f"### {name}", "", f"![{name}]({png})", ""]
+    path = out_dir / "report.md"
+    path.write_text("\n".join(md) + "\n")
+    return path
