@@ -202,3 +202,17 @@ def test_quantised_axis_at_rest_is_not_stuck_but_a_frozen_axis_while_turning_is(
     g[:, 0] += np.random.default_rng(10).normal(0, 1e-2, 2000)
     assert longest_constant_run_s(t, g, active)[0] == 0.0
     assert longest_constant_run_s(t[:1000], g[:1000], active[:1000])[0] == 0.0
+
+
+def test_units_at_rest_are_not_aligned_or_synced_from_noise():
+    from v2xpos.quality import grade_units
+    rng = np.random.default_rng(11)
+    t = np.arange(0, 30, 0.01)
+    units = {f"u{k}": ImuData(t, np.array([0, 0, -9.81]) + rng.normal(0, 0.02, (len(t), 3)),
+                              rng.normal(0, 1e-3, (len(t), 3))) for k in range(3)}
+    rep = grade_units(units)
+    for u in rep["units"]:
+        assert u["grade"] == "pass"
+        assert u["time_offset_estimated"] is False and u["time_offset_ms"] == 0.0
+        if not u["reference"]:
+            assert u["relative_rotation"]["source"].startswith("not observable")

@@ -73,6 +73,13 @@ def kabsch_condition(b: np.ndarray) -> float:
     return float(s[-1] / max(s[0], 1e-300))
 
 
+def principal_rates_rps(b: np.ndarray) -> np.ndarray:
+    """RMS of the centred vectors along their three principal directions (singular values /
+    sqrt(N)), largest first: the motion available to the fit in each direction."""
+    b = np.asarray(b, float)
+    return np.linalg.svd(b - b.mean(axis=0), compute_uv=False) / np.sqrt(max(len(b), 1))
+
+
 def rotate(v: np.ndarray, C: np.ndarray) -> np.ndarray:
     """Rotate (N, 3) row vectors: returns rows C @ v_k."""
     return np.asarray(v, float) @ np.asarray(C).T

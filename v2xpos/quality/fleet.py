@@ -43,7 +43,11 @@ class GradeConfig:
     min_scale_signal_dps: low-pass and minimum reference rate s.d. for the scale estimate;
     estimate_offsets: False to trust the time stamps as they are; min_kabsch_condition: below
     this conditioning of the angular rates (``alignment.kabsch_condition``) the rotation is not
-    estimated from the data and the declared mounting is used (when there is one).
+    estimated from the data and the declared mounting is used (identity, reported as not
+    observable, when there is none); min_align_motion_dps: likewise when the rates' RMS along their
+    second principal direction is below this (noise alone would give a random rotation); min_sync_motion_dps / min_sync_corr: the clock offset is
+    estimated only when the reference's rate norm varies by at least this s.d. and the norms
+    correlate at least this well (a vehicle at rest carries no timing information).
     """
     window_s: float = 1.0
     step_s: float = 0.5
@@ -54,6 +58,9 @@ class GradeConfig:
     estimate_offsets: bool = True
     rate_hz: float | None = None
     min_kabsch_condition: float = 0.02
+    min_align_motion_dps: float = 1.0
+    min_sync_motion_dps: float = 1.0
+    min_sync_corr: float = 0.5
 
 
 @dataclass
@@ -78,6 +85,7 @@ class PairResult:
     pcc_signal: np.ndarray
     ref_gyro_sd_rps: np.ndarray = field(default_factory=lambda: np.zeros(3))
     C_declared: np.ndarray | None = None
+    offset_estimated: bool = True
 
     def badness(self) -> dict:
         """Scalar pairwise features (larger = worse) used for consensus scoring.
@@ -129,8 +137,12 @@ def _valid_imu(uid: str, imu: ImuData) -> tuple[ImuData, int]:
 def compare_pair(ref_id: str, ref: ImuData, ut_id: str, ut: ImuData, cfg: GradeConfig,
                  C_ref_ut_declared: np.ndarray | None = None) -> PairResult:
     """Time-sync, align and compare unit ``ut`` against unit ``ref`` (see module doc)."""
+    motion_dps = float(np.degrees(np.std(np.linalg.norm(ref.gyro_rps, axis=1))))
+    sync = cfg.estimate_offsets and motion_dps >= cfg.min_sync_motion_dps
     offset, peak = (gyro_norm_offset_s(ref, ut, cfg.max_offset_s, cfg.sync_cutoff_hz)
-                    if cfg.estimate_offsets else (0.0, float("nan")))
+                    if sync else (0.0, float("nan")))
+    if sync and not peak >= cfg.min_sync_corr:
+        sync, offset = False, 0.0
     margin = cfg.max_offset_s + 2.0 / median_rate_hz(ut.t_s)
     grid = common_grid({"ref": ref, "ut": ut}, cfg.rate_hz or median_rate_hz(ref.t_s), margin)
     rate = median_rate_hz(grid) if len(grid) > 1 else median_rate_hz(ref.t_s)
@@ -145,12 +157,15 @@ def compare_pair(ref_id: str, ref: ImuData, ut_id: str, ut: ImuData, cfg: GradeC
 
     def align(g_u: np.ndarray) -> tuple[np.ndarray, str, float]:
         cond = al.kabsch_condition(g_u)
-        if C_decl is not None and cond < cfg.min_kabsch_condition:
-            return C_decl, "declared", cond
+        second_dps = float(np.degrees(al.principal_rates_rps(g_u)[1]))
+        if cond < cfg.min_kabsch_condition or second_dps < cfg.min_align_motion_dps:
+            if C_decl is not None:
+                return C_decl, "declared", cond
+            return np.eye(3), "not observable (identity assumed)", cond
         return al.kabsch_rotation(g_ref, g_u), "estimated", cond
 
     C, source, cond = align(g_ut)
-    if cfg.estimate_offsets and len(grid) > 8 * cfg.window_s * rate:
+    if sync and len(grid) > 8 * cfg.window_s * rate:
         fine = vector_offset_s(grid, g_ref, al.rotate(g_ut, C), max_lag_s=min(0.05, cfg.max_offset_s),
                                cutoff_hz=cfg.sync_cutoff_hz)
         if abs(fine) > 0.0:
@@ -167,6 +182,7 @@ def compare_pair(ref_id: str, ref: ImuData, ut_id: str, ut: ImuData, cfg: GradeC
     scale = relative_scale(g_ref, g_al, rate, cfg.scale_cutoff_hz, min_sd)
     sd_ref = np.std(g_ref, axis=0)
     return PairResult(ref=ref_id, ut=ut_id, offset_s=float(offset), offset_peak_corr=float(peak),
+                      offset_estimated=bool(sync),
                       C_ref_ut=C, rotation_source=source, kabsch_condition=cond, gyro=gw,
                       C_declared=C_decl,
                       accel=aw, scale_gyro=scale, pcc_signal=sd_ref >= min_sd, ref_gyro_sd_rps=sd_ref)
@@ -183,6 +199,7 @@ def _swap(p: PairResult) -> PairResult:
     gw = WindowSeries(p.gyro.t_s, p.gyro.rmse, p.gyro.pcc, -p.gyro.mean_diff)
     aw = WindowSeries(p.accel.t_s, p.accel.rmse, p.accel.pcc, -p.accel.mean_diff)
     return PairResult(ref=p.ut, ut=p.ref, offset_s=-p.offset_s, offset_peak_corr=p.offset_peak_corr,
+                      offset_estimated=p.offset_estimated,
                       C_ref_ut=p.C_ref_ut.T, rotation_source=p.rotation_source,
                       kabsch_condition=p.kabsch_condition, gyro=gw, accel=aw,
                       scale_gyro=np.array([inv(s) for s in p.scale_gyro]), pcc_signal=p.pcc_signal,

@@ -42,6 +42,7 @@ def _pair_block(fc: FleetComparison, ref: str, uid: str, cfg: GradeConfig,
         "pcc_stats": {"gyro": pcc_stats(p.gyro.pcc), "accel": pcc_stats(p.accel.pcc)},
         "n_windows": int(len(g_rmse)),
         "time_offset_ms": 1e3 * p.offset_s,
+        "time_offset_estimated": p.offset_estimated,
         "scale_gyro": [None if not np.isfinite(s) else float(s) for s in p.scale_gyro],
         "relative_rotation": {
             "frame": f"{uid} axes -> {ref} axes",
