@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .mechanization import COR_SA, COR_SG
+
 DEFAULT_INITIAL_SD = {
     "imu_time_offset": 0.3,            # s: serial IMU logging delays reach hundreds of ms
     "gnss_latency": 0.05,              # s
@@ -68,7 +70,6 @@ class EffectValues:
     def apply_correction(self, layout, dx: np.ndarray, corr: np.ndarray) -> None:
         """value <- value - dx for every enabled effect (errors are estimate minus truth).
         corr is the mechanization's correction vector (scales live there)."""
-        from .mechanization import COR_SA, COR_SG
         for name, i in layout.index.items():
             if name == "lever_arm":
                 self.lever_arm_m -= dx[i:i + 3]
@@ -88,7 +89,6 @@ class EffectValues:
                 self.odometer_scale -= dx[i]
 
     def as_dict(self, corr: np.ndarray) -> dict:
-        from .mechanization import COR_SA, COR_SG
         return {"lever_arm_m": self.lever_arm_m.tolist(), "imu_time_offset_s": self.imu_time_offset_s,
                 "gnss_latency_s": self.gnss_latency_s, "gnss_vel_latency_s": self.gnss_vel_latency_s,
                 "misalignment_rad": self.misalignment_rad.tolist(),

@@ -17,7 +17,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from v2xpos import geo
-from v2xpos.rotation import dcm_from_euler, euler_from_dcm, exp_so3, orthonormalize, rot_z
+from v2xpos.rotation import dcm_from_euler, euler_from_dcm, orthonormalize, rot_z
 from v2xpos.types import FixStatus, NavState
 
 from . import ekf
@@ -112,6 +112,18 @@ class InsConfig:
             self.init_yaw_sd_rad = math.radians(5.0 if self.platform == "car" else 20.0)
         if self.align_min_speed_mps is None:
             self.align_min_speed_mps = 1.0 if self.platform == "car" else 0.8
+
+
+def _small_rotation(phi: np.ndarray) -> np.ndarray:
+    """exp([phi x]) (Rodrigues), inlined for the per-update feedback."""
+    a2 = float(phi @ phi)
+    if a2 < 1e-12:
+        s, c = 1.0 - a2 / 6.0, 0.5 - a2 / 24.0
+    else:
+        a = math.sqrt(a2)
+        s, c = math.sin(a) / a, (1.0 - math.cos(a)) / a2
+    K = skew(phi)
+    return np.eye(3) + s * K + c * (K @ K)
 
 
 class InsFilter:
@@ -392,11 +404,13 @@ class InsFilter:
         s2 = sum(x[2] for x in self._win)
         sw = sum(x[3] for x in self._win)
         acc_sd = math.sqrt(max(s2 / n - (s1 / n) ** 2, 0.0))
-        w_mean = np.linalg.norm(sw / n - self.corr[COR_BG:COR_BG + 3])
+        dw = sw / n - self.corr[COR_BG:COR_BG + 3]
+        w_mean = math.sqrt(float(dw @ dw))
         ok = acc_sd < c.static_acc_std_max_mps2 and w_mean < c.static_gyro_mean_max_rps
         if ok and self.initialized:
-            f_h = np.linalg.norm(sum(x[4] for x in self._win) / n)
-            ok = float(np.linalg.norm(self.nav[3:6])) < c.static_max_speed_mps and f_h < c.static_acc_h_max_mps2
+            fh = sum(x[4] for x in self._win) / n
+            v = self.nav[3:6]
+            ok = float(v @ v) < c.static_max_speed_mps ** 2 and float(fh @ fh) < c.static_acc_h_max_mps2 ** 2
         if ok and self._gnss_speed_mps is not None and self.t_s - self._gnss_speed_t_s < 1.0:
             ok = self._gnss_speed_mps < c.static_max_gnss_speed_mps
         return bool(ok)
@@ -409,7 +423,7 @@ class InsFilter:
         self.nav[NAV_LON] -= dx[POS + 1] / ((r_n + h) * math.cos(lat))
         self.nav[NAV_H] += dx[POS + 2]
         self.nav[NAV_VEL:NAV_VEL + 3] -= dx[VEL:VEL + 3]
-        self.C_nb = exp_so3(dx[ATT:ATT + 3]) @ self.C_nb
+        self.C_nb = _small_rotation(dx[ATT:ATT + 3]) @ self.C_nb
         self.corr[COR_BG:COR_BG + 3] -= dx[BG:BG + 3]
         self.corr[COR_BA:COR_BA + 3] -= dx[BA:BA + 3]
         self.fx.apply_correction(self.layout, dx, self.corr)
