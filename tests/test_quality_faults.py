@@ -95,3 +95,19 @@ def test_second_parameter_with_gnss_separates_a_scale_fault():
     assert next(c for c in bad["checks"] if c["name"] == "fused_attitude")["grade"] == "fail"
     good = next(u for u in rep["units"] if u["id"] == healthy)
     assert all(c["grade"] == "pass" for c in good["checks"])
+
+
+def test_units_with_different_sample_rates_are_graded_together():
+    from sim.imu_faults import manoeuvring_drive
+    from sim.sensors import ImuErrorModel, simulate_imu
+
+    traj = manoeuvring_drive(40.0, 0.005, seed=3)
+    rng = np.random.default_rng(3)
+    units = {name: simulate_imu(traj, ImuErrorModel.preset("automotive", rng), rate_hz=r, rng=rng)
+             for name, r in (("fast", 200.0), ("slow", 100.0), ("mid", 125.0))}
+    units["mid"] = inject_fault(units["mid"], FaultSpec("time_skew", 0.010))
+    rep = grade_units(units)
+    by_id = {u["id"]: u for u in rep["units"]}
+    assert by_id["fast"]["grade"] == by_id["slow"]["grade"] == "pass"
+    assert by_id["mid"]["grade"] == "fail"
+    assert abs(rep["rate_hz"]["fast"] - 200.0) < 1e-6
