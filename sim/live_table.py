@@ -47,7 +47,10 @@ class LiveTable:
 
     def render(self, st: dict) -> str:
         def f(x, fmt):
-            return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else format(x, fmt)
+            width = int(fmt.split(".")[0]) if fmt[0].isdigit() else 0
+            if x is None or (isinstance(x, float) and not math.isfinite(x)):
+                return "-".rjust(width)
+            return format(x, fmt)
         lines = [f"master {st.get('master_id')}  t={st.get('t_rel_s', 0):6.1f} s  fix={st.get('master_fix')}  "
                  f"processed={st.get('processed')}  pipeline p50/p99={f(st.get('pipeline_ms_p50'), '.2f')}/"
                  f"{f(st.get('pipeline_ms_p99'), '.2f')} ms  e2e p99={f(st.get('e2e_ms_p99'), '.2f')} ms  "

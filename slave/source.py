@@ -75,7 +75,8 @@ def filter_noise(imu_grade: str, margin: float = 3.0) -> dict:
 class InsSimSource:
     """Simulated sensors of one actor through the real GNSS/INS filter (see module docstring)."""
 
-    def __init__(self, sc: Scenario, actor: Actor, platform: str | None = None, effects: tuple = ()):
+    def __init__(self, sc: Scenario, actor: Actor, platform: str | None = None, effects: tuple = (),
+                 cov_every: int = 1):
         from v2xpos.ins import InsConfig, InsFilter
         self.name = "ins"
         self.actor = actor
@@ -83,7 +84,8 @@ class InsSimSource:
         plat = platform or ("pedestrian" if actor.kind == "pedestrian" else "car")
         self.filter = InsFilter(InsConfig(platform=plat, imu_to_body=np.eye(3),
                                           lever_arm_m=np.asarray(actor.lever_arm_m, float),
-                                          effects=tuple(effects), **filter_noise(actor.imu_grade)))
+                                          effects=tuple(effects), cov_every=cov_every,
+                                          **filter_noise(actor.imu_grade)))
         self._init_rng = np.random.default_rng(actor.seed + 7)
         self.initialized = False
         self._make_filter = lambda: InsFilter(self.filter.cfg)

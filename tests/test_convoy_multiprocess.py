@@ -4,6 +4,8 @@ accuracy with 100 ms link latency, compensation gain, fix degradation, delay spi
 from __future__ import annotations
 
 import json
+import tempfile
+from pathlib import Path
 
 import pytest
 
@@ -17,12 +19,14 @@ REQUIRED_TARGET = {"id", "kind", "samples", "valid_fraction", "rel_pos_err_rms_m
 
 
 @pytest.fixture(scope="module")
-def report(tmp_path_factory):
-    out = tmp_path_factory.mktemp("convoy")
-    rep = run_demo(vehicles=3, duration_s=14.0, latency_ms=100.0, jitter_ms=5.0, seed=0, out=out, source="ins",
-                   live=False, plots=True)
-    rep["_out"] = out
-    return rep
+def report():
+    # own temporary directory: pytest's numbered basetemp dirs can be pruned by concurrent sessions
+    with tempfile.TemporaryDirectory(prefix="v2xpos_convoy_") as d:
+        out = Path(d)
+        rep = run_demo(vehicles=3, duration_s=14.0, latency_ms=100.0, jitter_ms=5.0, seed=0, out=out,
+                       source="ins", live=False, plots=True)
+        rep["_out"] = out
+        yield rep
 
 
 @pytest.mark.slow
@@ -69,3 +73,11 @@ def test_fix_degradation_and_delay_spike_statuses(report):
     t1 = t["t1"]
     assert t1["status_counts"].get("timeout", 0) >= 50           # the 300 ms spike
     assert t1["latency_ms_p99"] > 200.0
+
+
+@pytest.mark.slow
+def test_relative_velocity_and_pedestrian(report):
+    t = {x["id"]: x for x in report["targets"]}
+    assert t["t1"]["rel_vel_err_rms_mps"] <= 0.1
+    p1 = t["p1"]
+    assert p1["valid_fraction"] >= 0.95 and p1["rel_pos_err_rms_within_50m_m"] <= 0.05
