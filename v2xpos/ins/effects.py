@@ -7,6 +7,8 @@ Conventions (shared with ``v2xpos calibrate``):
   ``t_stamp + dt_est``. A label error moves the predicted antenna by ``-v dt_err`` (position) and
   ``-a dt_err`` (velocity) (Li & Mourikis 2014, "Online temporal calibration for camera-aided
   inertial navigation", IJRR 33(7), adapted to GNSS).
+* ``imu_clock_drift`` [s/s]: the time offset changes as ``d(dt)/dt = drift`` (a residual scale
+  error of the stamps' clock model); needs ``imu_time_offset``.
 * ``gnss_latency`` [s]: the GNSS solution stamped t describes t - latency (opposite sign of the
   above; the two are not separable from GNSS alone: enable one of them).
 * ``gnss_vel_latency`` [s]: the GNSS *velocity* stamped t describes t - latency, on top of the
@@ -29,6 +31,7 @@ from .mechanization import COR_SA, COR_SG
 DEFAULT_INITIAL_SD = {
     "imu_time_offset": 0.3,            # s: serial IMU logging delays reach hundreds of ms
     "gnss_latency": 0.05,              # s
+    "imu_clock_drift": 2e-4,           # s/s (200 ppm)
     "gnss_vel_latency": 0.2,           # s
     "misalignment": np.radians(10.0),  # rad per axis: "nominal" mountings are off by degrees
     "gyro_scale": 0.01,
@@ -40,6 +43,7 @@ DEFAULT_INITIAL_SD = {
 DEFAULT_RANDOM_WALK = {
     "imu_time_offset": 2e-5,           # s/sqrt(s): absorbs a residual clock drift of ~ tens of ppm
     "gnss_latency": 0.0,
+    "imu_clock_drift": 0.0,
     "gnss_vel_latency": 0.0,
     "lever_arm": 0.0,
     "misalignment": 2e-6,              # rad/sqrt(s)
@@ -49,8 +53,8 @@ DEFAULT_RANDOM_WALK = {
 }
 
 PLATFORM_EFFECTS = {
-    "car": ("lever_arm", "imu_time_offset", "misalignment", "gnss_vel_latency"),
-    "pedestrian": ("lever_arm", "imu_time_offset", "gnss_vel_latency"),
+    "car": ("lever_arm", "imu_time_offset", "imu_clock_drift", "misalignment", "gnss_vel_latency"),
+    "pedestrian": ("lever_arm", "imu_time_offset", "imu_clock_drift", "gnss_vel_latency"),
     "generic": ("lever_arm", "gnss_vel_latency"),
 }
 """Effects estimated by default per platform (misalignment only matters with vehicle constraints)."""
@@ -64,6 +68,7 @@ class EffectValues:
         self.imu_time_offset_s = 0.0
         self.gnss_latency_s = 0.0
         self.gnss_vel_latency_s = 0.0
+        self.imu_clock_drift = 0.0
         self.misalignment_rad = np.zeros(3)
         self.odometer_scale = 0.0
 
@@ -77,6 +82,8 @@ class EffectValues:
                 self.imu_time_offset_s -= dx[i]
             elif name == "gnss_latency":
                 self.gnss_latency_s -= dx[i]
+            elif name == "imu_clock_drift":
+                self.imu_clock_drift -= dx[i]
             elif name == "gnss_vel_latency":
                 self.gnss_vel_latency_s -= dx[i]
             elif name == "misalignment":
@@ -91,6 +98,7 @@ class EffectValues:
     def as_dict(self, corr: np.ndarray) -> dict:
         return {"lever_arm_m": self.lever_arm_m.tolist(), "imu_time_offset_s": self.imu_time_offset_s,
                 "gnss_latency_s": self.gnss_latency_s, "gnss_vel_latency_s": self.gnss_vel_latency_s,
+                "imu_clock_drift_ppm": self.imu_clock_drift * 1e6,
                 "misalignment_rad": self.misalignment_rad.tolist(),
                 "gyro_scale": corr[COR_SG:COR_SG + 3].tolist(), "accel_scale": corr[COR_SA:COR_SA + 3].tolist(),
                 "odometer_scale": self.odometer_scale}

@@ -35,6 +35,7 @@ BASE_STATES = 15
 EFFECT_SIZES: dict[str, int] = {
     "lever_arm": 3,          # GNSS antenna relative to the IMU, body [m]
     "imu_time_offset": 1,    # t_gps = t_stamp + dt [s]
+    "imu_clock_drift": 1,    # d(dt)/dt [s/s]: the IMU stamps run at (1 - drift) of GPS time
     "misalignment": 3,       # vehicle <- filter body small rotation (roll, pitch, yaw) [rad]
     "gyro_scale": 3,         # per axis, measured = (1 + s) true
     "accel_scale": 3,

@@ -324,6 +324,10 @@ class InsFilter:
             return
         dt = self.t_stamp_s - self._t_cov_s
         if dt > 0 or np.any(self.A):
+            i_dt, i_dr = self.layout.at("imu_time_offset"), self.layout.at("imu_clock_drift")
+            if i_dt >= 0 and i_dr >= 0 and dt > 0:
+                self.A[i_dt, i_dr] += dt
+                self.fx.imu_time_offset_s += self.fx.imu_clock_drift * dt
             self.P = ekf.propagate_covariance(self.P, self.A, self.q_c, max(dt, 0.0))
             if not self.heading_known:
                 self._decouple_yaw()

@@ -65,7 +65,8 @@ def config_for(dataset: Dataset, **overrides) -> InsConfig:
     kw = dict(platform=platform, imu_to_body=dataset.imu_to_body, lever_arm_m=dataset.lever_arm_m,
               lever_arm_sd_m=dataset.lever_arm_sd_m)
     if dataset.wheel is not None and platform == "car":
-        kw["effects"] = ("lever_arm", "imu_time_offset", "misalignment", "gnss_vel_latency", "odometer_scale")
+        kw["effects"] = ("lever_arm", "imu_time_offset", "imu_clock_drift", "misalignment", "gnss_vel_latency",
+                         "odometer_scale")
     kw.update(overrides)
     return InsConfig(**kw)
 
