@@ -46,8 +46,11 @@ def plot_first_parameter(fc: FleetComparison, reference: str, out_dir: str | Pat
         written.append(p)
         fig, axes = plt.subplots(1, 3, figsize=(12, 4))
         for k, ax in enumerate(axes):
+            lo = min([0.5] + [float(np.min(getattr(pairs[u], sensor).pcc[:, k])) for u in others
+                              if len(getattr(pairs[u], sensor).pcc)])
+            lo = max(-1.0, np.floor(lo * 10.0) / 10.0)
             for u in others:
-                ax.hist(getattr(pairs[u], sensor).pcc[:, k], bins=30, range=(-1, 1), alpha=0.5, label=u)
+                ax.hist(getattr(pairs[u], sensor).pcc[:, k], bins=40, range=(lo, 1.0), alpha=0.5, label=u)
             ax.set_title(f"{sensor} {AXES[k]}")
             ax.set_xlabel("window PCC")
             ax.grid(alpha=0.3)
