@@ -182,10 +182,9 @@ def compare_pair(ref_id: str, ref: ImuData, ut_id: str, ut: ImuData, cfg: GradeC
     scale = relative_scale(g_ref, g_al, rate, cfg.scale_cutoff_hz, min_sd)
     sd_ref = np.std(g_ref, axis=0)
     return PairResult(ref=ref_id, ut=ut_id, offset_s=float(offset), offset_peak_corr=float(peak),
-                      offset_estimated=bool(sync),
-                      C_ref_ut=C, rotation_source=source, kabsch_condition=cond, gyro=gw,
-                      C_declared=C_decl,
-                      accel=aw, scale_gyro=scale, pcc_signal=sd_ref >= min_sd, ref_gyro_sd_rps=sd_ref)
+                      C_ref_ut=C, rotation_source=source, kabsch_condition=cond, gyro=gw, accel=aw,
+                      scale_gyro=scale, pcc_signal=sd_ref >= min_sd, ref_gyro_sd_rps=sd_ref,
+                      C_declared=C_decl, offset_estimated=bool(sync))
 
 
 def _swap(p: PairResult) -> PairResult:
