@@ -10,8 +10,8 @@ The equations are in docs/ins.md.
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass, field
+from time import perf_counter
 
 import numpy as np
 from scipy.stats import chi2
@@ -158,7 +158,10 @@ class InsFilter:
         self._chunk_t: list = []
         self._chunk_f: list = []
         self._chunk_w: list = []
-        self._win = deque(maxlen=max(1, int(round(c.static_window_s * c.constraint_rate_hz))))
+        # stop-detector window: per chunk [samples, sum|f|, sum|f|^2, sum w (3), samples * f_h^n (2)]
+        self._win = np.zeros((max(1, int(round(c.static_window_s * c.constraint_rate_hz))), 8))
+        self._win_filled = 0
+        self._win_pos = 0
         self.static = False
         self._last_constraint_t: float = -np.inf
         self.aligner = CoarseAligner()
@@ -175,6 +178,7 @@ class InsFilter:
                        "odometer": 0, "odometer_rejected": 0, "gnss_forced": 0, "static_calibrations": 0,
                        "malformed_inputs": 0}
         self.residuals: list[UpdateResult] = []
+        self.stage_s = {"strapdown": 0.0, "covariance": 0.0, "kalman_updates": 0.0}
         self.on_update = None
         self._last_w_b = np.zeros(3)
         self._last_f_b = np.zeros(3)
@@ -308,8 +312,10 @@ class InsFilter:
             j = min(n, i + ce - self._since_chunk)
             if self.initialized:
                 t_prev = self.t_stamp_s if self.t_stamp_s is not None else t_s[i]
+                t0 = perf_counter()
                 strapdown_batch(t_s, f_b, w_b, i, j, t_prev, self.nav, self.C_nb, self.corr, self.mem,
                                 self.A, self.kidx, 1.0 / self.cfg.gyro_bias_tau_s, 1.0 / self.cfg.accel_bias_tau_s)
+                self.stage_s["strapdown"] += perf_counter() - t0
             self.t_stamp_s = float(t_s[j - 1])
             self._chunk_t.append(t_s[i:j])
             self._chunk_f.append(f_b[i:j])
@@ -328,7 +334,9 @@ class InsFilter:
             if i_dt >= 0 and i_dr >= 0 and dt > 0:
                 self.A[i_dt, i_dr] += dt
                 self.fx.imu_time_offset_s += self.fx.imu_clock_drift * dt
+            t0 = perf_counter()
             self.P = ekf.propagate_covariance(self.P, self.A, self.q_c, max(dt, 0.0))
+            self.stage_s["covariance"] += perf_counter() - t0
             if not self.heading_known:
                 self._decouple_yaw()
         self._t_cov_s = self.t_stamp_s
@@ -357,9 +365,18 @@ class InsFilter:
         self._last_w_b = (self.mem[MEM_W:MEM_W + 3].copy() if self.initialized
                           else w[-1] - self.corr[COR_BG:COR_BG + 3])
         self._last_f_b = (f[-1] - self.corr[COR_BA:COR_BA + 3])
-        fn = np.sqrt(np.einsum("ij,ij->i", f, f))
-        f_h = (self.C_nb @ (f.mean(axis=0) - self.corr[COR_BA:COR_BA + 3]))[:2] if self.initialized else np.zeros(2)
-        self._win.append((len(t), fn.sum(), (fn * fn).sum(), w.sum(axis=0), f_h * len(t)))
+        f2 = np.einsum("ij,ij->i", f, f)
+        row = self._win[self._win_pos]
+        row[0] = len(t)
+        row[1] = np.sqrt(f2).sum()
+        row[2] = f2.sum()
+        row[3:6] = w.sum(axis=0)
+        if self.initialized:
+            row[6:8] = (self.C_nb[:2] @ (f.sum(axis=0) - len(t) * self.corr[COR_BA:COR_BA + 3]))
+        else:
+            row[6:8] = 0.0
+        self._win_pos = (self._win_pos + 1) % len(self._win)
+        self._win_filled = min(self._win_filled + 1, len(self._win))
         self.static = self._detect_static()
         if self.initialized:
             v_now = self.nav[3:6].copy()
@@ -369,9 +386,10 @@ class InsFilter:
                 k = min(1.0, dt_c / max(self.cfg.acc_smoothing_tau_s, 1e-6))
                 self.acc_ned_mps2 = self.acc_ned_mps2 + k * (a_c - self.acc_ned_mps2)
             self._v_prev_chunk, self._t_prev_chunk = v_now, float(t[-1])
-        g = geo.normal_gravity_mps2(self.nav[NAV_LAT], self.nav[NAV_H]) if self.initialized else None
         speed = math.sqrt(float(self.nav[3:6] @ self.nav[3:6])) if self.initialized else 0.0
-        est = self.calibrator.feed(t, f, w, moving=self.initialized and speed > 0.5, gravity_mps2=g)
+        moving = self.initialized and speed > 0.5
+        g = geo.normal_gravity_mps2(self.nav[NAV_LAT], self.nav[NAV_H]) if self.initialized and not moving else None
+        est = self.calibrator.feed(t, f, w, moving=moving, gravity_mps2=g)
         if not self.initialized:
             self.aligner.feed(t, f - self.corr[COR_BA:COR_BA + 3], w - self.corr[COR_BG:COR_BG + 3], self.static)
             if est is not None:
@@ -401,18 +419,16 @@ class InsFilter:
 
     def _detect_static(self) -> bool:
         c = self.cfg
-        if len(self._win) < self._win.maxlen:
+        if self._win_filled < len(self._win):
             return False
-        n = sum(x[0] for x in self._win)
-        s1 = sum(x[1] for x in self._win)
-        s2 = sum(x[2] for x in self._win)
-        sw = sum(x[3] for x in self._win)
+        tot = self._win.sum(axis=0)
+        n, s1, s2, sw = tot[0], tot[1], tot[2], tot[3:6]
         acc_sd = math.sqrt(max(s2 / n - (s1 / n) ** 2, 0.0))
         dw = sw / n - self.corr[COR_BG:COR_BG + 3]
         w_mean = math.sqrt(float(dw @ dw))
         ok = acc_sd < c.static_acc_std_max_mps2 and w_mean < c.static_gyro_mean_max_rps
         if ok and self.initialized:
-            fh = sum(x[4] for x in self._win) / n
+            fh = tot[6:8] / n
             v = self.nav[3:6]
             ok = float(v @ v) < c.static_max_speed_mps ** 2 and float(fh @ fh) < c.static_acc_h_max_mps2 ** 2
         if ok and self._gnss_speed_mps is not None and self.t_s - self._gnss_speed_t_s < 1.0:
@@ -434,10 +450,12 @@ class InsFilter:
 
     def _update(self, kind: str, t_s: float, H: np.ndarray, d: np.ndarray, R: np.ndarray,
                 gate: bool = True, force: bool = False) -> UpdateResult:
+        t0 = perf_counter()
         dx, P, nis, S, ok = kalman_update(self.P, H, d, R, self.gate.get(len(d), None) if gate else None, force)
         if ok:
             self.P = P
             self._apply(dx)
+        self.stage_s["kalman_updates"] += perf_counter() - t0
         res = UpdateResult(kind=kind, t_s=t_s, accepted=ok, nis=nis, innovation=-d,
                            innovation_sd=np.sqrt(np.abs(np.diag(S))))
         if self.cfg.log_residuals and kind.startswith("gnss"):
@@ -648,8 +666,8 @@ class InsFilter:
         H[:, VEL:VEL + 3] = np.eye(3)
         self._update("zupt", self.t_s, H, self.nav[3:6].copy(), np.eye(3) * c.zupt_sd_mps ** 2, gate=False)
         self.counts["zupt"] += 1
-        cnt = sum(x[0] for x in self._win)
-        w_mean = sum(x[3] for x in self._win) / cnt
+        tot = self._win.sum(axis=0)
+        w_mean = tot[3:6] / tot[0]
         w_ie_b = self.C_nb.T @ geo.earth_rate_ned_rps(self.nav[NAV_LAT])
         d = w_mean - self.corr[COR_BG:COR_BG + 3] - w_ie_b
         H = np.zeros((3, n))

@@ -452,5 +452,9 @@ def run_bench(args: argparse.Namespace) -> int:
           f"wall ({s['wall_s']:.2f} s), {n / s['cpu_s']:,.0f} IMU samples per CPU second of one core "
           f"({s['cpu_s']:.2f} s); target >= 25,000")
     print(f"  end to end including loading: {n / (s['wall_s'] + t_load):,.0f} IMU samples/s")
+    st = best.filter.stage_s
+    other = s["wall_s"] - sum(st.values())
+    for name, sec in list(st.items()) + [("python glue (events, stop detection, H/R building)", other)]:
+        print(f"    stage {name:<52} {sec:6.3f} s  ({100 * sec / s['wall_s']:4.1f} %)  -> {n / max(sec, 1e-9):>12,.0f} samples/s")
     print(f"  outage_h_rms_m {s['outage_h_rms_m']:.3f}")
     return 0

@@ -85,6 +85,10 @@ class StaticCalibrator:
         speed) that vetoes the chunk. Returns a new estimate when one is completed in this chunk."""
         if not self.cfg.enabled or len(t_s) == 0:
             return None
+        if moving:
+            if self._phase != 0 or self._n:
+                self._reset(0, float(t_s[-1]))
+            return None
         g = self.cfg.gravity_mps2 if gravity_mps2 is None else gravity_mps2
         ok = self.static_frames(acc_b, gyro_b, g)
         if moving:
