@@ -457,9 +457,11 @@ class InsFilter:
             self._apply(dx)
         self.stage_s["kalman_updates"] += perf_counter() - t0
         res = UpdateResult(kind=kind, t_s=t_s, accepted=ok, nis=nis, innovation=-d,
-                           innovation_sd=np.sqrt(np.abs(np.diag(S))))
+                           innovation_sd=np.sqrt(np.abs(np.diag(S))), innovation_cov=S)
         if self.cfg.log_residuals and kind.startswith("gnss"):
             self.residuals.append(res)
+        # every update (GNSS, NHC, ZUPT, ZARU, odometer) is offered to the hook with the filter,
+        # whose motion_signals() give the signals at the same instant
         if self.on_update is not None:
             self.on_update(res, self)
         return res
@@ -716,6 +718,16 @@ class InsFilter:
         return r
 
     # ------------------------------------------------------------------ output
+    def motion_signals(self) -> dict:
+        """Signals an effect imprints on residuals (for ``on_update`` hooks / diagnosis):
+        speed [m/s], kinematic acceleration NED [m/s^2], body rate and specific force (bias
+        compensated, filter body axes), attitude rpy of C_nb [rad], C_nb (body -> NED)."""
+        v = self.nav[3:6]
+        return {"t_s": float(self.t_s), "speed_mps": math.sqrt(float(v @ v)), "v_ned_mps": v.copy(),
+                "acc_ned_mps2": self.acc_ned_mps2.copy(), "rate_body_rps": self.mem[MEM_W:MEM_W + 3].copy(),
+                "f_body_mps2": self.mem[MEM_F:MEM_F + 3].copy(), "rpy_rad": euler_from_dcm(self.C_nb),
+                "C_nb": self.C_nb.copy(), "static": self.static}
+
     def nav_state(self) -> NavState:
         """Current solution at the IMU point (vehicle axes when misalignment is estimated)."""
         Rm = self.misalignment_dcm()

@@ -42,6 +42,7 @@ class UpdateResult:
     innovation: np.ndarray = field(default_factory=lambda: np.zeros(0))
     innovation_sd: np.ndarray = field(default_factory=lambda: np.zeros(0))
     reason: str = ""
+    innovation_cov: np.ndarray | None = None   # S = H P H^T + R
 
 
 def skew(v: np.ndarray) -> np.ndarray:
