@@ -182,6 +182,10 @@ class Calibration:
 
 
 CALIBRATION_REPLAY_CONFIG = {"gate_probability": 1.0}
+CALIBRATION_OUTAGES = OutageSchedule(length_s=5.0, every_s=15.0, first_s=20.0)
+"""Short GNSS gaps in the fit replays: the first innovation after each gap is a 5 s dead-reckoning
+prediction error, so the likelihood also weighs the multi-step prediction that outages need
+(k-step-ahead prediction-error identification, Ljung 1999 sec. 7.3)."""
 """Replays that feed the fit run without the chi-square gate: a gate decision that flips between
 two replays would make the innovation sequence jump and spoil the finite differences."""
 
@@ -216,10 +220,11 @@ class Estimator:
         self.J: np.ndarray | None = None
         self.coarse_report: dict = {}
         self.active = active_parameters(ds.platform)
+        self.schedule: OutageSchedule | None = CALIBRATION_OUTAGES
 
     def _replay(self, ds: Dataset, theta: np.ndarray, label: str) -> ReplayOutcome:
         self.replays += 1
-        return replay(correct(ds, EffectSet.from_vector(theta)), None, config=CALIBRATION_REPLAY_CONFIG,
+        return replay(correct(ds, EffectSet.from_vector(theta)), self.schedule, config=CALIBRATION_REPLAY_CONFIG,
                       progress=self.progress, label=label)
 
     def coarse(self) -> np.ndarray:
