@@ -65,3 +65,46 @@ class CoarseAligner:
             return None
         yaw_now = float(euler_from_dcm(self.C_nb)[2])
         return rot_z(yaw_rad - yaw_now) @ self.C_nb
+
+
+class CourseTracker:
+    """Velocity and course from GNSS positions alone (receivers that report no velocity), for the
+    heading initialisation: a constant-velocity Kalman filter (filterpy ``KalmanFilter``; Labbe,
+    *Kalman and Bayesian Filters in Python*, ch. 8) on local north/east positions, state
+    [N, vN, E, vE], process noise = discrete white-noise acceleration of ``accel_sd_mps2``.
+    """
+
+    def __init__(self, accel_sd_mps2: float = 1.0):
+        self.accel_sd_mps2 = accel_sd_mps2
+        self.kf = None
+        self.origin = None
+        self.t_s: float | None = None
+        self.updates = 0
+
+    def update(self, t_s: float, lla: np.ndarray, sd_h_m: float) -> tuple[np.ndarray, float] | None:
+        """Feed one fix; returns (velocity NED with zero down [m/s], speed sd [m/s]) once two fixes
+        have been seen, else None. A gap over 2 s restarts the tracker."""
+        from filterpy.common import Q_discrete_white_noise
+        from filterpy.kalman import KalmanFilter
+
+        from v2xpos import geo
+        if self.kf is None or self.t_s is None or not 0.0 < t_s - self.t_s < 2.0:
+            self.kf = KalmanFilter(dim_x=4, dim_z=2)
+            self.kf.H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
+            self.kf.P = np.diag([sd_h_m ** 2, 25.0, sd_h_m ** 2, 25.0])
+            self.origin = np.asarray(lla, float).copy()
+            self.kf.x = np.zeros((4, 1))
+            self.t_s, self.updates = t_s, 0
+            return None
+        dt = t_s - self.t_s
+        self.t_s = t_s
+        f1 = np.array([[1.0, dt], [0.0, 1.0]])
+        self.kf.F = np.kron(np.eye(2), f1)
+        self.kf.Q = Q_discrete_white_noise(dim=2, dt=dt, var=self.accel_sd_mps2 ** 2, block_size=2)
+        self.kf.R = np.eye(2) * max(sd_h_m, 0.01) ** 2
+        self.kf.predict()
+        ne = geo.lla_to_ned(np.asarray(lla, float), self.origin)[:2]
+        self.kf.update(ne.reshape(2, 1))
+        self.updates += 1
+        v = np.array([self.kf.x[1, 0], self.kf.x[3, 0], 0.0])
+        return v, float(np.sqrt(0.5 * (self.kf.P[1, 1] + self.kf.P[3, 3])))

@@ -21,7 +21,7 @@ from v2xpos.rotation import dcm_from_euler, euler_from_dcm, orthonormalize, rot_
 from v2xpos.types import FixStatus, NavState
 
 from . import ekf
-from .alignment import CoarseAligner
+from .alignment import CoarseAligner, CourseTracker
 from .ekf import ATT, BA, BG, POS, VEL, StateLayout
 from .effects import DEFAULT_INITIAL_SD, DEFAULT_RANDOM_WALK, PLATFORM_EFFECTS, EffectValues
 from .mechanization import (COR_BA, COR_BG, MEM_AN, MEM_F, MEM_SIZE, MEM_VALID, MEM_W, NAV_H, NAV_LAT,
@@ -165,6 +165,7 @@ class InsFilter:
         self.static = False
         self._last_constraint_t: float = -np.inf
         self.aligner = CoarseAligner()
+        self._course_tracker = CourseTracker()
         self.calibrator = StaticCalibrator(c.static_calibration)
         self.gate = {k: float(chi2.ppf(c.gate_probability, k)) for k in (1, 2, 3, 6)}
         self.last_fix = FixStatus.NONE
@@ -498,7 +499,7 @@ class InsFilter:
         if not self.initialized:
             return self._try_align(t_s, lla, sd, fix, vel_ned_mps)
         if not self.heading_known:
-            vel = vel_ned_mps if vel_ned_mps is not None else self._velocity_from_positions(t_s, lla)
+            vel = vel_ned_mps if vel_ned_mps is not None else self._velocity_from_positions(t_s, lla, sd)
             self._prev_gnss = (t_s, lla)
             if vel is not None and float(np.hypot(vel[0], vel[1])) >= c.align_min_speed_mps:
                 return self._heading_reset(t_s, lla, sd, fix, vel)
@@ -566,15 +567,13 @@ class InsFilter:
             if i >= 0:
                 H[:, i] = timing_col
 
-    def _velocity_from_positions(self, t_s, lla) -> np.ndarray | None:
-        if self._prev_gnss is None:
+    def _velocity_from_positions(self, t_s, lla, sd) -> np.ndarray | None:
+        """Horizontal velocity from the constant-velocity tracker when the receiver gives none;
+        None until it has two fixes and its speed sd is below a third of the alignment speed."""
+        out = self._course_tracker.update(float(t_s), lla, float(max(sd[0], sd[1])))
+        if out is None or out[1] > self.cfg.align_min_speed_mps / 3.0:
             return None
-        t0, lla0 = self._prev_gnss
-        if not 0 < t_s - t0 < 2.0:
-            return None
-        r_m, r_n = geo.radii_m(lla[0])
-        return np.array([(lla[0] - lla0[0]) * (r_m + lla[2]), (lla[1] - lla0[1]) * (r_n + lla[2]) * math.cos(lla[0]),
-                         -(lla[2] - lla0[2])]) / (t_s - t0)
+        return out[0]
 
     def _imu_point_at_label(self, t_s, lla, vel, C) -> np.ndarray:
         """IMU position from an antenna fix at t_s, moved to the state label with the GNSS velocity."""
@@ -588,7 +587,7 @@ class InsFilter:
     def _try_align(self, t_s, lla, sd, fix, vel) -> UpdateResult:
         c = self.cfg
         if vel is None:
-            vel = self._velocity_from_positions(t_s, lla)
+            vel = self._velocity_from_positions(t_s, lla, sd)
         self._prev_gnss = (t_s, lla)
         if vel is None or self.t_stamp_s is None:
             return UpdateResult("gnss_pos", t_s, False, np.nan, reason="aligning: no velocity yet")
