@@ -70,9 +70,15 @@ def _run_master(cfg_path: Path, start: float, record: Path | None, stats_path: P
     samples: list[tuple[float, int]] = []
     stop = threading.Event()
 
+    progress = stats_path.with_suffix(".progress")
+
     def sample() -> None:
         while not stop.wait(0.5):
             samples.append((time.time(), rss_bytes()))
+            pipe = svc.pipeline
+            if pipe is not None:
+                handled = sum(t.accepted for t in list(pipe.tracks.values())) + sum(pipe.rejected.values())
+                progress.write_text(f"{time.time()!r} {handled}")
     th = threading.Thread(target=sample, daemon=True)
     th.start()
     prof_path = os.environ.get("V2XPOS_SOAK_PROFILE")
@@ -147,6 +153,23 @@ def _run_slaves(ids: list[str], keys_dir: Path, endpoint: str, start: float, dur
 
 # ----------------------------------------------------------------------------- orchestration
 
+def _wait_drained(progress: Path, quiet_s: float, max_wait_s: float) -> None:
+    """Wait until the master's handled-message count has not changed for ``quiet_s`` (its
+    backlog is processed), at most ``max_wait_s``."""
+    t_end = time.time() + max_wait_s
+    last, t_change = None, time.time()
+    while time.time() < t_end:
+        try:
+            count = progress.read_text().split()[1]
+        except (OSError, IndexError):
+            count = None
+        if count != last:
+            last, t_change = count, time.time()
+        elif time.time() - t_change >= quiet_s:
+            return
+        time.sleep(0.25)
+
+
 def run_soak(slaves: int = 32, rate: float = 100.0, duration: float = 60.0, out_dir: str | Path = "out/soak",
              per_process: int = 8, warmup_fraction: float = 0.1, progress: bool = True,
              lead_s: float = 4.0, drain_s: float = 1.5, record: bool = True, signed: bool = True) -> dict:
@@ -194,7 +217,7 @@ def run_soak(slaves: int = 32, rate: float = 100.0, duration: float = 60.0, out_
                                       cwd=repo, env=env, stdout=subprocess.DEVNULL,
                                       stderr=open(out / f"slaves_{g}.log", "w")))
     # the master runs until every slave has finished (publishers may be slowed down by BLOCK
-    # back-pressure), then gets SIGTERM after a drain pause
+    # back-pressure) and it has worked off its backlog, then gets SIGTERM
     total = lead_s + duration + 1.0
     with tqdm(total=int(total), disable=not progress, unit="s", desc="soak", file=sys.stderr) as bar:
         t0 = time.time()
@@ -207,7 +230,7 @@ def run_soak(slaves: int = 32, rate: float = 100.0, duration: float = 60.0, out_
             p.wait(timeout=30)
         except subprocess.TimeoutExpired:
             p.kill()
-    time.sleep(drain_s)
+    _wait_drained(out / "master_stats.progress", drain_s, max_wait_s=120.0)
     if master.poll() is None:
         master.send_signal(signal.SIGTERM)
     try:

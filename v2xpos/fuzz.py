@@ -496,7 +496,8 @@ def run_target(target: Target, n: int, rng: random.Random, crash_dir: Path | Non
             tb = traceback.format_exception(type(exc), exc, exc.__traceback__)
             example = {"error": f"{type(exc).__name__}: {exc}"[:300], "where": tb[-2].strip()[:300] if len(tb) > 1 else "",
                        "input_hex": data[:256].hex()}
-            stats.crash_examples.append(example) if len(stats.crash_examples) < 20 else None
+            if len(stats.crash_examples) < 20:
+                stats.crash_examples.append(example)
             if crash_dir is not None:
                 crash_dir.mkdir(parents=True, exist_ok=True)
                 (crash_dir / f"{target.name}_{stats.crashes:04d}.bin").write_bytes(data)

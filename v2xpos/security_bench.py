@@ -97,15 +97,9 @@ class LiveRig:
         self.auth = MessageAuthenticator(trust)
         self.delivered: list[Delivered] = []
         self.accepted_payloads: set[bytes] = set()
-        sink = self
-
-        class _Sink:
-            def write(self, result) -> None:
-                sink._pending = result
-        self._pending = None
         self.pipe = MasterPipeline(PipelineConfig(fleet=FLEET, master_id="ego", timeout_s=timeout_s,
                                                   measurement_point_m=(3.8, 0.0, 0.0), known_vehicles=tuple(vehicles)),
-                                   [_Sink()], authenticator=self.auth)
+                                   [], authenticator=self.auth)
         self.master_fix = FixStatus.FIXED
         self.lock = threading.Lock()
         self.t0 = time.time()
@@ -236,8 +230,8 @@ def attack_forged_and_replayed(n_each: int = 50) -> dict:
                 f = encode_state(rig.state("car1", seq + 5000, now - 0.003))
             forged.append(f)
             rig.put("car1", f)
-            if k >= 10 and k % 2 == 0:
-                r = captured[k - 5 - (k % 7) * 25 if k - 5 - (k % 7) * 25 >= 0 else k - 5]
+            if k >= 10 and k % 2 == 0:  # replay a capture from 50 ms to 2 s ago
+                r = captured[max(0, k - 5 - 25 * (k % 8))]
                 replayed.append(r)
                 rig.put("car1", r)
         time.sleep(5.2)  # beyond the 5 s age window: replay a batch of old captures
