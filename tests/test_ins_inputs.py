@@ -111,3 +111,31 @@ def test_replay_cli_reports_unloadable_dataset(tmp_path, capsys):
     replay_cmd.add_arguments(p)
     assert replay_cmd.run(p.parse_args([str(bad), "--no-progress"])) == 2
     assert "cannot load" in capsys.readouterr().err
+
+
+def test_replay_survives_a_truncated_and_corrupted_pos_file(tmp_path):
+    """A copy of walk_0827 (outside the repo) whose .pos has a garbage line and is cut mid-line:
+    the bad records are counted and the replay runs to the end."""
+    src = DATA / "walk_0827"
+    if not (src / "dataset.toml").exists():
+        pytest.skip(f"shared data not found: {src}")
+    import shutil
+    for name in ("imu_1730.csv", "imu_1730.csv.tag"):
+        shutil.copy(src / name, tmp_path / name)
+    lines = (src / "gnss_1730.pos").read_text().splitlines(keepends=True)
+    body = [i for i, ln in enumerate(lines) if not ln.startswith("%")]
+    lines.insert(body[100], "2025/08/28 garbage line with no numbers\n")
+    text = "".join(lines)
+    (tmp_path / "gnss_1730.pos").write_text(text[: len(text) - 70])       # cut inside the last record
+    toml = (src / "dataset.toml").read_text().replace('raw = "gnss_1730.ubx"', "").replace(
+        'raw_timetag = "gnss_1730.ubx.tag"', "")
+    (tmp_path / "dataset.toml").write_text(toml)
+    from v2xpos.datasets import load_dataset
+    from v2xpos.ins.replay import OutageSchedule, replay
+    clean = load_dataset(src / "dataset.toml")
+    ds = load_dataset(tmp_path / "dataset.toml")
+    assert ds.malformed_lines >= clean.malformed_lines + 2
+    assert len(ds.gnss) == len(clean.gnss) - 1
+    res = replay(ds, OutageSchedule(15.0, 45.0, 40.0), progress=False)
+    assert res.summary["malformed_lines"] == ds.malformed_lines
+    assert res.summary["imu_samples"] == len(clean.imu) and res.summary["aided_h_rms_m"] < 1.0
