@@ -24,7 +24,7 @@ from . import ekf
 from .alignment import CoarseAligner, CourseTracker
 from .ekf import ATT, BA, BG, POS, VEL, StateLayout
 from .effects import DEFAULT_INITIAL_SD, DEFAULT_RANDOM_WALK, PLATFORM_EFFECTS, EffectValues
-from .mechanization import (COR_BA, COR_BG, MEM_AN, MEM_F, MEM_SIZE, MEM_VALID, MEM_W, NAV_H, NAV_LAT,
+from .mechanization import (COR_BA, COR_BG, MEM_F, MEM_SIZE, MEM_VALID, MEM_W, NAV_H, NAV_LAT,
                             NAV_LON, NAV_VEL, strapdown_batch)
 from .static_calibration import StaticBiasEstimate, StaticCalibrationConfig, StaticCalibrator
 from .updates import UpdateResult, kalman_update, skew
@@ -171,7 +171,6 @@ class InsFilter:
         self.last_fix = FixStatus.NONE
         self.last_gnss_t_s = -np.inf
         self._gnss_rejections = 0
-        self._prev_gnss: tuple | None = None
         self._gnss_speed_mps: float | None = None
         self._gnss_speed_t_s = -np.inf
         self.counts = {"gnss_pos_accepted": 0, "gnss_pos_rejected": 0, "gnss_vel_accepted": 0,
@@ -182,7 +181,6 @@ class InsFilter:
         self.stage_s = {"strapdown": 0.0, "covariance": 0.0, "kalman_updates": 0.0}
         self.on_update = None
         self._last_w_b = np.zeros(3)
-        self._last_f_b = np.zeros(3)
         self._last_sample_t: float | None = None
         self.acc_ned_mps2 = np.zeros(3)
         self._v_prev_chunk: np.ndarray | None = None
@@ -365,7 +363,6 @@ class InsFilter:
             return
         self._last_w_b = (self.mem[MEM_W:MEM_W + 3].copy() if self.initialized
                           else w[-1] - self.corr[COR_BG:COR_BG + 3])
-        self._last_f_b = (f[-1] - self.corr[COR_BA:COR_BA + 3])
         f2 = np.einsum("ij,ij->i", f, f)
         row = self._win[self._win_pos]
         row[0] = len(t)
@@ -500,7 +497,6 @@ class InsFilter:
             return self._try_align(t_s, lla, sd, fix, vel_ned_mps)
         if not self.heading_known:
             vel = vel_ned_mps if vel_ned_mps is not None else self._velocity_from_positions(t_s, lla, sd)
-            self._prev_gnss = (t_s, lla)
             if vel is not None and float(np.hypot(vel[0], vel[1])) >= c.align_min_speed_mps:
                 return self._heading_reset(t_s, lla, sd, fix, vel)
             if vel is None or float(np.hypot(vel[0], vel[1])) > c.static_max_gnss_speed_mps:
@@ -588,7 +584,6 @@ class InsFilter:
         c = self.cfg
         if vel is None:
             vel = self._velocity_from_positions(t_s, lla, sd)
-        self._prev_gnss = (t_s, lla)
         if vel is None or self.t_stamp_s is None:
             return UpdateResult("gnss_pos", t_s, False, np.nan, reason="aligning: no velocity yet")
         speed = float(np.hypot(vel[0], vel[1]))

@@ -14,7 +14,8 @@ R_m = misalignment DCM vehicle <- body, v_b = C^T v):
 * Non-holonomic constraint (Shin 2001 sec. 4.3; Dissanayake et al. 2001): the vehicle-frame lateral
   and vertical velocity are zero: h = (R_m C^T v)_{y,z};
   H_v = R_m C^T, H_phi = -R_m C^T [v x], H_mis = -[v_b x].
-* Odometer: h = (1 + s_odo)^-1-free form (R_m C^T v)_x compared to speed / (1 + s_odo).
+* Odometer (wheel speed = (1 + s_odo) x forward speed): h = (1 + s_odo) (R_m C^T v)_x;
+  H as the NHC rows (x component) times (1 + s_odo), H_s = (R_m C^T v)_x.
 * ZUPT: h = v, H_v = I. ZARU: h = w - C^T w_ie, H_bg = -I.
 
 The update is P <- P - K H P, symmetrised (the Joseph form costs two more n^3 products per
