@@ -308,6 +308,10 @@ def write_plots(result: ReplayResult, out_dir: str | Path) -> list[Path]:
     ax[0].plot(t, np.abs(err[:, 2]), lw=0.7, label="|vertical|")
     for a, b in S["outages"]:
         ax[0].axvspan(a - t0, b - t0, color="C3", alpha=0.15)
+    if len(S["ref_t"]):
+        re_ = S["ref_err_ned"]
+        ax[0].plot(S["ref_t"] - t0, np.hypot(re_[:, 0], re_[:, 1]), lw=0.9, color="k",
+                   label="IMU point vs reference pose (horizontal)")
     ax[0].set_yscale("log")
     ax[0].set_ylabel("antenna error before update [m]")
     ax[0].legend()
@@ -317,7 +321,8 @@ def write_plots(result: ReplayResult, out_dir: str | Path) -> list[Path]:
         ax[1].bar(ends, np.hypot(oe[:, 0], oe[:, 1]), width=6, color="C3")
     ax[1].set_ylabel("error at outage end [m]")
     ax[1].set_xlabel("time since first GNSS epoch [s]")
-    ax[0].set_title(f"{name}: outage h RMS {result.summary['outage_h_rms_m']}")
+    rms = result.summary["outage_h_rms_m"]
+    ax[0].set_title(f"{name}: outage h RMS " + ("n/a" if rms is None else f"{rms:.2f} m"))
     files.append(out / "error_vs_time.png")
     fig.savefig(files[-1], dpi=110)
     plt.close(fig)
