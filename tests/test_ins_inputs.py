@@ -139,3 +139,17 @@ def test_replay_survives_a_truncated_and_corrupted_pos_file(tmp_path):
     res = replay(ds, OutageSchedule(15.0, 45.0, 40.0), progress=False)
     assert res.summary["malformed_lines"] == ds.malformed_lines
     assert res.summary["imu_samples"] == len(clean.imu) and res.summary["aided_h_rms_m"] < 1.0
+
+
+def test_filter_far_off_after_a_long_gap_resets_position():
+    """A 300-m jump (e.g. the filter coasted far off) is gated, then after the consecutive-rejection
+    limit the position is re-taken from GNSS instead of a linear update that cannot reach it."""
+    f, tr, imu = _started_filter()
+    f.process_imu_batch(imu.t_s, imu.acc_mps2, imu.gyro_rps)
+    far = geo.ned_to_lla(np.array([300.0, 0.0, 0.0]), tr.lla[-1])
+    for k in range(f.cfg.gnss_max_consecutive_rejections + 1):
+        res = f.update_gnss(tr.t_s[-1], far, np.full(3, 0.02), FixStatus.FIXED)
+    assert f.counts["gnss_pos_rejected"] == f.cfg.gnss_max_consecutive_rejections
+    assert f.counts["position_resets"] == 1 and "reset" in res.reason
+    assert np.linalg.norm(geo.lla_to_ned(f.lla, far)) < 0.1
+    assert f.update_gnss(tr.t_s[-1], far, np.full(3, 0.02), FixStatus.FIXED).accepted

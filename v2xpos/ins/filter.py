@@ -75,6 +75,7 @@ class InsConfig:
     use_gnss_velocity: bool = True
     gate_probability: float = 0.9999
     gnss_max_consecutive_rejections: int = 8
+    gnss_reset_distance_m: float = 30.0           # a forced fix further than this resets position instead
     # vehicle constraints and stops
     constraint_rate_hz: float = 10.0
     nhc_sd_mps: tuple = (0.1, 0.5)                # lateral, vertical (body pitch varies with load/braking)
@@ -175,7 +176,7 @@ class InsFilter:
         self._gnss_speed_t_s = -np.inf
         self.counts = {"gnss_pos_accepted": 0, "gnss_pos_rejected": 0, "gnss_vel_accepted": 0,
                        "gnss_vel_rejected": 0, "nhc": 0, "nhc_rejected": 0, "zupt": 0, "zaru": 0,
-                       "odometer": 0, "odometer_rejected": 0, "gnss_forced": 0, "static_calibrations": 0,
+                       "odometer": 0, "odometer_rejected": 0, "gnss_forced": 0, "position_resets": 0, "static_calibrations": 0,
                        "malformed_inputs": 0}
         self.residuals: list[UpdateResult] = []
         self.stage_s = {"strapdown": 0.0, "covariance": 0.0, "kalman_updates": 0.0}
@@ -523,6 +524,8 @@ class InsFilter:
         scale = c.fix_sd_scale.get(fix, 2.0)
         R = np.diag(np.maximum(sd * scale, c.gnss_pos_sd_floor_m) ** 2)
         force = self._gnss_rejections >= c.gnss_max_consecutive_rejections
+        if force and float(d @ d) > c.gnss_reset_distance_m ** 2:
+            return self._position_reset(t_s, lla, sd, fix, vel_ned_mps, float(np.sqrt(d @ d)))
         res = self._update("gnss_pos", t_s, H, d, R, force=force)
         if res.accepted:
             self.counts["gnss_pos_accepted"] += 1
@@ -609,6 +612,28 @@ class InsFilter:
         self.last_fix = fix
         self.last_gnss_t_s = t_s
         return UpdateResult("gnss_pos", t_s, False, np.nan, reason="initialised from this epoch")
+
+    def _position_reset(self, t_s, lla, sd, fix, vel, err_m: float) -> UpdateResult:
+        """The filter has drifted beyond linear reach (consecutive rejections and an innovation over
+        ``gnss_reset_distance_m``): take position (and velocity when given) from GNSS and reset
+        their covariance; attitude, biases and effects are kept."""
+        c = self.cfg
+        v = self.nav[3:6].copy() if vel is None else np.asarray(vel, float)
+        self.nav[:3] = self._imu_point_at_label(t_s, lla, v, self.C_nb)
+        self.nav[3:6] = v
+        self._v_prev_chunk = None
+        idx = np.r_[POS:POS + 3, VEL:VEL + 3]
+        self.P[idx, :] = 0.0
+        self.P[:, idx] = 0.0
+        pos_sd = np.maximum(sd * c.fix_sd_scale.get(fix, 2.0), 0.05)
+        vel_sd = c.init_vel_sd_mps if vel is not None else max(c.init_vel_sd_mps, 0.1 * err_m)
+        self.P[idx, idx] = np.r_[pos_sd ** 2, np.full(3, vel_sd ** 2)]
+        self._gnss_rejections = 0
+        self.counts["position_resets"] += 1
+        self.last_fix = fix
+        self.last_gnss_t_s = t_s
+        return UpdateResult("gnss_pos", t_s, False, np.nan,
+                            reason=f"position reset: the filter was {err_m:.1f} m off after rejections")
 
     def _heading_reset(self, t_s, lla, sd, fix, vel) -> UpdateResult:
         """First epoch fast enough for a course: turn the attitude about down so that the body x axis
