@@ -43,6 +43,9 @@
     mcap = "out/session.mcap"         # optional: every input and output (v2xpos replay-session)
     mcap_max_mb = 256                 # rotation size
 
+    [grading]
+    enabled = false                   # live IMU grading worker (master/grading.py)
+
     [security]                        # admission control (v2xpos.security.MessageAuthenticator)
     trust_list = "keys/trust.json"    # optional; without it unsigned messages are admitted
     require_signature = true          # with a trust list
@@ -91,6 +94,7 @@ class MasterConfig:
     replay_window: int = 1024
     mcap: str | None = None
     mcap_max_mb: float = 256.0
+    grading: bool = False
     path: str = "<defaults>"
 
     @classmethod
@@ -99,7 +103,9 @@ class MasterConfig:
 
     @classmethod
     def from_dict(cls, d: dict, path: str = "<dict>") -> "MasterConfig":
-        check_keys(d, {"service", "link", "source", "output", "scene", "record", "security"}, path)
+        check_keys(d, {"service", "link", "source", "output", "scene", "record", "security", "grading"}, path)
+        gr = take(d, "grading", dict, {}, path)
+        check_keys(gr, {"enabled"}, f"{path}: [grading]")
         w = f"{path}: [service]"
         s = take(d, "service", dict, {}, path)
         check_keys(s, {"fleet", "master_id", "timeout_ms", "measurement_point_m", "known_vehicles",
@@ -161,6 +167,7 @@ class MasterConfig:
             results_npz=take(rec, "results_npz", str, None, wr), summary_json=take(rec, "summary_json", str, None, wr),
             evaluate_uncompensated=take(rec, "evaluate_uncompensated", bool, False, wr),
             mcap=take(rec, "mcap", str, None, wr), mcap_max_mb=mcap_mb,
+            grading=take(gr, "enabled", bool, False, f"{path}: [grading]"),
             trust_list=take(sec, "trust_list", str, None, ws),
             require_signature=take(sec, "require_signature", bool, True, ws),
             max_age_s=take(sec, "max_age_s", float, 5.0, ws),

@@ -13,6 +13,9 @@ asyncio tasks in one thread (the zenoh callbacks only stamp arrival time and han
 * ``tick``: ``tick_hz`` status-only results for silent targets (NO_DATA / TIMEOUT);
 * scene: at ``scene_hz`` the nav task evaluates the GeoJSON scene (V2L lane lines, points,
   polygons) for the master state and sends it (``MasterPipeline.process_scene``);
+* IMU grading (``[grading] enabled``): a worker process (``master/grading.py``) grades every
+  vehicle's IMU units from their ``.../imu`` streams and publishes grades; a vehicle with a failing
+  unit gets ``degraded`` results; ``imu_grades`` appear in the status;
 * ``status``: ``status_hz`` JSON summary on ``v2xpos/<fleet>/master/<id>/status`` for monitors.
 
 On exit (epoch + duration or SIGTERM/SIGINT) it writes the summary JSON and the per-result rows
@@ -39,7 +42,7 @@ from master.pipeline import RECORD_FIELDS, MasterPipeline, PipelineConfig
 from sim.scenarios import build
 from slave.config import ConfigError
 from slave.source import make_source
-from v2xpos.link import Link, status_key
+from v2xpos.link import Link, grades_key, status_key
 from v2xpos.wire import STATE_KEY_ALL, relative_key
 
 WARMUP_S = 1.0
@@ -76,6 +79,7 @@ class MasterService:
         self.link: Link | None = None
         self.sinks: list = []
         self.pipeline: MasterPipeline | None = None
+        self.grading_proc = None
         self.lock = threading.Lock()
         self.closing = False
         self._next_scene_t = -math.inf
@@ -112,6 +116,39 @@ class MasterService:
             self.recorder = McapRecorder(cfg.mcap, max_bytes=int(cfg.mcap_max_mb * 2 ** 20))
             self.pipeline = RecordingPipeline(self.pipeline, self.recorder)
         self.status_pub = self.link.publisher(status_key(cfg.fleet, cfg.master_id), express=False)
+        self.imu_grades: dict = {}
+        if cfg.grading:
+            self.link.subscribe(grades_key(cfg.fleet, cfg.master_id), self._on_grades)
+
+    def _start_grading(self) -> None:
+        """Start the IMU grading worker process (master/grading.py, a zenoh client of this master's
+        network; it waits for the router) -- early, so its imports overlap the preparation. The
+        master follows its grades (``_on_grades``): a vehicle with a failing unit gets ``degraded``."""
+        import os
+        import subprocess
+        cfg = self.cfg
+        endpoint = (cfg.link.listen or cfg.link.connect)[0]
+        env = dict(os.environ)
+        root = str(Path(__file__).resolve().parents[1])
+        env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+        self.grading_proc = subprocess.Popen(
+            [sys.executable, "-m", "master.grading", "--endpoint", endpoint, "--fleet", cfg.fleet,
+             "--master-id", cfg.master_id], env=env, cwd=root)
+
+    def _on_grades(self, payload: bytes, key: str, att, t_arr: float) -> None:
+        try:
+            doc = json.loads(payload)
+            vehicles = doc["vehicles"]
+        except (ValueError, KeyError, TypeError):
+            return
+        with self.lock:
+            self.imu_grades = vehicles
+            for vid, g in vehicles.items():
+                units = g.get("units") or {}
+                if any(v == "fail" for v in units.values()):
+                    self.pipeline.degraded_vehicles.add(vid)
+                else:
+                    self.pipeline.degraded_vehicles.discard(vid)
 
     async def _nav_task(self) -> None:
         while not self.stop_event.is_set():
@@ -158,7 +195,9 @@ class MasterService:
                   "nav_ms_p50": float(np.percentile(self.nav_ms, 50)) if self.nav_ms else None,
                   "can_frames": self.can.frames if self.cfg.can_enabled else 0,
                   "udp_datagrams": self.udp.datagrams if self.cfg.udp_enabled else 0,
-                  "source": self.source.name, "clock_skew": self.authenticator.skew_report(),
+                  "source": self.source.name, "imu_grades": self.imu_grades,
+                  "degraded_vehicles": sorted(self.pipeline.degraded_vehicles),
+                  "clock_skew": self.authenticator.skew_report(),
                   "admission": self.authenticator.stats.as_dict()})
         return s
 
@@ -172,8 +211,12 @@ class MasterService:
 
     async def run(self) -> dict:
         self.stop_event = asyncio.Event()
+        if self.cfg.grading:
+            self._start_grading()
         self.source.warm_up()
-        self.source.advance(self.epoch - WARMUP_S - 0.5)   # driving history before the run
+        history = self.source.advance(self.epoch - WARMUP_S - 0.5)   # driving history before the run
+        if history:
+            self.nav = history[-1]
         self._open()
         if self.start_file is not None:
             from sim.launcher import signal_ready_and_wait
@@ -219,6 +262,12 @@ class MasterService:
                 s.close()
             if self.recorder is not None:
                 self.recorder.close()
+            if self.grading_proc is not None:
+                self.grading_proc.terminate()
+                try:
+                    self.grading_proc.wait(timeout=5)
+                except Exception:
+                    self.grading_proc.kill()
             self.link.close()
         return final
 

@@ -75,7 +75,8 @@ def run_demo(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 10
         if live:
             from sim.live_table import LiveTable
             from v2xpos.link import LinkConfig
-            table = LiveTable(LinkConfig(mode="peer", connect=[f"tcp/127.0.0.1:{plan.router_port}"]),
+            table = LiveTable(LinkConfig(mode="client", connect=[f"tcp/127.0.0.1:{plan.router_port}"],
+                                         connect_timeout_ms=10000),
                               plan.fleet, sc.master_id, scenario=sc)
         deadline = start + duration_s + 30.0
         while fleet.running() and time.time() < deadline:
@@ -130,6 +131,10 @@ def make_report(sc, plan: FleetPlan, duration_s: float, exit_codes: dict) -> dic
         "rel_pos_err_rms_m_rtk_fixed_targets": (float(np.sqrt(np.mean([t["rel_pos_err_rms_m"] ** 2 for t in clean])))
                                                 if clean else None),
         "scene": scene,
+        "imu_grades": summary.get("imu_grades", {}),
+        "imu_faults_injected": {a.actor_id: {"unit": f"imu{a.imu_fault[0] + 1}", "fault": a.imu_fault[1]}
+                                for a in sc.actors.values() if a.imu_fault},
+        "degraded_vehicles": summary.get("degraded_vehicles", []),
         "exit_codes": exit_codes,
         "notes": ("errors against the scenario truth at the master time of each VALID result, reference point "
                   "to reference point; latency = master GPS time - target time of validity (includes the "

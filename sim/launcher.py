@@ -78,7 +78,7 @@ class FleetPlan:
 
 
 def write_configs(sc: Scenario, plan: FleetPlan, duration_s: float, can: bool = True, udp: bool = True,
-                  publish_imu: bool = False) -> FleetPlan:
+                  publish_imu: bool = True) -> FleetPlan:
     """Master and slave TOML files for every actor of the scenario (in plan.out_dir/configs)."""
     import json
     from sim.scenarios import scene_geojson
@@ -101,6 +101,7 @@ def write_configs(sc: Scenario, plan: FleetPlan, duration_s: float, can: bool = 
                        "udp": {"enabled": udp, "host": "127.0.0.1", "port": plan.udp_port},
                        "zenoh": {"enabled": True}},
             "scene": {"geojson": str(plan.geojson)},
+            "grading": {"enabled": publish_imu},
             "record": {"results_npz": str(plan.results_npz), "summary_json": str(plan.summary_json),
                        "evaluate_uncompensated": True}}
     path = cdir / "master.toml"
@@ -109,7 +110,7 @@ def write_configs(sc: Scenario, plan: FleetPlan, duration_s: float, can: bool = 
     for a in sc.slaves:
         scfg = {"service": {"fleet": plan.fleet, "vehicle_id": a.actor_id, "rate_hz": 100.0,
                             "duration_s": float(duration_s), "publish_imu": publish_imu},
-                "link": {"mode": "peer", "connect": [endpoint]},
+                "link": {"mode": "client", "connect": [endpoint], "connect_timeout_ms": 60000},
                 "source": {**src, "actor": a.actor_id}}
         path = cdir / f"slave_{a.actor_id}.toml"
         path.write_text(to_toml(scfg))

@@ -5,7 +5,7 @@ Actors: the master ``ego`` drives at the back of a single-lane convoy; slaves ``
 ahead of it at a constant time headway ``headway_s`` on the same path (``Trajectory.shifted``); slave
 ``t1`` starts in the lane to the left, half a headway ahead of ego, and cuts in with a lane change
 (a yaw-rate doublet: heading rises to r*T then returns, lateral shift = v r T^2); pedestrian ``p1``
-walks at 1.4 m/s on the right-hand side walk against the traffic.
+walks at 1.4 m/s on the right-hand side walk against the traffic (one handheld IMU, so not graded).
 
 The lead path repeats a pattern with curves both ways (lateral acceleration 1.6-2 m/s^2), an
 S-bend and a braking manoeuvre (20 -> 12.5 m/s at -3 m/s^2 and back at +2.5 m/s^2).
@@ -59,6 +59,8 @@ class Actor:
     fix_schedule: (t_start_rel_s, t_end_rel_s, FixStatus) relative to the scenario epoch (FIXED
     elsewhere). imu_grade: ``sim.sensors.ImuErrorModel.preset`` name. lever_arm_m: GNSS antenna
     relative to the reference point (IMU), body frame [m]. seed: sensor noise seed.
+    imu_units: IMU units on board (unit 1 feeds the filter; all are streamed for grading);
+    imu_fault: (unit index >= 1, ``sim.imu_faults`` fault kind, start rel. epoch [s]) or None.
     """
     actor_id: str
     kind: str
@@ -71,6 +73,8 @@ class Actor:
     lever_arm_m: np.ndarray = field(default_factory=lambda: np.array([0.5, 0.0, -1.4]))
     gnss_sd_fixed_m: float = 0.01
     seed: int = 0
+    imu_units: int = 3
+    imu_fault: tuple | None = None
 
 
 @dataclass
@@ -135,14 +139,14 @@ def convoy(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 100.
            speed_mps: float = 20.0, headway_s: float = 1.5, seed: int = 0, cut_in: bool = True,
            pedestrian: bool = True, degradations: bool = True, spikes: bool = True,
            imu_grade: str = "tactical", epoch_gps_s: float = DEFAULT_EPOCH_GPS_S,
-           dt_s: float = 0.01, history_s: float = 20.0) -> Scenario:
+           dt_s: float = 0.01, history_s: float = 20.0, imu_fault: str | None = "gyro_scale") -> Scenario:
     """Build the convoy scenario (see module docstring). ``vehicles`` counts the master."""
     if vehicles < 1:
         raise ValueError("vehicles must be >= 1 (the master)")
     params = dict(vehicles=vehicles, duration_s=duration_s, latency_ms=latency_ms, jitter_ms=jitter_ms,
                   speed_mps=speed_mps, headway_s=headway_s, seed=seed, cut_in=cut_in, pedestrian=pedestrian,
                   degradations=degradations, spikes=spikes, imu_grade=imu_grade, epoch_gps_s=epoch_gps_s,
-                  dt_s=dt_s, history_s=history_s)
+                  dt_s=dt_s, history_s=history_s, imu_fault=imu_fault)
     n_lane = vehicles - (1 if (cut_in and vehicles >= 2) else 0)
     pre_s = (n_lane - 1) * headway_s + 2.0 + history_s
     lap = _pattern()
@@ -182,6 +186,9 @@ def convoy(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 100.
         victim = actors[slave_names[-1]]
         t0 = 0.45 * duration_s
         victim.fix_schedule = [(t0, t0 + 3.0, FixStatus.FLOAT), (t0 + 3.0, t0 + 5.0, FixStatus.SINGLE)]
+    if imu_fault and slave_names:
+        victim = actors[slave_names[len(slave_names) // 2]]
+        victim.imu_fault = (2, imu_fault, 0.0)          # the third unit, from the start of the run
     if spikes and slave_names:
         victim = actors[slave_names[0]]
         t0 = 0.65 * duration_s
@@ -201,7 +208,7 @@ def convoy(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 100.
                         t0_s=walk_t0, lla0=lla0, r0_ned_m=start, smooth_tau_s=0.5, roll_per_lat_acc_rad=0.0)
         actors["p1"] = Actor("p1", "pedestrian", "slave", traj, Geometry(kind="circle", radius_m=0.3),
                              link=LinkImpairment(latency_ms, jitter_ms), imu_grade=imu_grade,
-                             lever_arm_m=np.array([0.0, 0.0, -0.3]), seed=seed * 1000 + 99)
+                             lever_arm_m=np.array([0.0, 0.0, -0.3]), seed=seed * 1000 + 99, imu_units=1)
     lanes = _lane_lines(lead, lead_t0, total_s)
     sc = Scenario("convoy", epoch_gps_s, duration_s, actors, "ego", lla0, params, lanes)
     sc.objects_ned_m = _roadside_objects(actors["ego"].truth, epoch_gps_s, duration_s)

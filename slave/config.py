@@ -9,7 +9,8 @@ Example (``configs/slave_t1.toml``)::
     duration_s = 40        # stop at scenario epoch + duration (omit: run until SIGTERM/SIGINT)
 
     [link]                 # v2xpos.link.LinkConfig
-    mode = "peer"           # opens at once, connects when the router is up
+    mode = "client"         # routed by the master's router (see docs/services.md)
+    connect_timeout_ms = 60000  # wait this long for the router at start
     connect = ["tcp/127.0.0.1:7447"]
 
     [source]
@@ -111,7 +112,8 @@ class SlaveConfig:
     vehicle_id: str = "t1"
     rate_hz: float = 100.0
     duration_s: float | None = None
-    link: LinkConfig = field(default_factory=lambda: LinkConfig(mode="peer", connect=["tcp/127.0.0.1:7447"]))
+    link: LinkConfig = field(default_factory=lambda: LinkConfig(mode="client", connect=["tcp/127.0.0.1:7447"],
+                                                                        connect_timeout_ms=60000))
     source: SourceConfig = field(default_factory=SourceConfig)
     latency_ms: float | None = None
     jitter_ms: float | None = None
@@ -140,7 +142,8 @@ class SlaveConfig:
         check_keys(sec, {"key_file"}, f"{path}: [security]")
         cfg = cls(fleet=take(s, "fleet", str, "demo", w), vehicle_id=take(s, "vehicle_id", str, "t1", w),
                   rate_hz=rate, duration_s=take(s, "duration_s", float, None, w),
-                  link=link_from_table(take(d, "link", dict, {"mode": "peer", "connect": ["tcp/127.0.0.1:7447"]}, path), f"{path}: [link]"),
+                  link=link_from_table(take(d, "link", dict, {"mode": "client", "connect": ["tcp/127.0.0.1:7447"],
+                                                        "connect_timeout_ms": 60000}, path), f"{path}: [link]"),
                   source=SourceConfig.from_table(take(d, "source", dict, {}, path), f"{path}: [source]"),
                   latency_ms=take(imp, "latency_ms", float, None, wi),
                   jitter_ms=take(imp, "jitter_ms", float, None, wi),

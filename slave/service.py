@@ -7,8 +7,8 @@ t_gps; every ``1/rate_hz`` of filter time a StateMessage is queued for sending a
 ``validity wall time + injected delay`` (FIFO, see ``sim.scenarios.LinkImpairment``); due messages
 are stamped with ``t_sent_wall_s`` (the publish instant, so end-to-end latency excludes the injected
 delay), optionally signed, and published on ``v2xpos/<fleet>/vehicle/<id>/state`` with
-CongestionControl.BLOCK. Optional decimated IMU samples (``publish_imu``) go to
-``v2xpos/<fleet>/vehicle/<id>/imu`` for the master's IMU grading.
+CongestionControl.BLOCK. With ``publish_imu`` the raw samples of every IMU unit on board go to
+``v2xpos/<fleet>/vehicle/<id>/imu`` every 0.25 s for the master's IMU grading.
 
 Stops at epoch + duration_s or on SIGTERM/SIGINT, closes the zenoh session, prints one JSON line
 with its counters.
@@ -35,10 +35,8 @@ from v2xpos.wire import StateMessage, encode_state, imu_key, state_key
 
 WARMUP_S = 1.0
 """The filter starts this long before the scenario epoch (the states are published from then on)."""
-IMU_DECIMATION = 2
-"""Publish every n-th IMU sample for grading (50 Hz from a 100 Hz IMU)."""
-IMU_BATCH = 25
-"""IMU samples per grading message."""
+IMU_PERIOD_S = 0.25
+"""IMU grading messages carry the samples of the last 0.25 s of every unit (full 100 Hz)."""
 
 
 class _Stop:
@@ -80,7 +78,8 @@ def run_slave(cfg: SlaveConfig, start_unix_s: float | None = None, stop: _Stop |
     source.advance(sc.epoch_gps_s - WARMUP_S - 0.5)   # driving history before the run: filter converged
     link = Link(cfg.link)
     pub = link.publisher(state_key(cfg.fleet, cfg.vehicle_id))
-    imu_pub = link.publisher(imu_key(cfg.fleet, cfg.vehicle_id), express=False) if cfg.publish_imu else None
+    grading = cfg.publish_imu and actor.imu_units >= 2      # grading compares units: needs two or more
+    imu_pub = link.publisher(imu_key(cfg.fleet, cfg.vehicle_id), express=False) if grading else None
     if start_file is not None:
         from sim.launcher import signal_ready_and_wait
         got = signal_ready_and_wait(start_file, cfg.vehicle_id, stop=stop)
@@ -93,7 +92,13 @@ def run_slave(cfg: SlaveConfig, start_unix_s: float | None = None, stop: _Stop |
     last_send_wall = 0.0
     pub_period = 1.0 / cfg.rate_hz
     next_pub_t = -math.inf
-    imu_buf: list = []
+    units, mounting, unit_idx = {}, {}, {}
+    if imu_pub is not None:
+        from slave.source import imu_units
+        sen = getattr(source, "sensors", None)
+        units, mounting = imu_units(sc, actor, sen.imu if sen is not None else None)
+        unit_idx = {u: int(np.searchsorted(imu.t_s, epoch - WARMUP_S)) for u, imu in units.items()}
+    next_imu_pub_t = -math.inf
     counters = {"vehicle_id": cfg.vehicle_id, "source": source.name, "states": 0, "queued": 0, "sent": 0,
                 "imu_msgs": 0, "late_ms_max": 0.0}
     try:
@@ -108,8 +113,6 @@ def run_slave(cfg: SlaveConfig, start_unix_s: float | None = None, stop: _Stop |
             if t_gps <= end_gps:
                 for nav in source.advance(t_gps):
                     counters["states"] += 1
-                    if imu_pub is not None:
-                        _collect_imu(source, imu_buf)
                     if nav.t_s + 1e-6 < next_pub_t:
                         continue
                     behind = not math.isfinite(next_pub_t) or nav.t_s - next_pub_t > pub_period
@@ -129,10 +132,10 @@ def run_slave(cfg: SlaveConfig, start_unix_s: float | None = None, stop: _Stop |
                 pub.put(encode_state(msg, signer))
                 counters["sent"] += 1
                 counters["late_ms_max"] = max(counters["late_ms_max"], (msg.t_sent_wall_s - send_at) * 1e3)
-            if imu_pub is not None and len(imu_buf) >= IMU_BATCH:
-                imu_pub.put(_imu_payload(cfg, imu_buf))
+            if imu_pub is not None and t_gps >= next_imu_pub_t and t_gps <= end_gps:
+                next_imu_pub_t = t_gps + IMU_PERIOD_S
+                imu_pub.put(_imu_payload(cfg, units, mounting, unit_idx, t_gps))
                 counters["imu_msgs"] += 1
-                imu_buf.clear()
             now = time.time()
             t_next = wall_of((math.floor(gps_of(now) * 100.0) + 1) / 100.0)
             if queue:
@@ -145,20 +148,18 @@ def run_slave(cfg: SlaveConfig, start_unix_s: float | None = None, stop: _Stop |
     return counters
 
 
-def _collect_imu(source, buf: list) -> None:
-    sen = getattr(source, "sensors", None)
-    if sen is None:
-        return
-    k = sen.i_imu - 1
-    if k >= 0 and k % IMU_DECIMATION == 0:
-        buf.append((float(sen.imu.t_s[k]), *map(float, sen.imu.acc_mps2[k]), *map(float, sen.imu.gyro_rps[k])))
-
-
-def _imu_payload(cfg: SlaveConfig, buf: list) -> bytes:
-    """Grading message: msgpack map {id, unit, rate_hz, rows: [[t_gps_s, ax, ay, az, gx, gy, gz], ...]}
-    (m/s^2, rad/s, IMU axes; documented in docs/protocol.md)."""
-    return msgpack.packb({"T": "imu", "ver": 1, "fleet": cfg.fleet, "id": cfg.vehicle_id, "unit": "imu0",
-                          "rate_hz": 100.0 / IMU_DECIMATION, "rows": [list(r) for r in buf]}, use_bin_type=True)
+def _imu_payload(cfg: SlaveConfig, units: dict, mounting: dict, idx: dict, t_gps_s: float) -> bytes:
+    """Grading message with every unit's samples since the last one (layout in master/grading.py and
+    docs/protocol.md): msgpack map {T, ver, fleet, id, rate_hz, mounting_xyz_deg, units: {unit: rows}},
+    rows [t_gps_s, ax, ay, az, gx, gy, gz] (m/s^2, rad/s, unit axes)."""
+    out = {}
+    for uid, imu in units.items():
+        i0 = idx[uid]
+        i1 = int(np.searchsorted(imu.t_s, t_gps_s, side="right"))
+        idx[uid] = i1
+        out[uid] = np.column_stack([imu.t_s[i0:i1], imu.acc_mps2[i0:i1], imu.gyro_rps[i0:i1]]).tolist()
+    return msgpack.packb({"T": "imu", "ver": 1, "fleet": cfg.fleet, "id": cfg.vehicle_id, "rate_hz": 100.0,
+                          "mounting_xyz_deg": mounting, "units": out}, use_bin_type=True)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -186,6 +186,34 @@ class TruthNoiseSource:
         return out
 
 
+def imu_units(sc: Scenario, actor: Actor, nav_imu=None) -> tuple[dict, dict]:
+    """All IMU units of an actor for grading: ``({unit_id: ImuData}, {unit_id: mounting X-Y-Z deg})``.
+
+    imu1 is the navigation unit (``nav_imu`` when given, mounted along the body axes); unit k >= 2 is
+    mounted rotated by 90 (k-1) deg about z (declared), with its own error draw from the actor's
+    IMU grade; the scenario's ``imu_fault`` (``sim.imu_faults.inject_fault``) is applied to its unit.
+    """
+    from sim.imu_faults import DEFAULT_MAGNITUDE, FaultSpec, inject_fault
+    rng = np.random.default_rng(actor.seed + 555)
+    units, mounting = {}, {}
+    for k in range(actor.imu_units):
+        uid = f"imu{k + 1}"
+        yaw = 90.0 * k
+        c, s_ = math.cos(math.radians(yaw)), math.sin(math.radians(yaw))
+        C_body_imu = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+        model = ImuErrorModel.preset(actor.imu_grade, rng)
+        imu = nav_imu if (k == 0 and nav_imu is not None) else simulate_imu(
+            actor.truth, model, rate_hz=IMU_RATE_HZ, rng=rng, imu_to_body=C_body_imu)
+        if actor.imu_fault is not None and actor.imu_fault[0] == k:
+            _, kind, t_rel = actor.imu_fault
+            noise = model.gyro_noise_rps_rthz * math.sqrt(IMU_RATE_HZ)
+            start = max(0.0, sc.epoch_gps_s + t_rel - float(imu.t_s[0]))
+            imu = inject_fault(imu, FaultSpec(kind, DEFAULT_MAGNITUDE[kind], 2, start), noise, rng)
+        units[uid] = imu
+        mounting[uid] = [0.0, 0.0, yaw]
+    return units, mounting
+
+
 SOURCES = {"ins": InsSimSource, "truth_noise": TruthNoiseSource}
 
 

@@ -44,6 +44,11 @@ def test_report_layout_and_processes(report):
         assert (out / png).stat().st_size > 1000
     assert report["can_frames"] > 1000 and report["udp_datagrams"] > 1000
     assert report["rejected"] == {}
+    grades = report["imu_grades"]               # live IMU grading: faulty unit fails, vehicle degraded
+    faulty = report["imu_faults_injected"]
+    assert set(faulty) == {"t2"} and grades["t2"]["units"][faulty["t2"]["unit"]] == "fail"
+    assert all(v == "pass" for u, v in grades["t1"]["units"].items())
+    assert report["degraded_vehicles"] == ["t2"]
     scene = report["scene"]                     # V2L / V2X from the GeoJSON the demo wrote
     assert scene["updates"] >= 100
     assert max(scene["lane_lateral_err_rms_m"].values()) < 0.05

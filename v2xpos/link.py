@@ -11,9 +11,13 @@ Configuration (zenoh 1.x JSON5 keys, see the zenoh ``DEFAULT_CONFIG.json5``):
 * ``connect/retry``: reconnection period starts at ``retry_init_ms`` (default 100 ms), grows by
   ``retry_factor`` up to ``retry_max_ms`` (default 500 ms), so a client whose router restarts
   resumes delivery within about half a second; ``exit_on_failure = false``: a ``peer`` opens at
-  once and connects in the background when its router comes up (a ``client`` cannot open without
-  a reachable router unless ``connect_timeout_ms = -1``, which blocks until one answers). The
-  services therefore use ``peer`` for slaves by default.
+  once and connects in the background when its router comes up; a ``client`` cannot open without
+  a reachable router, so ``connect_timeout_ms`` says how long ``zenoh.open`` waits for one (-1:
+  forever).
+* Topology: a router forwards client <-> client, client <-> peer and its own traffic, but with
+  scouting off it does NOT forward between two peers that are both connected to it (zenoh expects
+  peers to mesh directly). Slaves, monitors and the grading worker are therefore ``client``s of the
+  master's router; ``peer`` is for a master that joins a standalone router mesh.
 
 Key expressions live in ``v2xpos.wire`` (``state_key``, ``relative_key``, ``imu_key``) and are
 re-exported here together with the service keys (``status_key``, ``grades_key``).
