@@ -145,9 +145,14 @@ def _run_slaves(ids: list[str], keys_dir: Path, endpoint: str, start: float, dur
             pubs[vid].put(encode_state(msg, sign=signers[vid]))
             sent[vid] += 1
     end = time.time()
-    time.sleep(0.5)
-    link.close()
     out_path.write_text(json.dumps({"sent": sent, "late_ticks": late, "ticks": n_ticks, "end_unix_s": end}))
+    # closing the session would drop what is still queued for sending: wait for the release file,
+    # which the orchestrator writes once the master has received and worked off everything
+    release = out_path.parent / "release"
+    t_give_up = time.time() + 300.0
+    while not release.exists() and time.time() < t_give_up:
+        time.sleep(0.1)
+    link.close()
     return 0
 
 
@@ -185,8 +190,10 @@ def run_soak(slaves: int = 32, rate: float = 100.0, duration: float = 60.0, out_
         files = generate_vehicle_key(vid, keys, overwrite=True)
         trust.add(*load_public_key_file(files.public_path))
     trust.save(out / "trust.json")
-    for old in out.glob("session*.mcap"):
-        old.unlink()
+    for old in [*out.glob("session*.mcap"), *out.glob("slaves_*.json"), out / "release",
+                out / "master_stats.json", out / "master_stats.progress"]:
+        if old.exists():
+            old.unlink()
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     cfg = {"service": {"fleet": SOAK_FLEET, "master_id": "ego", "duration_s": duration + 600.0, "status_hz": 1.0,
@@ -221,16 +228,19 @@ def run_soak(slaves: int = 32, rate: float = 100.0, duration: float = 60.0, out_
     total = lead_s + duration + 1.0
     with tqdm(total=int(total), disable=not progress, unit="s", desc="soak", file=sys.stderr) as bar:
         t0 = time.time()
-        while any(p.poll() is None for p in procs) and master.poll() is None and time.time() - t0 < total + 300:
+        reports = [out / f"slaves_{g}.json" for g in range(len(groups))]
+        while (not all(r.exists() or p.poll() is not None for r, p in zip(reports, procs))
+               and master.poll() is None and time.time() - t0 < total + 300):
             time.sleep(0.5)
             bar.n = min(int(time.time() - t0), int(total))
             bar.refresh()
+    _wait_drained(out / "master_stats.progress", drain_s, max_wait_s=300.0)
+    (out / "release").write_text("done")
     for p in procs:
         try:
             p.wait(timeout=30)
         except subprocess.TimeoutExpired:
             p.kill()
-    _wait_drained(out / "master_stats.progress", drain_s, max_wait_s=120.0)
     if master.poll() is None:
         master.send_signal(signal.SIGTERM)
     try:
