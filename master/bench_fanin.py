@@ -231,9 +231,19 @@ def run_bench(args: argparse.Namespace) -> int:
         print(f"  {n:4d} slaves: sent {sent:6d} handled {entry['handled_fraction']*100:5.1f} %  e2e p50/p99 "
               f"{_f(entry['e2e_ms_p50'])}/{_f(entry['e2e_ms_p99'])} ms  master CPU {_f(entry['master_cpu_share'], '.2f')} "
               f"{'PASS' if entry['passed'] else 'fail'}")
-    # contention-independent estimate: master CPU share = base + per-message cost x message rate
-    pts = [(e["slaves"] * args.rate_hz * e["handled_fraction"], e["master_cpu_share"]) for e in result_stages
-           if e["master_cpu_share"] is not None]
+    # contention-independent estimate: master CPU share = base + per-message cost x handled rate, with
+    # the messages counted by the time the master processed them (backlog included)
+    all_rows = [r for rs in rows_by_stage.values() for r in rs]
+    t_proc_wall = (np.concatenate(all_rows)[:, F["t_gps_s"]] - epoch + start) if all_rows else np.zeros(0)
+    pts = []
+    for s in range(len(stages)):
+        if s + 1 >= len(cpu_marks):
+            break
+        (w0, c0), (w1, c1) = cpu_marks[s], cpu_marks[s + 1]
+        n = int(np.count_nonzero((t_proc_wall >= w0) & (t_proc_wall < w1)))
+        if np.isfinite(c1 - c0) and w1 > w0 and n > 0:
+            pts.append((n / (w1 - w0), (c1 - c0) / (w1 - w0)))
+            result_stages[s]["handled_per_s_in_window"] = n / (w1 - w0)
     cpu_fit = None
     if len(pts) >= 2:
         x, y = np.array(pts).T
