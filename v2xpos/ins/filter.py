@@ -167,6 +167,7 @@ class InsFilter:
         self._last_constraint_t: float = -np.inf
         self.aligner = CoarseAligner()
         self._course_tracker = CourseTracker()
+        self._course_sd_rad = 0.0
         self.calibrator = StaticCalibrator(c.static_calibration)
         self.gate = {k: float(chi2.ppf(c.gate_probability, k)) for k in (1, 2, 3, 6)}
         self.last_fix = FixStatus.NONE
@@ -568,11 +569,17 @@ class InsFilter:
 
     def _velocity_from_positions(self, t_s, lla, sd) -> np.ndarray | None:
         """Horizontal velocity from the constant-velocity tracker when the receiver gives none;
-        None until it has two fixes and its speed sd is below a third of the alignment speed."""
+        None until its speed sd is below max(a third of the alignment speed, a fifth of the speed),
+        i.e. the course is known to ~11 deg or better; that course sd widens the initial yaw sd."""
         out = self._course_tracker.update(float(t_s), lla, float(max(sd[0], sd[1])))
-        if out is None or out[1] > self.cfg.align_min_speed_mps / 3.0:
+        if out is None:
             return None
-        return out[0]
+        v, v_sd = out
+        speed = float(np.hypot(v[0], v[1]))
+        if v_sd > max(self.cfg.align_min_speed_mps / 3.0, 0.2 * speed):
+            return None
+        self._course_sd_rad = v_sd / max(speed, 1e-3)
+        return v
 
     def _imu_point_at_label(self, t_s, lla, vel, C) -> np.ndarray:
         """IMU position from an antenna fix at t_s, moved to the state label with the GNSS velocity."""
@@ -608,7 +615,7 @@ class InsFilter:
         if C is None:
             return UpdateResult("gnss_pos", t_s, False, np.nan, reason="aligning: not levelled yet")
         self._start(self.t_s, self._imu_point_at_label(t_s, lla, vel, C), vel, C, pos_sd, c.init_vel_sd_mps,
-                    np.array([c.init_level_sd_rad, c.init_level_sd_rad, c.init_yaw_sd_rad]))
+                    np.array([c.init_level_sd_rad, c.init_level_sd_rad, max(c.init_yaw_sd_rad, self._course_sd_rad)]))
         self.last_fix = fix
         self.last_gnss_t_s = t_s
         return UpdateResult("gnss_pos", t_s, False, np.nan, reason="initialised from this epoch")
@@ -649,7 +656,8 @@ class InsFilter:
         self.P[idx, :] = 0.0
         self.P[:, idx] = 0.0
         pos_sd = np.maximum(sd * c.fix_sd_scale.get(fix, 2.0), 0.05)
-        self.P[idx, idx] = np.r_[pos_sd ** 2, np.full(3, c.init_vel_sd_mps ** 2), c.init_yaw_sd_rad ** 2]
+        self.P[idx, idx] = np.r_[pos_sd ** 2, np.full(3, c.init_vel_sd_mps ** 2),
+                                 max(c.init_yaw_sd_rad, self._course_sd_rad) ** 2]
         self.heading_known = True
         self.last_fix = fix
         self.last_gnss_t_s = t_s

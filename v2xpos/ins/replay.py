@@ -110,11 +110,9 @@ def replay(dataset: Dataset, schedule: OutageSchedule | None = None, cfg: InsCon
     else:
         ref_t, ref_lla = np.zeros(0), np.zeros((0, 3))
     outages = schedule.intervals(float(gn.t_s[0]), float(gn.t_s[-1])) if len(gn) else []
+    # only GnssData's own velocity is used (comma2k19's speed/bearing in the notes turned the heading
+    # away by 25 deg on its highway segment: docs/ins.md); without it the alignment uses the course tracker
     vel, vel_sd = gn.vel_ned_mps, gn.vel_sd_ned_mps
-    if vel is None and "gnss_vel_ne_mps" in (dataset.notes or {}):
-        ne = np.asarray(dataset.notes["gnss_vel_ne_mps"], float)
-        vel = np.column_stack([ne, np.zeros(len(ne))])
-        vel_sd = np.tile([0.2, 0.2, 1.0], (len(ne), 1))
 
     # events: (time, kind, index); kinds: 0 gnss, 1 outage end evaluation, 2 wheel
     ev_t = [np.asarray(gn.t_s, float), np.array([b for _, b in outages], float)]
