@@ -14,7 +14,9 @@ Example (``configs/slave_t1.toml``)::
     connect = ["tcp/127.0.0.1:7447"]
 
     [source]
-    type = "ins"           # ins (simulated sensors through the INS filter) | truth_noise
+    type = "ins"           # ins (simulated sensors through the INS filter) | dataset | truth_noise
+    # dataset = "../shared/data/drive_0708"   # with type = "dataset": a recording paced at real time
+    # align_to_epoch = true                   # its first IMU sample at the scenario epoch
     scenario = "convoy"    # sim.scenarios builder
     actor = "t1"           # default: vehicle_id
     start_unix_s = 0       # wall time of the scenario epoch (the CLI --start overrides)
@@ -86,17 +88,23 @@ class SourceConfig:
     actor: str | None = None
     start_unix_s: float = 0.0
     params: dict = field(default_factory=dict)
+    dataset: str | None = None
+    align_to_epoch: bool = True
 
     @classmethod
     def from_table(cls, t: dict, where: str) -> "SourceConfig":
-        check_keys(t, {"type", "scenario", "actor", "start_unix_s", "params"}, where)
+        check_keys(t, {"type", "scenario", "actor", "start_unix_s", "params", "dataset", "align_to_epoch"}, where)
         typ = take(t, "type", str, "ins", where)
-        if typ not in ("ins", "truth_noise"):
-            raise ConfigError(f"{where}.type: {typ!r} is not one of ['ins', 'truth_noise']")
+        if typ not in ("ins", "truth_noise", "dataset"):
+            raise ConfigError(f"{where}.type: {typ!r} is not one of ['ins', 'truth_noise', 'dataset']")
+        dataset = take(t, "dataset", str, None, where)
+        if typ == "dataset" and not dataset:
+            raise ConfigError(f"{where}.dataset: required with type = 'dataset' (a dataset folder or dataset.toml)")
         return cls(type=typ, scenario=take(t, "scenario", str, "convoy", where),
                    actor=take(t, "actor", str, None, where),
                    start_unix_s=take(t, "start_unix_s", float, 0.0, where),
-                   params=dict(take(t, "params", dict, {}, where)))
+                   params=dict(take(t, "params", dict, {}, where)), dataset=dataset,
+                   align_to_epoch=take(t, "align_to_epoch", bool, True, where))
 
 
 def link_from_table(t: dict, where: str) -> LinkConfig:

@@ -56,10 +56,21 @@ def run_slave(cfg: SlaveConfig, start_unix_s: float | None = None, stop: _Stop |
         start = time.time() + WARMUP_S
     sc = build(cfg.source.scenario, **cfg.source.params)
     actor_id = cfg.source.actor or cfg.vehicle_id
-    if actor_id not in sc.actors:
-        raise ConfigError(f"{cfg.path}: [source].actor {actor_id!r} not in scenario actors {sorted(sc.actors)}")
-    actor = sc.actors[actor_id]
-    source = make_source(cfg.source.type, sc, actor)
+    if cfg.source.type == "dataset":
+        from sim.scenarios import Actor
+        from v2xpos.wire import Geometry
+        try:
+            source = make_source("dataset", sc, None, cfg.source.dataset, cfg.source.align_to_epoch)
+        except (OSError, ValueError) as exc:
+            raise ConfigError(f"{cfg.path}: [source].dataset: {exc}") from None
+        actor = Actor(cfg.vehicle_id, source.kind, "slave", sc.master.truth,
+                      Geometry.box(3.8, 1.0, 0.9) if source.kind == "vehicle" else Geometry(kind="circle", radius_m=0.3),
+                      imu_units=1)
+    else:
+        if actor_id not in sc.actors:
+            raise ConfigError(f"{cfg.path}: [source].actor {actor_id!r} not in scenario actors {sorted(sc.actors)}")
+        actor = sc.actors[actor_id]
+        source = make_source(cfg.source.type, sc, actor)
     imp = actor.link
     if cfg.latency_ms is not None or cfg.jitter_ms is not None:
         imp = LinkImpairment(cfg.latency_ms if cfg.latency_ms is not None else imp.latency_ms,
@@ -75,7 +86,8 @@ def run_slave(cfg: SlaveConfig, start_unix_s: float | None = None, stop: _Stop |
     gps_of = (lambda wall: epoch + (wall - start))
     wall_of = (lambda t: start + (t - epoch))
     source.warm_up()
-    source.advance(sc.epoch_gps_s - WARMUP_S - 0.5)   # driving history before the run: filter converged
+    if cfg.source.type != "dataset":
+        source.advance(sc.epoch_gps_s - WARMUP_S - 0.5)   # driving history before the run: filter converged
     link = Link(cfg.link)
     pub = link.publisher(state_key(cfg.fleet, cfg.vehicle_id))
     grading = cfg.publish_imu and actor.imu_units >= 2      # grading compares units: needs two or more

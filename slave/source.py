@@ -6,6 +6,8 @@ time of validity <= t_gps_s and returns the NavStates produced (one per IMU epoc
 * ``InsSimSource``: the actor's simulated IMU (100 Hz, error model ``sim.sensors.ImuErrorModel``
   preset) and RTK GNSS (10 Hz, 1 cm fixed, the scenario's fix schedule, antenna lever arm) run
   through the navigation filter ``v2xpos.ins.InsFilter`` -- the product path.
+* ``DatasetSource``: a recorded drive (``v2xpos.datasets``) through the same filter, paced at real
+  time (its GPS times shifted onto the scenario epoch when asked).
 * ``TruthNoiseSource``: truth plus first-order Gauss-Markov position noise scaled by the fix
   status. No filter: a load generator / fallback for link tests only.
 
@@ -214,11 +216,73 @@ def imu_units(sc: Scenario, actor: Actor, nav_imu=None) -> tuple[dict, dict]:
     return units, mounting
 
 
+class DatasetSource:
+    """A recorded drive (``v2xpos.datasets.load_dataset``: IMU + GNSS with the declared mounting and
+    lever arm) through the INS filter, paced by the caller's clock.
+
+    ``time_shift_s`` is added to the recording's GPS times so that its first IMU sample falls on the
+    scenario epoch (``align_to_epoch``); ``advance(t)`` consumes every sample with shifted time <= t.
+    The filter aligns itself from the data (no truth). GNSS epochs are fed when their time is reached.
+    """
+
+    def __init__(self, path: str, epoch_gps_s: float | None = None, t_skip_s: float = 0.0):
+        from v2xpos.datasets.loader import load_dataset
+        from v2xpos.ins import InsConfig, InsFilter
+        self.name = "dataset"
+        self.ds = load_dataset(path)
+        self.kind = "pedestrian" if self.ds.platform == "pedestrian" else "vehicle"
+        plat = self.ds.platform if self.ds.platform in ("car", "pedestrian") else "generic"
+        self.filter = InsFilter(InsConfig(platform=plat, imu_to_body=self.ds.imu_to_body,
+                                          lever_arm_m=self.ds.lever_arm_m, lever_arm_sd_m=self.ds.lever_arm_sd_m))
+        t0 = float(self.ds.imu.t_s[0]) + t_skip_s
+        self.time_shift_s = 0.0 if epoch_gps_s is None else epoch_gps_s - t0
+        self.i_imu = int(np.searchsorted(self.ds.imu.t_s, t0))
+        self.i_gnss = int(np.searchsorted(self.ds.gnss.t_s, t0))
+        self.last_t_s = -math.inf
+        self.non_monotonic = 0
+
+    def warm_up(self) -> None:
+        """Nothing precomputed beyond loading; the JIT is warmed by the first samples."""
+
+    def advance(self, t_gps_s: float) -> list[NavState]:
+        imu, gnss = self.ds.imu, self.ds.gnss
+        t_data = t_gps_s - self.time_shift_s
+        out = []
+        n = len(imu.t_s)
+        while self.i_imu < n and imu.t_s[self.i_imu] <= t_data:
+            k = self.i_imu
+            t_k = float(imu.t_s[k])
+            while self.i_gnss < len(gnss.t_s) and gnss.t_s[self.i_gnss] <= t_k:
+                j = self.i_gnss
+                vel = None if gnss.vel_ned_mps is None else gnss.vel_ned_mps[j]
+                vsd = None if gnss.vel_sd_ned_mps is None else gnss.vel_sd_ned_mps[j]
+                self.filter.update_gnss(float(gnss.t_s[j]), gnss.lla[j], gnss.sd_ned_m[j], FixStatus(int(gnss.fix[j])),
+                                        vel_ned_mps=vel, vel_sd_ned_mps=vsd)
+                self.i_gnss += 1
+            self.filter.process_imu(t_k, imu.acc_mps2[k], imu.gyro_rps[k])
+            self.i_imu = k + 1
+            if self.filter.initialized:
+                nav = self.filter.nav_state()
+                nav.t_s = nav.t_s + self.time_shift_s
+                if nav.t_s <= self.last_t_s:       # the estimated IMU time offset moved the label back
+                    self.non_monotonic += 1
+                    continue
+                self.last_t_s = nav.t_s
+                out.append(nav)
+        return out
+
+
 SOURCES = {"ins": InsSimSource, "truth_noise": TruthNoiseSource}
 
 
-def make_source(kind: str, sc: Scenario, actor: Actor) -> NavSource:
-    """Source by config name: ``ins`` (default, the real filter) or ``truth_noise``."""
+def make_source(kind: str, sc: Scenario, actor: Actor, dataset: str | None = None,
+                align_to_epoch: bool = True) -> NavSource:
+    """Source by config name: ``ins`` (default, the real filter on simulated sensors),
+    ``truth_noise``, or ``dataset`` (a recording through the filter, ``dataset`` = its path)."""
+    if kind == "dataset":
+        if not dataset:
+            raise ValueError("[source] type 'dataset' needs [source].dataset = <path>")
+        return DatasetSource(dataset, sc.epoch_gps_s if align_to_epoch else None)
     if kind not in SOURCES:
-        raise ValueError(f"[source] type {kind!r} is not one of {sorted(SOURCES)}")
+        raise ValueError(f"[source] type {kind!r} is not one of {sorted(SOURCES) + ['dataset']}")
     return SOURCES[kind](sc, actor)
