@@ -42,6 +42,9 @@ def add_bench_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", default=None, help="write the result to this JSON file")
     parser.add_argument("--out", default=None, help="working directory (default: a temporary one)")
     parser.add_argument("--no-can", action="store_true", help="master without the CAN sink")
+    parser.add_argument("--can-rate-hz", type=float, default=25.0,
+                        help="CAN updates per target per second (a 1 Mbit/s bus carries 64 targets at 25 Hz;"
+                             " 0 = every result); UDP and zenoh carry every result")
     parser.add_argument("--dispatch", choices=["inline", "asyncio"], default="inline",
                         help="master dispatch mode (pipeline on the zenoh thread, or via the asyncio loop)")
     # internal: the load generator process
@@ -150,7 +153,8 @@ def run_bench(args: argparse.Namespace) -> int:
                         "measurement_point_m": [3.8, 0.0, 0.0]},
             "link": {"mode": "router", "listen": [endpoint]},
             "source": {"type": "truth_noise", "scenario": "convoy", "actor": "ego", "params": scenario},
-            "output": {"can": {"enabled": not args.no_can, "interface": "virtual", "channel": f"fanin-{port}"},
+            "output": {"can": {"enabled": not args.no_can, "interface": "virtual", "channel": f"fanin-{port}",
+                               "rate_hz": args.can_rate_hz},
                        "udp": {"enabled": True, "host": "127.0.0.1", "port": free_udp_port()},
                        "zenoh": {"enabled": True}},
             "record": {"results_npz": str(npz), "summary_json": str(summary)}}

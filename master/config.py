@@ -25,6 +25,7 @@
     enabled = true
     interface = "virtual"             # socketcan on a vehicle
     channel = "v2xpos"
+    rate_hz = 0                       # max updates per target per second (0 = every result)
     [output.udp]
     enabled = true
     host = "127.0.0.1"
@@ -78,6 +79,7 @@ class MasterConfig:
     can_enabled: bool = False
     can_interface: str = "virtual"
     can_channel: str = "v2xpos"
+    can_rate_hz: float = 0.0
     udp_enabled: bool = False
     udp_host: str = "127.0.0.1"
     udp_port: int = 47001
@@ -128,7 +130,10 @@ class MasterConfig:
         can_t = take(out, "can", dict, {}, f"{path}: [output]")
         udp_t = take(out, "udp", dict, {}, f"{path}: [output]")
         zen_t = take(out, "zenoh", dict, {}, f"{path}: [output]")
-        check_keys(can_t, {"enabled", "interface", "channel"}, wc)
+        check_keys(can_t, {"enabled", "interface", "channel", "rate_hz"}, wc)
+        can_rate = take(can_t, "rate_hz", float, 0.0, wc)
+        if can_rate < 0:
+            raise ConfigError(f"{wc}.rate_hz: must be >= 0, got {can_rate}")
         check_keys(udp_t, {"enabled", "host", "port"}, wu)
         check_keys(zen_t, {"enabled"}, wz)
         port = take(udp_t, "port", int, 47001, wu)
@@ -160,7 +165,7 @@ class MasterConfig:
                                  f"{path}: [link]"),
             source=SourceConfig.from_table(take(d, "source", dict, {}, path), f"{path}: [source]"),
             can_enabled=take(can_t, "enabled", bool, False, wc), can_interface=take(can_t, "interface", str, "virtual", wc),
-            can_channel=take(can_t, "channel", str, "v2xpos", wc),
+            can_channel=take(can_t, "channel", str, "v2xpos", wc), can_rate_hz=can_rate,
             udp_enabled=take(udp_t, "enabled", bool, False, wu), udp_host=take(udp_t, "host", str, "127.0.0.1", wu),
             udp_port=port, zenoh_enabled=take(zen_t, "enabled", bool, True, wz),
             geojson=take(sc, "geojson", str, None, f"{path}: [scene]"), scene_hz=scene_hz,

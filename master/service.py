@@ -91,7 +91,7 @@ class MasterService:
         cfg = self.cfg
         self.link = Link(cfg.link)
         if cfg.can_enabled:
-            self.can = CanSink(channel=cfg.can_channel, interface=cfg.can_interface)
+            self.can = CanSink(channel=cfg.can_channel, interface=cfg.can_interface, rate_hz=cfg.can_rate_hz or None)
             self.sinks.append(self.can)
         if cfg.udp_enabled:
             self.udp = UdpSink(cfg.udp_host, cfg.udp_port)

@@ -207,3 +207,17 @@ def test_can_and_udp_outputs_equal_the_results(scenario):
     udp_sink.close()
     rx.shutdown()
     sock.close()
+
+
+def test_can_rate_limit_keeps_status_changes(scenario):
+    sc = scenario
+    can_sink = CanSink(channel="test-rate", interface="virtual", rate_hz=25.0)
+    pipe = make_pipeline(sc, [can_sink])
+    t0 = sc.epoch_gps_s + 4.0
+    for k in range(12):
+        t = t0 + 0.01 * k
+        fix = FixStatus.SINGLE if k == 5 else FixStatus.FIXED
+        pipe.handle(payload(sc, "t2", k + 1, t - 0.1, fix), key("t2"), truth_state(sc, "ego", t), t)
+    # valid at k = 0, 4, 8 (25 Hz), the FIX_INVALID at k = 5 and the VALID right after it (k = 6)
+    assert can_sink.frames == 5 * 4 + 1 and can_sink.skipped == 12 - 5
+    can_sink.close()
