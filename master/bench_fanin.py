@@ -238,7 +238,7 @@ def run_bench(args: argparse.Namespace) -> int:
     # contention-independent estimate: master CPU share = base + per-message cost x handled rate, with
     # the messages counted by the time the master processed them (backlog included)
     all_rows = [r for rs in rows_by_stage.values() for r in rs]
-    t_proc_wall = (np.concatenate(all_rows)[:, F["t_gps_s"]] - epoch + start) if all_rows else np.zeros(0)
+    t_proc_wall = np.concatenate(all_rows)[:, F["t_out_wall_s"]] if all_rows else np.zeros(0)
     pts = []
     for s in range(len(stages)):
         if s + 1 >= len(cpu_marks):
@@ -248,6 +248,7 @@ def run_bench(args: argparse.Namespace) -> int:
         if np.isfinite(c1 - c0) and w1 > w0 and n > 0:
             pts.append((n / (w1 - w0), (c1 - c0) / (w1 - w0)))
             result_stages[s]["handled_per_s_in_window"] = n / (w1 - w0)
+            result_stages[s]["master_cpu_ms_per_message"] = (c1 - c0) / n * 1e3
     cpu_fit = None
     if len(pts) >= 2:
         x, y = np.array(pts).T

@@ -104,7 +104,8 @@ class TargetTrack:
 
 RECORD_FIELDS = ("t_gps_s", "t_slave_gps_s", "status", "latency_s", "pipeline_ms", "e2e_ms",
                  "rel_pos_x", "rel_pos_y", "rel_pos_z", "rel_vel_x", "rel_vel_y", "rel_vel_z",
-                 "range_m", "unc_pos_x", "unc_pos_y", "unc_pos_z", "fix_side", "ttc_s", "gap_m", "slave_fix")
+                 "range_m", "unc_pos_x", "unc_pos_y", "unc_pos_z", "fix_side", "ttc_s", "gap_m", "slave_fix",
+                 "t_out_wall_s")
 
 
 class MasterPipeline:
@@ -245,18 +246,18 @@ class MasterPipeline:
             if not math.isnan(e2e):
                 self.e2e_ms.append(e2e)
         if cfg.record:
-            self._record(res, msg, pipe_ms, e2e, unc)
+            self._record(res, msg, pipe_ms, e2e, unc, t_done)
         return res
 
     def _record(self, res: RelativeResult, msg: StateMessage | None, pipe_ms: float, e2e: float,
-                unc: np.ndarray | None) -> None:
+                unc: np.ndarray | None, t_done_wall_s: float) -> None:
         rows = self.records[res.target_id]
         p, v = res.rel_pos_body_m, res.rel_vel_body_mps
         u = unc if unc is not None else (math.nan, math.nan, math.nan)
         rows.append((res.t_gps_s, math.nan if msg is None else msg.t_gps_s, int(res.status), res.latency_s,
                      pipe_ms, e2e, p[0], p[1], p[2], v[0], v[1], v[2], res.range_m, u[0], u[1], u[2],
                      int(res.fix_side), math.nan if res.ttc_s is None else res.ttc_s, res.gap_m,
-                     math.nan if msg is None else int(msg.fix)))
+                     math.nan if msg is None else int(msg.fix), t_done_wall_s))
 
     # ------------------------------------------------------------------ scene (V2L / V2X)
     def process_scene(self, scene: Any, master: Any) -> Any:
