@@ -168,6 +168,7 @@ class InsFilter:
         self.aligner = CoarseAligner()
         self._course_tracker = CourseTracker()
         self._course_sd_rad = 0.0
+        self._mis_cache: tuple | None = None
         self.calibrator = StaticCalibrator(c.static_calibration)
         self.gate = {k: float(chi2.ppf(c.gate_probability, k)) for k in (1, 2, 3, 6)}
         self.last_fix = FixStatus.NONE
@@ -219,7 +220,10 @@ class InsFilter:
     def misalignment_dcm(self) -> np.ndarray:
         """R: vehicle <- filter body (identity unless the misalignment effect is estimated)."""
         m = self.fx.misalignment_rad
-        return dcm_from_euler(m[0], m[1], m[2])
+        key = (float(m[0]), float(m[1]), float(m[2]))
+        if self._mis_cache is None or self._mis_cache[0] != key:
+            self._mis_cache = (key, dcm_from_euler(*key))
+        return self._mis_cache[1]
 
     def sd(self, name: str) -> np.ndarray:
         """1-sigma of an effect block from P (empty when the effect is not estimated)."""
@@ -280,16 +284,35 @@ class InsFilter:
     # ------------------------------------------------------------------ IMU
     def process_imu(self, t_s: float, acc_mps2: np.ndarray, gyro_rps: np.ndarray) -> None:
         """One IMU sample in IMU axes (specific force [m/s^2], rate [rad/s]) stamped t_s."""
-        self.process_imu_batch(np.array([t_s], float), np.asarray(acc_mps2, float).reshape(1, 3),
-                               np.asarray(gyro_rps, float).reshape(1, 3))
+        try:
+            t = float(t_s)
+            a = np.asarray(acc_mps2, float).reshape(3)
+            g = np.asarray(gyro_rps, float).reshape(3)
+        except (TypeError, ValueError):
+            self.counts["malformed_inputs"] += 1
+            return
+        if (not math.isfinite(t) or not math.isfinite(float(a @ a + g @ g))
+                or (self._last_sample_t is not None and t <= self._last_sample_t)):
+            self.counts["malformed_inputs"] += 1
+            return
+        M = self.cfg.imu_to_body
+        f_b = M @ a
+        w_b = M @ g
+        self._last_sample_t = t
+        self._last_raw_f_b = f_b
+        self._last_raw_w_b = w_b
+        self._run_body(np.array([t]), f_b.reshape(1, 3), w_b.reshape(1, 3))
 
     def process_imu_batch(self, t_s: np.ndarray, acc_mps2: np.ndarray, gyro_rps: np.ndarray) -> None:
         """Several IMU samples (IMU axes); equivalent to calling ``process_imu`` on each in order."""
-        with np.errstate(invalid="ignore", over="ignore"):
-            f_b = np.ascontiguousarray(np.asarray(acc_mps2, float).reshape(-1, 3) @ self.cfg.imu_to_body.T)
-            w_b = np.ascontiguousarray(np.asarray(gyro_rps, float).reshape(-1, 3) @ self.cfg.imu_to_body.T)
+        acc = np.asarray(acc_mps2, float).reshape(-1, 3)
+        gyr = np.asarray(gyro_rps, float).reshape(-1, 3)
         t_s = np.ascontiguousarray(np.atleast_1d(t_s), dtype=float)
-        good = np.isfinite(t_s) & np.isfinite(f_b).all(axis=1) & np.isfinite(w_b).all(axis=1)
+        good = np.isfinite(t_s) & np.isfinite(acc).all(axis=1) & np.isfinite(gyr).all(axis=1)
+        if not good.all():
+            acc, gyr = np.where(good[:, None], acc, 0.0), np.where(good[:, None], gyr, 0.0)
+        f_b = np.ascontiguousarray(acc @ self.cfg.imu_to_body.T)
+        w_b = np.ascontiguousarray(gyr @ self.cfg.imu_to_body.T)
         if self._last_sample_t is not None:
             good &= t_s > self._last_sample_t
         if not good.all():
