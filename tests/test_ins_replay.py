@@ -32,6 +32,7 @@ def test_drive_0708_outage_target(drive_run):
     assert s["outage_count"] == 11
     assert s["outage_h_rms_m"] <= 5.0, s["outage_h_m"]
     assert s["outage_h_max_m"] < 10.0
+    assert s["aided_h_rms_steady_m"] < 0.05    # RTK-aided one-epoch prediction
     assert s["imu_samples"] == len(ds.imu)
     assert s["gnss_epochs"] == len(ds.gnss)
     assert all(k in s for k in REQUIRED_KEYS)
@@ -63,7 +64,7 @@ def test_walk_0827_pedestrian_with_float_section():
     float_used = [r for r in res.filter.residuals
                   if r.kind == "gnss_pos" and r.accepted and r.t_s >= ds.gnss.t_s[fix == 4][-50]]
     assert len(float_used) > 20
-    assert s["aided_h_rms_m"] < 1.0
+    assert s["aided_h_rms_m"] < 1.0 and s["aided_h_rms_steady_m"] < 0.1
     assert s["outage_count"] >= 1 and s["outage_h_rms_m"] < 20.0
 
 

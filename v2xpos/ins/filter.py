@@ -66,7 +66,7 @@ class InsConfig:
     init_vel_sd_mps: float = 0.3
     init_level_sd_rad: float = math.radians(2.0)
     init_yaw_sd_rad: float | None = None          # None: 5 deg car, 20 deg otherwise
-    align_min_speed_mps: float | None = None      # None: 1 m/s car, 0.8 m/s otherwise
+    align_min_speed_mps: float | None = None      # None: 1 m/s car, 0.5 m/s otherwise
     # GNSS measurement model
     fix_sd_scale: dict = field(default_factory=lambda: dict(DEFAULT_FIX_SD_SCALE))
     gnss_pos_sd_floor_m: float = 0.01
@@ -112,7 +112,7 @@ class InsConfig:
         if self.init_yaw_sd_rad is None:
             self.init_yaw_sd_rad = math.radians(5.0 if self.platform == "car" else 20.0)
         if self.align_min_speed_mps is None:
-            self.align_min_speed_mps = 1.0 if self.platform == "car" else 0.8
+            self.align_min_speed_mps = 1.0 if self.platform == "car" else 0.5
 
 
 def _small_rotation(phi: np.ndarray) -> np.ndarray:
