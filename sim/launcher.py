@@ -21,6 +21,12 @@ from pathlib import Path
 from sim.scenarios import Scenario
 
 
+SLAVE_NICE = 4
+"""Slaves run at a lower CPU priority than the master: on one shared machine this stands in for
+the separate computers they would have, so the master (the system under test) is not preempted
+by simulated vehicles."""
+
+
 def free_tcp_port() -> int:
     """A TCP port on 127.0.0.1 that is free now (asked from the OS)."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
@@ -140,9 +146,11 @@ class Fleet:
             cmd = "master" if vid == self.master_id else "slave"
             log = open(logdir / f"{vid}.log", "w")
             self._logs.append(log)
+            nice = 0 if vid == self.master_id else SLAVE_NICE
             self.procs[vid] = subprocess.Popen(
                 [sys.executable, "-m", "v2xpos.cli", cmd, "--config", str(self.plan.configs[vid]),
-                 "--start-file", str(self.start_file)], stdout=log, stderr=subprocess.STDOUT, env=env, cwd=root)
+                 "--start-file", str(self.start_file)], stdout=log, stderr=subprocess.STDOUT, env=env, cwd=root,
+                preexec_fn=(lambda n=nice: os.nice(n)) if nice else None)
 
     def running(self) -> list[str]:
         return [k for k, p in self.procs.items() if p.poll() is None]
