@@ -24,7 +24,7 @@ from . import ekf
 from .alignment import CoarseAligner, CourseTracker
 from .ekf import ATT, BA, BG, POS, VEL, StateLayout
 from .effects import DEFAULT_INITIAL_SD, DEFAULT_RANDOM_WALK, PLATFORM_EFFECTS, EffectValues
-from .mechanization import (COR_BA, COR_BG, MEM_F, MEM_SIZE, MEM_VALID, MEM_W, NAV_H, NAV_LAT,
+from .mechanization import (COR_BA, COR_BG, COR_SA, COR_SG, MEM_F, MEM_SIZE, MEM_VALID, MEM_W, NAV_H, NAV_LAT,
                             NAV_LON, NAV_VEL, strapdown_batch)
 from .static_calibration import StaticBiasEstimate, StaticCalibrationConfig, StaticCalibrator
 from .updates import UpdateResult, kalman_update, skew
@@ -61,6 +61,8 @@ class InsConfig:
     effect_initial_sd: dict = field(default_factory=dict)
     initial_time_offset_s: float = 0.0             # starting value of imu_time_offset (e.g. from calibrate)
     initial_misalignment_rad: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    initial_effects: dict = field(default_factory=dict)   # other starting values: imu_clock_drift [s/s],
+    # gnss_latency_s, gnss_vel_latency_s, odometer_scale, gyro_scale (3), accel_scale (3)
     effect_random_walk: dict = field(default_factory=dict)
     # initial state uncertainty
     init_vel_sd_mps: float = 0.3
@@ -150,6 +152,14 @@ class InsFilter:
         self.fx = EffectValues(c.lever_arm_m)
         self.fx.imu_time_offset_s = float(c.initial_time_offset_s)
         self.fx.misalignment_rad = np.asarray(c.initial_misalignment_rad, float).reshape(3).copy()
+        for name, value in c.initial_effects.items():
+            if name in ("gyro_scale", "accel_scale"):
+                k = COR_SG if name == "gyro_scale" else COR_SA
+                self.corr[k:k + 3] = np.asarray(value, float).reshape(3)
+            elif name in ("imu_clock_drift", "gnss_latency_s", "gnss_vel_latency_s", "odometer_scale"):
+                setattr(self.fx, name, float(value))
+            else:
+                raise ValueError(f"initial_effects: unknown effect {name!r}")
         self.initialized = False
         self.heading_known = True
         self.t_stamp_s: float | None = None
