@@ -20,8 +20,11 @@ def test_forged_and_replayed_messages_are_never_accepted():
     assert r["forged_sent"] == 120 and r["forged_accepted"] == 0
     assert r["replayed_sent"] > 80 and r["replayed_accepted"] == 0
     assert r["genuine_accepted"] == r["genuine_sent"]
-    for reason in ("unknown_key", "key_vehicle_mismatch", "bad_signature", "unsigned", "replay", "too_old"):
-        assert r["rejected"].get(reason, 0) > 0, reason
+    for reason in ("unknown_key", "key_vehicle_mismatch", "bad_signature", "unsigned"):
+        assert r["rejected"].get(reason, 0) == 30, (reason, r["rejected"])
+    # replays are stopped by the pipeline's sequence checks or the authenticator's windows
+    stopped = sum(r["rejected"].get(k, 0) for k in ("replay", "too_old", "duplicate", "out_of_order"))
+    assert stopped >= r["replayed_sent"]
 
 
 @pytest.mark.parametrize("name", ["slave_dropout_and_return", "delay_spikes_and_jitter",

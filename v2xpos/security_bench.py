@@ -217,6 +217,7 @@ def attack_forged_and_replayed(n_each: int = 50) -> dict:
             rig.put("car2", rig.encode("car2", seq, now - 0.003))
             captured.append(good)
             seq += 1
+            now += 0.001  # forgeries look fresher than the genuine message, so only authentication stops them
             kind = k % 4
             if kind == 0:
                 f = rig.encode("car1", seq + 5000, now - 0.003, signer=outsider)
@@ -293,21 +294,22 @@ def fault_dropout_and_return() -> FaultResult:
 
 
 def fault_slave_restart() -> FaultResult:
-    """car2's process restarts: its sequence starts again at 0 (time keeps increasing)."""
+    """car2's process restarts after a 0.2 s gap: its sequence starts again at 0 (it was at
+    about 5000, i.e. it had run for a minute); time keeps increasing."""
     rig = _fresh_rig()
     try:
         for k in _paced(200):
             now = rig.now()
             rig.put("car1", rig.encode("car1", k, now - 0.003))
             if k < 80:
-                rig.put("car2", rig.encode("car2", k + 500, now - 0.003))
+                rig.put("car2", rig.encode("car2", k + 5000, now - 0.003))
             elif k >= 100:
                 rig.put("car2", rig.encode("car2", k - 100, now - 0.003))
             if k % 5 == 0:
                 rig.tick()
         rig.settle()
         with rig.lock:
-            after = [d for d in rig.results("car2") if d.payload is not None and d.result.source_seq < 500]
+            after = [d for d in rig.results("car2") if d.payload is not None and d.result.source_seq < 5000]
             rejected = dict(rig.pipe.rejected)
     finally:
         rig.close()
