@@ -1,8 +1,8 @@
 """``v2xpos bench soak --slaves 32 --rate 100 --duration 60``: long run of the real master service
 with many signing slaves, as separate OS processes on loopback.
 
-Processes: one master (``master.service.MasterService`` with the MCAP recorder wrapped around its
-pipeline and a resident-memory sampler) embedding the zenoh router on ``tcp/127.0.0.1:PORT``;
+Processes: one master (``master.service.MasterService`` with ``[record] mcap`` on, plus a
+resident-memory sampler thread) embedding the zenoh router on ``tcp/127.0.0.1:PORT``;
 ``ceil(slaves / per_process)`` slave processes, each publishing ``per_process`` vehicles'
 signed StateMessages at ``rate`` Hz with CongestionControl.BLOCK (a full queue blocks the
 publisher instead of dropping). Every vehicle has its own Ed25519 key; the master holds the
@@ -52,21 +52,12 @@ def _run_master(cfg_path: Path, start: float, record: Path | None, stats_path: P
 
     from master.config import MasterConfig
     from master.service import MasterService
-    from v2xpos.output.recorder import McapRecorder, RecordingPipeline
 
-    class RecordingMasterService(MasterService):
-        """MasterService whose pipeline is wrapped by the MCAP recorder."""
-
-        recorder = None
-
-        def _open(self) -> None:
-            super()._open()
-            if record is not None:
-                self.recorder = McapRecorder(record, max_bytes=64 * 2 ** 20)
-                self.pipeline = RecordingPipeline(self.pipeline, self.recorder)
-
-    cfg = MasterConfig.from_dict(json.loads(cfg_path.read_text()), str(cfg_path))
-    svc = RecordingMasterService(cfg, start)
+    doc = json.loads(cfg_path.read_text())
+    if record is not None:
+        doc.setdefault("record", {}).update({"mcap": str(record), "mcap_max_mb": 64})
+    cfg = MasterConfig.from_dict(doc, str(cfg_path))
+    svc = MasterService(cfg, start)
     samples: list[tuple[float, int]] = []
     stop = threading.Event()
 
@@ -91,14 +82,11 @@ def _run_master(cfg_path: Path, start: float, record: Path | None, stats_path: P
         final = asyncio.run(svc.run())
     stop.set()
     th.join()
-    if svc.recorder is not None:
-        svc.recorder.close()
     final["recorded"] = dict(svc.recorder.recorded) if svc.recorder is not None else {}
     final["mcap_files"] = [str(p) for p in svc.recorder.files] if svc.recorder is not None else []
     final["rss_samples"] = samples
     final["publish_end_unix_s"] = publish_end
-    final["clock_skew"] = (svc.pipeline.authenticator.skew_report()
-                           if svc.pipeline.authenticator is not None else [])
+    final.setdefault("clock_skew", [])
     stats_path.write_text(json.dumps(final))
     return 0
 

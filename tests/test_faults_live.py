@@ -35,9 +35,6 @@ def test_fault(name):
     assert result.passed, result.detail
 
 
-@pytest.mark.xfail(reason="master.pipeline rejects a restarted slave (sequence back to 0) as out_of_order "
-                          "until its last sequence is exceeded; requested in docs/requests-from-trust.md",
-                   strict=False)
 def test_fault_slave_restart_sequence_reset():
     result = _run("slave_restart_sequence_reset")
     assert result.passed, result.detail
