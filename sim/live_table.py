@@ -5,8 +5,9 @@
 
 Columns: target, kind, status, range [m], bearing [deg], gap [m] to the nearest target point from
 the master measurement point, TTC [s], latency [ms] (master time - target time of validity),
-accepted / rejected message counts, and |range error| [m] against the simulator truth when a
-scenario is given (the demo knows the truth; a field monitor would not).
+accepted / rejected message counts, |range error| [m] against the simulator truth when a
+scenario is given (the demo knows the truth; a field monitor would not), and the IMU grades of the
+target's units (DEGRADED when its results are flagged).
 """
 from __future__ import annotations
 
@@ -56,7 +57,8 @@ class LiveTable:
                  f"{f(st.get('pipeline_ms_p99'), '.2f')} ms  e2e p99={f(st.get('e2e_ms_p99'), '.2f')} ms  "
                  f"CAN={st.get('can_frames')} UDP={st.get('udp_datagrams')}  rejected={st.get('rejected')}",
                  f"{'target':<7}{'kind':<11}{'status':<12}{'range':>8}{'brg':>7}{'gap':>8}{'ttc':>7}"
-                 f"{'lat_ms':>8}{'acc':>7}{'rej':>5}{'|dR|':>8}"]
+                 f"{'lat_ms':>8}{'acc':>7}{'rej':>5}{'|dR|':>8}  imu"]
+        grades = st.get("imu_grades") or {}
         for vid, t in sorted(st.get("targets", {}).items()):
             last = t.get("last") or {}
             d_range = None
@@ -67,7 +69,8 @@ class LiveTable:
             lines.append(f"{vid:<7}{t.get('kind', ''):<11}{t.get('status', ''):<12}{f(last.get('range_m'), '8.2f')}"
                          f"{f(last.get('bearing_deg'), '7.1f')}{f(last.get('gap_m'), '8.2f')}"
                          f"{f(last.get('ttc_s'), '7.1f')}{f(last.get('latency_ms'), '8.1f')}"
-                         f"{t.get('accepted', 0):>7}{sum(t.get('rejected', {}).values()):>5}{f(d_range, '8.3f')}")
+                         f"{t.get('accepted', 0):>7}{sum(t.get('rejected', {}).values()):>5}{f(d_range, '8.3f')}"
+                         f"  {_grade_text(grades.get(vid), t.get('degraded', False))}")
         return "\n".join(lines)
 
     def refresh(self) -> None:
@@ -86,3 +89,13 @@ class LiveTable:
 
     def close(self) -> None:
         self.link.close()
+
+
+def _grade_text(g: dict | None, degraded: bool) -> str:
+    """``imu1:pass imu2:warn ...`` (or the grader status), ``DEGRADED`` when results are flagged."""
+    if not g:
+        return "-"
+    units = g.get("units") or {}
+    text = " ".join(f"{u}:{v or '?'}" for u, v in sorted(units.items())) if g.get("status") == "graded" \
+        else str(g.get("status"))
+    return text + ("  DEGRADED" if degraded else "")
