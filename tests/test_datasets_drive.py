@@ -1,4 +1,5 @@
 """drive_0708 / walk_0827 through load_dataset: counts against the files, time mapping, damage."""
+import datetime
 from pathlib import Path
 
 import numpy as np
@@ -63,7 +64,10 @@ def test_drive_units_and_frames(drive):
 def test_drive_time_mapping(drive):
     t_imu, t_gnss = drive.imu.t_s, drive.gnss.t_s
     assert np.all(np.diff(t_imu) > 0) and np.all(np.diff(t_gnss) > 0)
-    assert drive.gnss.t_s[0] == pytest.approx(2374 * 604800 + 2 * 86400 + 19 * 3600 + 34 * 60 + 18.499)
+    # first epoch from the file's own GPST calendar stamp (no leap seconds in GPST)
+    date_s, time_s = _pos_rows(DATA / "drive_0708" / "gnss_1934.pos")[0][:2]
+    stamp = datetime.datetime.strptime(f"{date_s} {time_s}", "%Y/%m/%d %H:%M:%S.%f")
+    assert drive.gnss.t_s[0] == pytest.approx((stamp - datetime.datetime(1980, 1, 6)).total_seconds(), abs=1e-6)
     # the IMU log starts inside the GNSS solution and ends within a few seconds of its end
     assert t_gnss[0] <= t_imu[0] < t_gnss[-1]
     assert t_imu[-1] < t_gnss[-1] + 5.0
@@ -81,7 +85,10 @@ def test_walk_rate_from_counter_and_cut_first_line():
     first_line = (DATA / "walk_0827" / "imu_1730.csv").read_bytes().split(b"\n")[0]
     if first_line.count(b",") != 6:
         assert res.issues.count >= 1 and res.issues.examples[0][0] == 1
-    assert 130.0 < res.rate_hz < 180.0
+    # the rate comes from the counter (samples per counter span of the file's 7-field lines)
+    counters = [int(ln.split(b",")[-1]) for ln in (DATA / "walk_0827" / "imu_1730.csv").read_bytes().split(b"\n")
+                if ln.count(b",") == 6]
+    assert res.rate_hz == pytest.approx(1000.0 * (len(counters) - 1) / (counters[-1] - counters[0]), rel=0.01)
     gnss, issues = read_rtklib_pos(DATA / "walk_0827" / "gnss_1730.pos")
     q = np.array([int(float(r[5])) for r in _pos_rows(DATA / "walk_0827" / "gnss_1730.pos")])
     assert issues.count == 0 and len(gnss) == q.size
