@@ -7,10 +7,12 @@ innovations are ``z - h(x_est)`` (measurement minus prediction).
 Models (C = C_nb estimate, l = lever arm in body, w = compensated body rate, v = NED velocity,
 R_m = misalignment DCM vehicle <- body, v_b = C^T v):
 
-* GNSS position at the antenna (Groves 2013 eq. 14.121 with our signs):
-  h = r + C l + v_IMU * gap;  H_r = I, H_phi = [(C l) x], H_l = C, H_dt = -v, H_lat = +v.
-* GNSS velocity at the antenna: h = v + C (w x l);  H_v = I, H_phi = [(C (w x l)) x],
-  H_bg = C [l x], H_l = C [w x], H_dt = -a, H_lat = +a.
+* GNSS position at the antenna (Groves 2013 eq. 14.121 with our signs), with
+  gap = t_meas - latency - (t_stamp + dt) from the state label to the epoch the fix describes:
+  h = r + C l + v_IMU * gap;  H_r = I, H_phi = [(C l) x], H_l = C, H_dt = H_lat = -v
+  (both shorten the gap).
+* GNSS velocity at the antenna: h = v + C (w x l) + a (gap - vel_latency);  H_v = I,
+  H_phi = [(C (w x l)) x], H_bg = C [l x], H_l = C [w x], H_dt = H_lat = H_vel_lat = -a.
 * Non-holonomic constraint (Shin 2001 sec. 4.3; Dissanayake et al. 2001): the vehicle-frame lateral
   and vertical velocity are zero: h = (R_m C^T v)_{y,z};
   H_v = R_m C^T, H_phi = -R_m C^T [v x], H_mis = -[v_b x].
