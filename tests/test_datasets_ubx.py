@@ -83,3 +83,19 @@ def test_walk_descriptor_reads_raw_stream():
     ds = load_dataset(_require(WALK / "dataset.toml"), read_raw=True)
     assert ds.notes["ubx"]["nav_pvt_epochs"] == len(ds.gnss)
     assert ds.notes["ubx"]["latency_s"]["median"] > 0
+
+
+def test_every_bad_timetag_record_is_counted(tmp_path):
+    """A timetag with more damaged records than the examples kept: all of them are counted."""
+    tag = bytearray(_require(WALK / "gnss_1730.ubx.tag").read_bytes())
+    header, record = 76, 8
+    n_records = (len(tag) - header) // record
+    damaged = list(range(10, min(n_records, 400), 40))
+    for k in damaged:   # each of these records goes back in time
+        tag[header + k * record:header + k * record + 4] = (0).to_bytes(4, "little")
+    path = tmp_path / "damaged.tag"
+    path.write_bytes(bytes(tag))
+    res = read_ubx(WALK / "gnss_1730.ubx", path)
+    assert len(damaged) > res.issues.max_examples
+    assert res.issues.count == len(damaged)
+    assert all(r.startswith("timetag: ") for _, r in res.issues.examples)

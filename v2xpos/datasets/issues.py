@@ -22,6 +22,12 @@ class ParseIssues:
         if len(self.examples) < self.max_examples:
             self.examples.append((int(where), reason))
 
+    def merge(self, other: "ParseIssues", prefix: str = "") -> None:
+        """Add all of ``other``'s count and as many of its examples as fit (reasons prefixed)."""
+        self.count += other.count
+        room = self.max_examples - len(self.examples)
+        self.examples += [(n, prefix + r) for n, r in other.examples[:max(room, 0)]]
+
     def summary(self) -> str:
         if not self.count:
             return f"{self.source}: no malformed records"

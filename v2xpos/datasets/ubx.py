@@ -197,8 +197,7 @@ def read_ubx(path: str | Path, timetag: str | Path | TimeTag | None = None) -> U
     if timetag is not None:
         if not isinstance(timetag, TimeTag):
             timetag, tag_issues = read_timetag(timetag)
-            for where, reason in tag_issues.examples:
-                issues.add(where, f"timetag: {reason}")
+            issues.merge(tag_issues, "timetag: ")
         arrival = timetag.arrival_gps_s(np.asarray(ends, dtype=np.int64))
     return UbxResult(gnss=gnss, issues=issues, arrival_s=arrival, latency_s=arrival - gnss.t_s,
                      height_msl_m=arr[:, 4], message_counts=dict(counts), non_ubx_bytes=skipped)
