@@ -77,3 +77,23 @@ def test_imu_wheel_units(seg):
 def test_folder_autodetect(seg):
     ds = load_dataset(SEGMENT)
     assert len(ds.imu) == len(seg.imu)
+
+
+def test_gnss_stamp_jumping_ahead_drops_the_rows_behind_it(tmp_path):
+    """One UTC stamp jumps ahead of the next rows: those rows are dropped and counted, and the GNSS
+    times stay strictly increasing."""
+    if not SEGMENT.exists():
+        pytest.skip(f"shared data not found: {SEGMENT} (see ../shared/data/README.md)")
+    import shutil
+    copy = tmp_path / "segment"
+    shutil.copytree(SEGMENT, copy)
+    value_file = copy / "processed_log/GNSS/live_gnss_ublox/value"
+    value = np.load(value_file)
+    value[3, 3] = value[10, 3]          # rows 4..10 are now not after row 3
+    with open(value_file, "wb") as fh:
+        np.save(fh, value)
+    clean = load_comma2k19(SEGMENT)
+    damaged = load_comma2k19(copy)
+    assert np.all(np.diff(damaged.gnss.t_s) > 0)
+    assert len(damaged.gnss) == len(clean.gnss) - 7
+    assert damaged.malformed_lines == clean.malformed_lines + 7

@@ -94,7 +94,7 @@ def load_comma2k19(folder: str | Path, wheel_mode: str = "mean4",
     g_t, g = _stream(folder, "processed_log/GNSS/live_gnss_ublox", issues, 6)
     t_valid = timebase.unix_to_gps_seconds(g[:, 3] * 1e-3)
     order_ok = np.ones(t_valid.size, dtype=bool)
-    order_ok[1:] = np.diff(t_valid) > 0
+    order_ok[1:] = t_valid[1:] > np.maximum.accumulate(t_valid)[:-1]
     for i in np.flatnonzero(~order_ok):
         issues.add(int(i) + 1, "live_gnss_ublox: UTC stamp not after the previous solution")
     g_t, g, t_valid = g_t[order_ok], g[order_ok], t_valid[order_ok]
