@@ -108,12 +108,15 @@ def run_worker(endpoint: str, fleet: str, master_id: str, period_s: float = 1.0,
     from v2xpos.link import Link, LinkConfig, grades_key
     from v2xpos.wire import imu_key
     stop = stop or threading.Event()
+    parent = os.getppid()
     fg = FleetGrader()
     link = Link(LinkConfig(mode="client", connect=[endpoint], connect_timeout_ms=30000))
     try:
         link.subscribe(imu_key(fleet, "*"), lambda p, k, a, t: fg.add_payload(p))
         pub = link.publisher(grades_key(fleet, master_id), express=False)
         while not stop.wait(period_s):
+            if os.getppid() != parent:          # the master is gone: do not linger as an orphan
+                break
             grades = fg.grades()
             pub.put(json.dumps({"t_wall_s": time.time(), "malformed": fg.malformed, "vehicles": grades},
                                default=_json_default).encode())
