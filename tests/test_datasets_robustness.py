@@ -74,8 +74,14 @@ def test_counter_wrap_is_unwrapped(tmp_path):
 def test_timetag_layout():
     tag, issues = read_timetag(_require(DATA / "drive_0708" / "imu_1934.csv.tag"))
     assert issues.count == 0 and tag.header.startswith("TIMETAG RTKLIB")
-    week, _ = timebase.week_tow_from_gps_seconds(tag.open_gps_s)
-    assert week == 2374
+    # the IMU log and the GNSS solution of the session start together: within seconds, so an error
+    # of the leap seconds (18 s) or of the epoch (GPST vs Unix) would show
+    first = next(ln for ln in (DATA / "drive_0708" / "gnss_1934.pos").read_text().splitlines()
+                 if ln.strip() and not ln.startswith("%"))
+    y, mo, d = (int(v) for v in first.split()[0].split("/"))
+    hh, mm, ss = first.split()[1].split(":")
+    t_first = timebase.gpst_calendar_to_gps_seconds(y, mo, d, int(hh), int(mm), float(ss))
+    assert abs(t_first - tag.open_gps_s) < 10.0
     assert tag.byte_offset[-1] == (DATA / "drive_0708" / "imu_1934.csv").stat().st_size
     assert np.all(np.diff(tag.t_s) >= 0) and np.all(np.diff(tag.byte_offset) >= 0)
     assert np.median(np.diff(tag.t_s)) == pytest.approx(0.016, abs=0.002)
