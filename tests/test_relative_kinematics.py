@@ -144,7 +144,7 @@ def test_polygon_nearest_edge_and_inside():
     assert res.lateral_m == pytest.approx(0.0, abs=1e-6)
     assert res.gap_m == pytest.approx(8.0, abs=1e-6)
     inside = relative_kinematics(m, state(ned_m=(1.0, 0.5, 0), geometry=poly))
-    assert inside.gap_m == 0.0 and inside.ttc_s is None or inside.ttc_s == 0.0
+    assert inside.gap_m == 0.0 and inside.ttc_s is None     # both at rest: not closing
 
 
 def test_pedestrian_radius_and_covariance():
