@@ -256,6 +256,8 @@ class MasterService:
                 self.closing = True
                 final = self.status(window=None)
             final["link_received"] = sub.received
+            if isinstance(sub, _InlineDispatch) and sub.received:
+                final["handler_cpu_ms_per_message"] = sub.cpu_s / sub.received * 1e3
             final["dispatch"] = self.cfg.dispatch
             self._write_outputs(final)
             for s in self.sinks:
@@ -291,9 +293,11 @@ class _InlineDispatch:
     def __init__(self, svc: MasterService):
         self.svc = svc
         self.received = 0
+        self.cpu_s = 0.0
 
     def on_sample(self, payload: bytes, key: str, attachment: bytes | None, t_arrival_wall_s: float) -> None:
         svc = self.svc
+        c0 = time.thread_time()
         with svc.lock:
             self.received += 1
             if svc.closing:
@@ -302,6 +306,7 @@ class _InlineDispatch:
                 svc.pipeline.rejected[REJECT_MASTER_NOT_READY] += 1
                 return
             svc.pipeline.handle(payload, key, svc.nav, svc.gps_now(), t_arrival_wall_s)
+        self.cpu_s += time.thread_time() - c0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

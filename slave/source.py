@@ -173,17 +173,18 @@ class TruthNoiseSource:
             self.next_t += self.dt
         if not times:
             return []
-        s = self.actor.truth.sample(np.array(times))
+        tr = self.actor.truth
         phi = math.exp(-self.dt / 30.0)
         out = []
-        for i, t in enumerate(times):
+        for t in times:
+            k = min(max(int(round((t - tr.t_s[0]) / tr.dt_s)), 0), len(tr.t_s) - 1)   # nearest truth sample
             fix = self._fix(t)
             sd = self.SD_M.get(fix, 5.0)
             self.gm = phi * self.gm + math.sqrt(1 - phi * phi) * self.rng.normal(0, 1, 3)
-            r = s["r_ned_m"][i] + self.gm * sd
-            out.append(NavState(t_s=t, lla=geo.ned_to_lla(r, self.actor.truth.lla0), v_ned_mps=s["v_ned_mps"][i],
-                                acc_body_mps2=s["acc_body_mps2"][i], rate_body_rps=s["w_nb_b_rps"][i],
-                                rpy_rad=s["rpy_rad"][i], pos_sd_m=np.full(3, sd), vel_sd_mps=np.full(3, 0.02),
+            r = tr.r_ned_m[k] + self.gm * sd
+            out.append(NavState(t_s=t, lla=geo.ned_to_lla(r, tr.lla0), v_ned_mps=tr.v_ned_mps[k].copy(),
+                                acc_body_mps2=tr.C_nb[k].T @ tr.a_ned_mps2[k], rate_body_rps=tr.w_nb_b_rps[k].copy(),
+                                rpy_rad=tr.rpy_rad[k].copy(), pos_sd_m=np.full(3, sd), vel_sd_mps=np.full(3, 0.02),
                                 att_sd_rad=np.full(3, 0.002), fix=fix))
         return out
 
