@@ -17,7 +17,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from v2xpos import geo
-from v2xpos.rotation import dcm_from_euler, euler_from_dcm, orthonormalize, rot_z
+from v2xpos.rotation import dcm_from_euler, euler_from_dcm, orthonormalize, rot_z, skew
 from v2xpos.types import FixStatus, NavState
 
 from . import ekf
@@ -27,7 +27,7 @@ from .effects import DEFAULT_INITIAL_SD, DEFAULT_RANDOM_WALK, PLATFORM_EFFECTS, 
 from .mechanization import (COR_BA, COR_BG, COR_SA, COR_SG, MEM_F, MEM_SIZE, MEM_VALID, MEM_W, NAV_H, NAV_LAT,
                             NAV_LON, NAV_VEL, strapdown_batch)
 from .static_calibration import StaticBiasEstimate, StaticCalibrationConfig, StaticCalibrator
-from .updates import UpdateResult, kalman_update, skew
+from .updates import UpdateResult, kalman_update
 
 DEFAULT_FIX_SD_SCALE = {FixStatus.FIXED: 1.0, FixStatus.FLOAT: 2.0, FixStatus.DGPS: 2.0,
                         FixStatus.SINGLE: 2.0, FixStatus.DEAD_RECKONING: 10.0, FixStatus.NONE: 10.0}

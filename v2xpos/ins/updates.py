@@ -48,10 +48,6 @@ class UpdateResult:
     innovation_cov: np.ndarray | None = None   # S = H P H^T + R
 
 
-def skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 def kalman_update(P: np.ndarray, H: np.ndarray, d: np.ndarray, R: np.ndarray,
                   gate_chi2: float | None, force: bool = False) -> tuple:
     """Gated error-state update. Returns (dx, P_new, nis, S, accepted); dx is None when rejected."""
