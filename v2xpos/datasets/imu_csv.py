@@ -29,11 +29,12 @@ import numpy as np
 from scipy.ndimage import median_filter
 
 from v2xpos import timebase
+from v2xpos.geo import G0_MPS2
 from v2xpos.datasets.issues import ParseIssues
 from v2xpos.datasets.timetag import TimeTag, read_timetag
 from v2xpos.types import ImuData
 
-STANDARD_GRAVITY_MPS2 = 9.80665
+STANDARD_GRAVITY_MPS2 = G0_MPS2
 COUNTER_MODULUS_MS = 1 << 32
 """The counter is taken as a uint32 millisecond count: a backwards step of more than half of
 this is a wrap, not a malformed line."""

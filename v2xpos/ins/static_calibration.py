@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from v2xpos.geo import G0_MPS2
+
 
 @dataclass
 class StaticCalibrationConfig:
@@ -29,7 +31,7 @@ class StaticCalibrationConfig:
     level_fy_max_mps2: float = 0.35          # thr4 (~2 deg of roll)
     window1_s: float = 1.0
     window2_s: float = 2.0
-    gravity_mps2: float = 9.80665            # replaced by normal gravity at the position when known
+    gravity_mps2: float = G0_MPS2            # replaced by normal gravity at the position when known
 
 
 @dataclass

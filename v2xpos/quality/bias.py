@@ -14,9 +14,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from v2xpos.geo import G0_MPS2
 from v2xpos.types import ImuData
 
-STANDARD_GRAVITY_MPS2 = 9.80665
+STANDARD_GRAVITY_MPS2 = G0_MPS2
 
 
 def _moving_average(x: np.ndarray, n: int) -> np.ndarray:

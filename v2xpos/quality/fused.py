@@ -39,7 +39,7 @@ def _velocity_from_positions(t_s: np.ndarray, r_ned_m: np.ndarray) -> np.ndarray
 
 def align_in_motion(imu: ImuData, C_body_imu: np.ndarray, t_fix_s: np.ndarray, r_ned_m: np.ndarray,
                     t0_s: float, align_s: float = 5.0, interval_s: float = 0.5,
-                    gravity_mps2: float = 9.80665) -> np.ndarray:
+                    gravity_mps2: float = geo.G0_MPS2) -> np.ndarray:
     """C_n_b at t0_s (body = C_body_imu @ imu axes) from gyro, accel and position fixes (module doc)."""
     sel = (imu.t_s >= t0_s) & (imu.t_s <= t0_s + align_s)
     t = imu.t_s[sel]
