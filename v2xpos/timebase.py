@@ -194,6 +194,15 @@ def _lower_hull_candidates(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return cand[_lower_hull_indices(x[cand], y[cand])]
 
 
+def _clock_model(offset_s: float, slope: float, counter_s: np.ndarray, residual_s: np.ndarray) -> ClockModel:
+    """ClockModel of ``t = offset_s + slope * counter`` with the statistics of its residuals [s]."""
+    return ClockModel(offset_s=float(offset_s), drift_ppm=float((slope - 1.0) * 1e6),
+                      n_points=int(counter_s.size), residual_min_s=float(residual_s.min()),
+                      residual_median_s=float(np.median(residual_s)),
+                      residual_p95_s=float(np.percentile(residual_s, 95)),
+                      residual_max_s=float(residual_s.max()), counter_span_s=float(np.ptp(counter_s)))
+
+
 def fit_clock_lower_envelope(counter_s: np.ndarray, arrival_s: np.ndarray) -> ClockModel:
     """Fit ``arrival = offset + (1 + drift) * counter`` as the lower envelope of the points.
 
@@ -230,12 +239,7 @@ def fit_clock_lower_envelope(counter_s: np.ndarray, arrival_s: np.ndarray) -> Cl
     residual_floor = float(residual.min())
     icpt += residual_floor  # exact touching despite rounding
     residual -= residual_floor
-    offset = t0 + icpt - slope * c0
-    return ClockModel(offset_s=float(offset), drift_ppm=float((slope - 1.0) * 1e6),
-                      n_points=int(c.size), residual_min_s=float(residual.min()),
-                      residual_median_s=float(np.median(residual)),
-                      residual_p95_s=float(np.percentile(residual, 95)),
-                      residual_max_s=float(residual.max()), counter_span_s=float(np.ptp(c)))
+    return _clock_model(t0 + icpt - slope * c0, slope, c, residual)
 
 
 def fit_clock_least_squares(counter_s: np.ndarray, gps_s: np.ndarray) -> ClockModel:
@@ -250,12 +254,7 @@ def fit_clock_least_squares(counter_s: np.ndarray, gps_s: np.ndarray) -> ClockMo
     c0, t0 = c.mean(), t.mean()
     slope = float(np.sum((c - c0) * (t - t0)) / np.sum((c - c0) ** 2))
     offset = t0 - slope * c0
-    residual = t - (offset + slope * c)
-    return ClockModel(offset_s=float(offset), drift_ppm=float((slope - 1.0) * 1e6),
-                      n_points=int(c.size), residual_min_s=float(residual.min()),
-                      residual_median_s=float(np.median(residual)),
-                      residual_p95_s=float(np.percentile(residual, 95)),
-                      residual_max_s=float(residual.max()), counter_span_s=float(np.ptp(c)))
+    return _clock_model(offset, slope, c, t - (offset + slope * c))
 
 
 # --------------------------------------------------------------------------------------------
