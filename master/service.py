@@ -2,8 +2,8 @@
 slave's StateMessage over zenoh and runs ``master.pipeline.MasterPipeline`` on each, writing CAN,
 UDP and zenoh outputs.
 
-asyncio tasks in one thread (the zenoh callbacks only stamp arrival time and hand over with
-``call_soon_threadsafe``, see ``v2xpos.link.AsyncSubscriber``):
+Threads: the zenoh callback threads (messages, with ``dispatch = "inline"``) and one asyncio loop
+with these tasks; shared state is guarded by ``MasterService.lock``:
 
 * ``nav``: every 10 ms advance the own source to the current scenario GPS time
   (``epoch + wall - start``) and keep the latest NavState (time t_m);
@@ -62,7 +62,16 @@ class MasterService:
         if actor_id not in self.sc.actors:
             raise ConfigError(f"{cfg.path}: [source].actor {actor_id!r} not in scenario actors {sorted(self.sc.actors)}")
         self.actor = self.sc.actors[actor_id]
-        self.source = make_source(cfg.source.type, self.sc, self.actor)
+        try:
+            self.source = make_source(cfg.source.type, self.sc, self.actor, cfg.source.dataset,
+                                      cfg.source.align_to_epoch)
+        except (OSError, ValueError) as exc:
+            raise ConfigError(f"{cfg.path}: [source]: {exc}") from None
+        from v2xpos.security import TrustList, load_trust_list
+        try:
+            self.trust = load_trust_list(cfg.trust_list) if cfg.trust_list else TrustList()
+        except (OSError, ValueError) as exc:
+            raise ConfigError(f"{cfg.path}: [security].trust_list: {exc}") from None
         self.epoch = self.sc.epoch_gps_s
         self.scene = None
         if cfg.geojson:
@@ -98,9 +107,8 @@ class MasterService:
             self.sinks.append(self.udp)
         if cfg.zenoh_enabled:
             self.sinks.append(ZenohSink(self.link.publisher(relative_key(cfg.fleet, cfg.master_id))))
-        from v2xpos.security import MessageAuthenticator, TrustList, load_trust_list
-        trust = load_trust_list(cfg.trust_list) if cfg.trust_list else TrustList()
-        auth = MessageAuthenticator(trust, require_signature=cfg.require_signature and bool(cfg.trust_list),
+        from v2xpos.security import MessageAuthenticator
+        auth = MessageAuthenticator(self.trust, require_signature=cfg.require_signature and bool(cfg.trust_list),
                                     max_age_s=cfg.max_age_s, future_tolerance_s=cfg.future_tolerance_s,
                                     replay_window=cfg.replay_window)
         self.authenticator = auth
