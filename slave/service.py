@@ -79,7 +79,10 @@ def run_slave(cfg: SlaveConfig, start_unix_s: float | None = None, stop: _Stop |
     signer = None
     if cfg.key_file:
         from v2xpos.security import MessageSigner
-        signer = MessageSigner.from_file(cfg.key_file)
+        try:
+            signer = MessageSigner.from_file(cfg.key_file)
+        except (OSError, ValueError) as exc:
+            raise ConfigError(f"{cfg.path}: [security].key_file: {exc}") from None
 
     epoch = sc.epoch_gps_s
     end_gps = epoch + cfg.duration_s if cfg.duration_s is not None else math.inf
