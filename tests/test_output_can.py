@@ -90,6 +90,13 @@ def test_saturation_instead_of_error(buses):
     assert t["TTC"] == pytest.approx(655.34)   # saturated just below the "none" code
 
 
+def test_nan_in_a_valid_result_is_sent_as_zero_not_fatal(buses):
+    out, rx = buses
+    assert out.send_result(result(rel_pos_body_m=np.array([np.nan, 2.0, 0.0]), bearing_rad=np.nan), slot=0) == 5
+    t = decode_frames(drain(rx))["targets"][0]
+    assert t["PosX"] == 0.0 and t["Bearing"] == 0.0 and t["PosY"] == pytest.approx(2.0)
+
+
 def test_lane_object_and_master_frames(buses):
     out, rx = buses
     out.send_lanes([0, 3], [1.8345, -1.75], [-0.25, 0.0])

@@ -19,7 +19,8 @@ Public API (stable)
 Layout (11-bit ids, little-endian signals, 8-byte frames; full table in docs/protocol.md):
 0x1F0 MASTER_STATUS; per target slot k (0..63): 0x200+k TGTkk_STATUS, 0x240+k TGTkk_POS,
 0x280+k TGTkk_RANGE, 0x2C0+k TGTkk_VEL, 0x300+k TGTkk_EXT; 0x380 LANE (one frame per lane line),
-0x381 OBJECT (one frame per static object). Values outside a signal's range are saturated.
+0x381 OBJECT (one frame per static object). Values outside a signal's range are saturated;
+NaN is sent as 0.
 """
 from __future__ import annotations
 
@@ -212,13 +213,15 @@ class CanOutput:
 
     # -- encoding (pure) --------------------------------------------------------------
     def _encode(self, message: Any, values: dict) -> can.Message:
+        """Frame of physical values: saturated to each signal's range, NaN sent as 0 (cantools
+        cannot encode NaN; a non-finite value must not stop the other frames)."""
         limits = self._limits.get(message.frame_id)
         if limits is None:
             limits = self._limits[message.frame_id] = {s.name: (s.minimum, s.maximum) for s in message.signals}
         clamped = {}
         for k, v in values.items():
             lo, hi = limits[k]
-            clamped[k] = lo if v < lo else hi if v > hi else v
+            clamped[k] = 0.0 if v != v else lo if v < lo else hi if v > hi else v
         data = message.encode(clamped, strict=False)
         return can.Message(arbitration_id=message.frame_id, data=data, is_extended_id=False)
 
