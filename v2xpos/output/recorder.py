@@ -74,8 +74,9 @@ SCHEMAS: dict[str, tuple[str, dict]] = {
 }
 
 
-def _finite_or_none(x: float | None) -> float | None:
-    return None if x is None or not math.isfinite(x) else float(x)
+def _num(x: float | None) -> str:
+    """JSON text of a number; ``null`` for None / NaN / inf (repr round-trips a float exactly)."""
+    return "null" if x is None or not math.isfinite(x) else repr(float(x))
 
 
 def nav_to_dict(nav: Any, index: int) -> dict:
@@ -186,15 +187,18 @@ class McapRecorder:
             self._add(TOPIC_TICK, doc, time.time_ns())
 
     def record_result(self, res: RelativeResult) -> None:
+        # hand-formatted JSON (hot path, one per output); non-finite numbers become null
         valid = res.has_kinematics
-        doc = {"raw_b64": base64.b64encode(encode_relative(res)).decode(), "target_id": res.target_id,
-               "status": res.status.name.lower(), "seq": int(res.seq), "source_seq": int(res.source_seq),
-               "t_gps_s": float(res.t_gps_s), "latency_s": _finite_or_none(res.latency_s),
-               "rel_pos_body_m": [float(x) for x in res.rel_pos_body_m] if valid else None,
-               "range_m": _finite_or_none(res.range_m) if valid else None,
-               "ttc_s": _finite_or_none(res.ttc_s) if valid else None}
+        pos = (f"[{_num(res.rel_pos_body_m[0])},{_num(res.rel_pos_body_m[1])},{_num(res.rel_pos_body_m[2])}]"
+               if valid else "null")
+        text = (f'{{"raw_b64":"{base64.b64encode(encode_relative(res)).decode()}",'
+                f'"target_id":{json.dumps(res.target_id)},"status":"{res.status.name.lower()}",'
+                f'"seq":{int(res.seq)},"source_seq":{int(res.source_seq)},"t_gps_s":{_num(res.t_gps_s)},'
+                f'"latency_s":{_num(res.latency_s)},"rel_pos_body_m":{pos},'
+                f'"range_m":{_num(res.range_m) if valid else "null"},'
+                f'"ttc_s":{_num(res.ttc_s) if valid else "null"}}}')
         with self._lock:
-            self._add(TOPIC_RELATIVE, doc, time.time_ns())
+            self._add_raw(TOPIC_RELATIVE, text.encode(), time.time_ns())
 
     def close(self) -> None:
         with self._lock:
