@@ -156,6 +156,7 @@ format = "rtklib_pos"
     (lambda s: s.replace('platform = "car"\n', ""), "platform"),
     (lambda s: s + "lever_arm_m = [1.0, 2.0]\n", "[gnss] lever_arm_m"),
     (lambda s: s.replace("[imu]\n", "[imu]\nimu_to_body = [[1,0,0],[0,1,0],[0,0,2]]\n"), "[imu] imu_to_body"),
+    (lambda s: s.replace("[imu]\n", "[imu]\nimu_to_body = [[1,0,0],[0,1,0],[0,0,-1]]\n"), "[imu] imu_to_body"),
     (lambda s: s.replace('[gnss]', '[gnss'), "TOML"),
 ])
 def test_bad_toml_names_the_field(tmp_path, damage, field):

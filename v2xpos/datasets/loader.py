@@ -112,8 +112,9 @@ def _load_toml(toml_path: Path, read_raw: bool) -> Dataset:
     imu_to_body = _matrix(_field(imu_t, "imu_to_body", "[imu] ", toml_path, kind=list,
                                  required=False, default=np.eye(3).tolist()),
                           (3, 3), "[imu] imu_to_body", toml_path)
-    if not np.allclose(imu_to_body @ imu_to_body.T, np.eye(3), atol=1e-6):
-        raise ValueError(f"{toml_path}: field [imu] imu_to_body is not a rotation matrix")
+    if not np.allclose(imu_to_body @ imu_to_body.T, np.eye(3), atol=1e-6) or np.linalg.det(imu_to_body) < 0:
+        raise ValueError(f"{toml_path}: field [imu] imu_to_body is not a rotation matrix "
+                         "(orthonormal with determinant +1)")
 
     gnss_format = _field(gnss_t, "format", "[gnss] ", toml_path)
     if gnss_format not in GNSS_FORMATS:
