@@ -116,6 +116,9 @@ def test_errors_name_file_feature_and_field(tmp_path):
     notjson.write_text("{ nope")
     with pytest.raises(SceneError, match="broken.geojson: not JSON"):
         Scene.load(notjson)
+    notjson.write_text("[" * 100000 + "]" * 100000)
+    with pytest.raises(SceneError, match="broken.geojson: not JSON"):
+        Scene.load(notjson)
     with pytest.raises(SceneError, match="field 'type'"):
         Scene.load(_write_raw(tmp_path, {"type": "Feature"}))
     with pytest.raises(SceneError, match="cannot read"):

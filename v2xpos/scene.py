@@ -238,6 +238,8 @@ class Scene:
             raise SceneError(f"cannot read: {exc.strerror}", path) from None
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
             raise SceneError(f"not JSON: {exc}", path) from None
+        except RecursionError:
+            raise SceneError("not JSON: nested too deeply", path) from None
         if not isinstance(doc, dict) or doc.get("type") != "FeatureCollection":
             raise SceneError("top level must be a GeoJSON FeatureCollection", path, None, "type")
         feats = doc.get("features")
