@@ -169,6 +169,12 @@ def test_bad_toml_names_the_field(tmp_path, damage, field):
     assert str(path) in str(err.value) and field in str(err.value)
 
 
+def test_deeply_nested_toml_is_a_value_error(tmp_path):
+    path = _write_toml(tmp_path, "name = " + "[" * 100000 + "]" * 100000 + "\n")
+    with pytest.raises(ValueError, match="not valid TOML"):
+        load_dataset(path)
+
+
 def test_missing_file_named(tmp_path):
     path = _write_toml(tmp_path, GOOD_TOML.format(imu="nope.csv", tag="nope.tag", pos="nope.pos"))
     with pytest.raises(ValueError, match=r"\[imu\] file"):

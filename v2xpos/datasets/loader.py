@@ -80,6 +80,8 @@ def read_descriptor(toml_path: str | Path) -> dict:
         raise ValueError(f"{toml_path}: not valid TOML: {exc}") from None
     except UnicodeDecodeError as exc:  # added by trust/resilience (fuzz finding): name the file
         raise ValueError(f"{toml_path}: not UTF-8 text: {exc}") from None
+    except RecursionError:
+        raise ValueError(f"{toml_path}: not valid TOML: nested too deeply") from None
 
 
 def _load_toml(toml_path: Path, read_raw: bool) -> Dataset:
