@@ -14,7 +14,6 @@ import argparse
 import json
 import sys
 import time
-import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -65,15 +64,12 @@ def _write_json(path: Path, obj: dict) -> None:
 
 def load_recording(path: str | Path):
     """(MultiImuRecording, grade options dict) from a folder or a toml (see module doc)."""
-    from v2xpos.datasets.loader import load_multi_imu
+    from v2xpos.datasets.loader import load_multi_imu, read_descriptor
 
     p = Path(path)
     opts: dict = {}
     if p.is_file():
-        try:
-            opts = tomllib.loads(p.read_text()).get("grade", {})
-        except tomllib.TOMLDecodeError as exc:
-            raise ValueError(f"{p}: not valid TOML: {exc}") from exc
+        opts = read_descriptor(p).get("grade", {})
         if not isinstance(opts, dict):
             raise ValueError(f"{p}: [grade] must be a table")
     return load_multi_imu(p), opts
