@@ -18,6 +18,7 @@ class ParseIssues:
     max_examples: int = 5
 
     def add(self, where: int, reason: str) -> None:
+        """Count one skipped record at ``where`` (line, record index or byte offset)."""
         self.count += 1
         if len(self.examples) < self.max_examples:
             self.examples.append((int(where), reason))
@@ -29,11 +30,13 @@ class ParseIssues:
         self.examples += [(n, prefix + r) for n, r in other.examples[:max(room, 0)]]
 
     def summary(self) -> str:
+        """One line: the file, how many records were skipped and the first reasons."""
         if not self.count:
             return f"{self.source}: no malformed records"
         shown = "; ".join(f"line {n}: {r}" for n, r in self.examples)
         return f"{self.source}: {self.count} malformed record(s) skipped ({shown})"
 
     def as_dict(self) -> dict:
+        """JSON-ready ``{"source", "count", "examples": [{"line", "reason"}]}``."""
         return {"source": self.source, "count": self.count,
                 "examples": [{"line": n, "reason": r} for n, r in self.examples]}

@@ -39,6 +39,7 @@ class OutageSchedule:
     first_s: float = 40.0
 
     def intervals(self, t_first_s: float, t_last_s: float) -> list[tuple[float, float]]:
+        """[start, end) GPS times [s] of the outages that end no later than t_last_s."""
         if self.length_s <= 0 or self.every_s <= 0:
             return []
         out, k = [], 0
@@ -372,6 +373,7 @@ def write_plots(result: ReplayResult, out_dir: str | Path) -> list[Path]:
 
 # ---------------------------------------------------------------------- command
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``v2xpos replay``."""
     parser.add_argument("dataset", help="dataset.toml (or a dataset directory, e.g. a comma2k19 segment)")
     parser.add_argument("--outage-length", type=float, default=15.0, help="outage length [s] (default 15)")
     parser.add_argument("--outage-every", type=float, default=45.0, help="outage period [s] (default 45)")
@@ -388,6 +390,7 @@ def _load(path: str) -> Dataset:
 
 
 def run(args: argparse.Namespace) -> int:
+    """``v2xpos replay``: print the summary, optionally write the JSON and plots; 2 if unloadable."""
     try:
         ds = _load(args.dataset)
     except (OSError, ValueError) as e:
@@ -417,11 +420,13 @@ def run(args: argparse.Namespace) -> int:
 
 
 def add_bench_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``v2xpos bench replay``."""
     parser.add_argument("dataset", nargs="?", default=str(DEFAULT_DRIVE), help="dataset.toml (default drive_0708)")
     parser.add_argument("--repeat", type=int, default=2, help="replays to time (best is reported)")
 
 
 def run_bench(args: argparse.Namespace) -> int:
+    """``v2xpos bench replay``: throughput per stage and end to end [IMU samples/s]."""
     from .ekf import propagate_covariance
     from .mechanization import MEM_SIZE, strapdown_batch
     t0 = time.perf_counter()

@@ -297,12 +297,14 @@ class CanOutput:
         return self._send(frames)
 
     def send_lanes(self, ids: Sequence[int], lateral_m: Sequence[float], lateral_speed_mps: Sequence[float]) -> int:
+        """Send one LANE frame per lane line (``lane_frames``); returns the frames sent."""
         n = self._send(self.lane_frames(ids, lateral_m, lateral_speed_mps))
         self._scene_counter += 1
         return n
 
     def send_objects(self, ids: Sequence[int], distance_m: Sequence[float], bearing_rad: Sequence[float],
                      ttc_s: Sequence[float | None]) -> int:
+        """Send one OBJECT frame per static object (``object_frames``); returns the frames sent."""
         return self._send(self.object_frames(ids, distance_m, bearing_rad, ttc_s))
 
     def send_scene(self, scene_result: Any) -> int:
@@ -313,11 +315,13 @@ class CanOutput:
                                      scene_result.object_bearing_rad, scene_result.object_ttc_s)
 
     def send_master_status(self, n_targets: int, master_fix: int, t_gps_s: float) -> int:
+        """Send the MASTER_STATUS frame (``master_frame``); returns 1."""
         n = self._send([self.master_frame(n_targets, master_fix, t_gps_s)])
         self._master_counter += 1
         return n
 
     def close(self) -> None:
+        """Shut the bus down if this object opened it."""
         if self._own_bus:
             self.bus.shutdown()
 

@@ -211,6 +211,7 @@ class UdpOutput:
         return n
 
     def close(self) -> None:
+        """Close the socket."""
         self.sock.close()
 
     def __enter__(self) -> "UdpOutput":
