@@ -38,6 +38,20 @@ def test_malformed_imu_samples_are_counted_not_fatal():
     assert np.linalg.norm(geo.lla_to_ned(f.lla, tr.lla[0])) < 0.01
 
 
+def test_batch_rejects_every_sample_behind_a_jump_like_single_samples():
+    """A stamp jumping ahead inside a batch: every later sample not after it is malformed, as
+    sample by sample (process_imu_batch is documented as equivalent to process_imu in order)."""
+    f_batch, _, imu = _started_filter()
+    f_single, _, _ = _started_filter()
+    t = imu.t_s[:40].copy()
+    t[20] = t[25]                                   # samples 21..25 are not after sample 20
+    f_batch.process_imu_batch(t, imu.acc_mps2[:40], imu.gyro_rps[:40])
+    for k in range(40):
+        f_single.process_imu(t[k], imu.acc_mps2[k], imu.gyro_rps[k])
+    assert f_batch.counts["malformed_inputs"] == f_single.counts["malformed_inputs"] == 5
+    np.testing.assert_allclose(f_batch.nav, f_single.nav, rtol=0, atol=1e-12)
+
+
 @pytest.mark.parametrize("bad", [
     dict(lla=np.array([np.nan, 0.0, 0.0])),
     dict(lla=np.array([1.0, 2.0])),

@@ -328,8 +328,9 @@ class InsFilter:
         if not good.all():
             self.counts["malformed_inputs"] += int((~good).sum())
             t_s, f_b, w_b = t_s[good], f_b[good], w_b[good]
-            if len(t_s) > 1:
-                keep = np.concatenate([[True], np.diff(t_s) > 0])
+        if len(t_s) > 1:
+            keep = np.concatenate([[True], t_s[1:] > np.maximum.accumulate(t_s)[:-1]])
+            if not keep.all():
                 self.counts["malformed_inputs"] += int((~keep).sum())
                 t_s, f_b, w_b = t_s[keep], f_b[keep], w_b[keep]
         if len(t_s):
