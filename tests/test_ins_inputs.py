@@ -58,6 +58,8 @@ def test_batch_rejects_every_sample_behind_a_jump_like_single_samples():
     dict(sd_ned_m="x"),
     dict(fix=99),
     dict(vel_ned_mps=[1.0, 2.0]),
+    dict(t_s=np.nan),
+    dict(t_s="x"),
 ])
 def test_malformed_gnss_is_rejected_with_a_reason(bad):
     f, tr, imu = _started_filter()
@@ -69,6 +71,15 @@ def test_malformed_gnss_is_rejected_with_a_reason(bad):
     assert f.counts["malformed_inputs"] == 1
     ok = f.update_gnss(tr.t_s[-1], tr.lla[-1], np.full(3, 0.01), FixStatus.FIXED)
     assert ok.accepted          # the filter goes on
+
+
+def test_malformed_wheel_speed_is_counted():
+    f, tr, imu = _started_filter()
+    f.process_imu_batch(imu.t_s, imu.acc_mps2, imu.gyro_rps)
+    for t, v in ((tr.t_s[-1], np.nan), (np.nan, 1.0), ("x", 1.0), (tr.t_s[-1], None)):
+        assert not f.update_wheel_speed(t, v).accepted
+    assert f.counts["malformed_inputs"] == 4 and np.all(np.isfinite(f.nav))
+    assert f.update_wheel_speed(tr.t_s[-1], 0.0).accepted
 
 
 def test_outlier_position_is_gated():

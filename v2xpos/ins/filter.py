@@ -511,6 +511,9 @@ class InsFilter:
         this drives the heading initialisation and returns accepted=False with reason."""
         c = self.cfg
         try:
+            t_s = float(t_s)
+            if not math.isfinite(t_s):
+                raise ValueError("non-finite time")
             lla = np.asarray(lla, float).reshape(3)
             sd = np.broadcast_to(np.asarray(sd_ned_m, float), (3,)).copy()
             fix = FixStatus(int(fix))
@@ -522,7 +525,7 @@ class InsFilter:
                 raise ValueError("non-finite or out-of-range position")
         except (ValueError, TypeError) as e:
             self.counts["malformed_inputs"] += 1
-            return UpdateResult("gnss_pos", float(t_s) if np.isscalar(t_s) else np.nan, False, np.nan,
+            return UpdateResult("gnss_pos", t_s if isinstance(t_s, float) else np.nan, False, np.nan,
                                 reason=f"malformed GNSS input: {e}")
         if fix in (FixStatus.NONE, FixStatus.DEAD_RECKONING):
             return UpdateResult("gnss_pos", t_s, False, np.nan, reason="no fix")
@@ -755,10 +758,15 @@ class InsFilter:
 
     def update_wheel_speed(self, t_s: float, speed_mps: float) -> UpdateResult:
         """Odometer: forward speed of the vehicle [m/s] at GPS time t_s (Shin 2001 sec. 4.3)."""
-        if not self.initialized or not np.isfinite(speed_mps):
-            if not np.isfinite(speed_mps):
-                self.counts["malformed_inputs"] += 1
-            return UpdateResult("odometer", t_s, False, np.nan, reason="not initialised or malformed")
+        try:
+            t_s, speed_mps = float(t_s), float(speed_mps)
+            if not (math.isfinite(t_s) and math.isfinite(speed_mps)):
+                raise ValueError("non-finite")
+        except (TypeError, ValueError):
+            self.counts["malformed_inputs"] += 1
+            return UpdateResult("odometer", np.nan, False, np.nan, reason="malformed wheel-speed input")
+        if not self.initialized:
+            return UpdateResult("odometer", t_s, False, np.nan, reason="not initialised")
         self._flush_covariance()
         v_v, Hv, Hphi, Hmis = self._vehicle_rows()
         s = self.fx.odometer_scale
