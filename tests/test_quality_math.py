@@ -147,16 +147,21 @@ def test_rates_from_poses_recover_a_constant_rotation_rate():
     assert bad.anomaly and np.isclose(bad.mean_diff_dps, 0.03 * np.degrees(np.linalg.norm(w_true)), rtol=1e-6)
 
 
-def test_bias_stability_between_stops():
-    rate = 100.0
-    t = np.arange(0, 30, 1 / rate)
+def _three_stops_with_bias_step(seed: int) -> ImuData:
+    """30 s at 100 Hz: stops around 0-8, 12-20 and 24-30 s, turning between them; +0.5 deg/s gyro-x
+    bias step at 16 s (between the 2nd and 3rd stop)."""
+    t = np.arange(0, 30, 1 / 100.0)
     moving = ((t > 8) & (t < 12)) | ((t > 20) & (t < 24))
-    rng = np.random.default_rng(7)
+    rng = np.random.default_rng(seed)
     g = rng.normal(0, 1e-4, (len(t), 3))
     g[moving, 2] += 0.3
-    g[t > 16, 0] += np.radians(0.5)   # bias step between the 2nd and 3rd stop
+    g[t > 16, 0] += np.radians(0.5)
     f = np.tile([0.0, 0.0, -9.80665], (len(t), 1)) + rng.normal(0, 0.01, (len(t), 3))
-    imu = ImuData(t, f, g)
+    return ImuData(t, f, g)
+
+
+def test_bias_stability_between_stops():
+    imu = _three_stops_with_bias_step(7)
     stops = find_stops(imu)
     assert len(stops) == 3
     st = bias_stability(stop_biases(imu, stops))
@@ -168,15 +173,8 @@ def test_bias_stability_from_the_ins_calibrator_and_in_the_verdict():
     from v2xpos.quality import grade_units
     from v2xpos.quality.bias import calibrator_stop_biases, unit_bias_stability
 
-    rate = 100.0
-    t = np.arange(0, 30, 1 / rate)
-    moving = ((t > 8) & (t < 12)) | ((t > 20) & (t < 24))
-    rng = np.random.default_rng(8)
-    g = rng.normal(0, 1e-4, (len(t), 3))
-    g[moving, 2] += 0.3
-    g[t > 16, 0] += np.radians(0.5)
-    f = np.tile([0.0, 0.0, -9.80665], (len(t), 1)) + rng.normal(0, 0.01, (len(t), 3))
-    imu = ImuData(t, f, g)
+    imu = _three_stops_with_bias_step(8)
+    t, f, g = imu.t_s, imu.acc_mps2, imu.gyro_rps
     biases, spans = calibrator_stop_biases(imu)
     assert len(biases) == 3 and spans[0][0] < 8
     st = unit_bias_stability(imu)
