@@ -40,6 +40,7 @@ def test_history_is_bounded_and_bad_samples_are_counted():
     assert g.add("imu7", [1.0], [[0, 0, 0]], [[0, 0, 9.8]]) == 0                    # unknown unit
     assert g.add("imu1", [imu.t_s[-1] + 1.0], [[np.nan, 0, 0]], [[0, 0, 9.8]]) == 0  # non-finite
     assert g.add("imu1", [imu.t_s[-1] + 1.0], [[0, 0]], [[0, 0, 9.8]]) == 0          # wrong shape
-    assert g.rejected_samples == 13
+    assert g.add("imu1", ["x"], [[0, 0, 0]], [[0, 0, 9.8]]) == 0                      # not a number
+    assert g.rejected_samples == 14
     res = g.grades()
     assert res["status"] == "graded" and set(res["units"]) == {"imu1", "imu2"}

@@ -187,12 +187,17 @@ class VehicleGrader:
         self.rejected_samples = 0
         self._lock = threading.Lock()
 
-    def add(self, unit_id: str, t_s, gyro_rps, acc_mps2) -> int:
-        """Append one or more samples of one unit; returns how many were accepted. Samples of an
-        unknown unit, non-finite, or not later than the unit's last sample are rejected (counted)."""
-        t = np.atleast_1d(np.asarray(t_s, float))
-        g = np.atleast_2d(np.asarray(gyro_rps, float))
-        a = np.atleast_2d(np.asarray(acc_mps2, float))
+    def add(self, unit_id: str, t_s: np.ndarray, gyro_rps: np.ndarray, acc_mps2: np.ndarray) -> int:
+        """Append one or more samples of one unit (t [s], gyro (N, 3) [rad/s], accel (N, 3) [m/s^2]);
+        returns how many were accepted. Samples of an unknown unit, non-numeric, non-finite, or not
+        later than the unit's last sample are rejected (counted; non-numeric input counts as one)."""
+        try:
+            t = np.atleast_1d(np.asarray(t_s, float))
+            g = np.atleast_2d(np.asarray(gyro_rps, float))
+            a = np.atleast_2d(np.asarray(acc_mps2, float))
+        except (TypeError, ValueError):
+            self.rejected_samples += 1
+            return 0
         if unit_id not in self._chunks or g.shape != (len(t), 3) or a.shape != (len(t), 3):
             self.rejected_samples += len(t)
             return 0
