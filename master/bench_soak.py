@@ -93,8 +93,8 @@ def _run_master(cfg_path: Path, start: float, record: Path | None, stats_path: P
 
 # ----------------------------------------------------------------------------- slave role
 
-def _run_slaves(ids: list[str], keys_dir: Path, endpoint: str, start: float, duration: float,
-                rate: float, out_path: Path) -> int:
+def _run_slaves(ids: list[str], keys_dir: Path | None, endpoint: str, start: float, duration: float,
+                rate: float, out_path: Path, extra_json5: dict | None = None) -> int:
     import numpy as np
 
     from sim.scenarios import DEFAULT_EPOCH_GPS_S
@@ -103,7 +103,7 @@ def _run_slaves(ids: list[str], keys_dir: Path, endpoint: str, start: float, dur
     from v2xpos.types import FixStatus
     from v2xpos.wire import Geometry, StateMessage, encode_state, state_key
 
-    link = Link(LinkConfig(mode="peer", connect=[endpoint]))
+    link = Link(LinkConfig(mode="peer", connect=[endpoint], extra_json5=extra_json5 or {}))
     signers = {vid: (MessageSigner.from_file(keys_dir / f"{vid}.key") if keys_dir is not None else None)
                for vid in ids}
     pubs = {vid: link.publisher(state_key(SOAK_FLEET, vid), block=True) for vid in ids}
@@ -165,8 +165,14 @@ def _wait_drained(progress: Path, quiet_s: float, max_wait_s: float) -> None:
 
 def run_soak(slaves: int = 32, rate: float = 100.0, duration: float = 60.0, out_dir: str | Path = "out/soak",
              per_process: int = 8, warmup_fraction: float = 0.1, progress: bool = True,
-             lead_s: float = 4.0, drain_s: float = 1.5, record: bool = True, signed: bool = True) -> dict:
-    """Run the soak (see module docstring) and return the report dict."""
+             lead_s: float = 4.0, drain_s: float = 1.5, record: bool = True, signed: bool = True,
+             block_wait_s: float | None = None) -> dict:
+    """Run the soak (see module docstring) and return the report dict.
+
+    ``block_wait_s``: zenoh ``congestion_control/block/wait_before_close`` for every session
+    (default: zenoh's 5 s) -- how long a blocked send queue waits before the link is closed."""
+    extra = {} if block_wait_s is None else {
+        "transport/link/tx/queue/congestion_control/block/wait_before_close": int(block_wait_s * 1e6)}
     from v2xpos.security import TrustList, generate_vehicle_key, load_public_key_file
 
     out = Path(out_dir)
@@ -186,7 +192,7 @@ def run_soak(slaves: int = 32, rate: float = 100.0, duration: float = 60.0, out_
     endpoint = f"tcp/127.0.0.1:{port}"
     cfg = {"service": {"fleet": SOAK_FLEET, "master_id": "ego", "duration_s": duration + 600.0, "status_hz": 1.0,
                        "tick_hz": 2.0},
-           "link": {"mode": "router", "listen": [endpoint]},
+           "link": {"mode": "router", "listen": [endpoint], "extra_json5": extra},
            "source": {"type": "truth_noise", "scenario": "convoy",
                       "params": {"vehicles": 2, "duration_s": duration + 20.0}},
            "output": {"zenoh": {"enabled": True}},
@@ -207,7 +213,7 @@ def run_soak(slaves: int = 32, rate: float = 100.0, duration: float = 60.0, out_
         procs.append(subprocess.Popen(py + ["--role", "slaves", "--ids", ",".join(group)]
                                       + (["--keys", str(keys)] if signed else []) + [
                                             "--endpoint", endpoint, "--start", repr(start), "--duration",
-                                            repr(duration), "--rate", repr(rate),
+                                            repr(duration), "--rate", repr(rate), "--extra-json5", json.dumps(extra),
                                             "--out", str(out / f"slaves_{g}.json")],
                                       cwd=repo, env=env, stdout=subprocess.DEVNULL,
                                       stderr=open(out / f"slaves_{g}.log", "w")))
@@ -261,7 +267,7 @@ def run_soak(slaves: int = 32, rate: float = 100.0, duration: float = 60.0, out_
     results = st.get("targets", {})
     outputs_from_messages = sum(t.get("accepted", 0) for t in results.values())
     report = {
-        "slaves": slaves, "rate_hz": rate, "duration_s": duration,
+        "slaves": slaves, "rate_hz": rate, "duration_s": duration, "block_wait_s": block_wait_s,
         "sent": n_sent, "received": received, "recorded": recorded,
         "output": outputs_from_messages, "outputs_total": int(st.get("processed", 0)),
         "lost": n_sent - received, "lost_in_master": None if recorded is None else received - recorded,
@@ -286,6 +292,8 @@ def add_bench_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--per-process", type=int, default=8, help="slaves per OS process")
     parser.add_argument("--out", default="out/soak", help="directory for keys, recording, logs, report")
     parser.add_argument("--json", help="also write the report here")
+    parser.add_argument("--block-wait-s", type=float, default=None,
+                        help="zenoh block/wait_before_close for all sessions [s] (default zenoh's 5 s)")
     parser.add_argument("--no-record", action="store_true", help="diagnosis: master without the MCAP recorder")
     parser.add_argument("--unsigned", action="store_true", help="diagnosis: slaves do not sign, no trust list")
     parser.add_argument("--verify-replay", action="store_true",
@@ -294,7 +302,7 @@ def add_bench_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run_bench(args: argparse.Namespace) -> int:
     report = run_soak(args.slaves, args.rate, args.duration, args.out, args.per_process,
-                      record=not args.no_record, signed=not args.unsigned)
+                      record=not args.no_record, signed=not args.unsigned, block_wait_s=args.block_wait_s)
     if args.verify_replay and not args.no_record:
         from master.replay_session import replay_session
         rep = replay_session(Path(args.out) / "session.mcap", progress=True)
@@ -323,12 +331,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--duration", type=float)
     p.add_argument("--rate", type=float)
     p.add_argument("--out")
+    p.add_argument("--extra-json5", default="{}")
     a = p.parse_args(argv)
     if a.role == "master":
         return _run_master(Path(a.config), a.start, Path(a.record) if a.record else None, Path(a.stats),
                            a.publish_end)
     return _run_slaves(a.ids.split(","), Path(a.keys) if a.keys else None, a.endpoint, a.start, a.duration, a.rate,
-                       Path(a.out))
+                       Path(a.out), json.loads(a.extra_json5))
 
 
 if __name__ == "__main__":
