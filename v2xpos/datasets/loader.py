@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from v2xpos.types import Dataset, GnssData
+from v2xpos.types import Dataset, GnssData, MultiImuRecording
 
 try:
     import tomllib
@@ -223,7 +223,7 @@ def load_dataset(path: str | Path, read_raw: bool = False) -> Dataset:
     return _load_toml(path, read_raw)
 
 
-def load_multi_imu(path: str | Path):
+def load_multi_imu(path: str | Path) -> MultiImuRecording:
     """Load a multi-IMU recording (a quadrotor_mimu path folder, or a toml with
     ``layout = "quadrotor_mimu"``) -> :class:`v2xpos.types.MultiImuRecording`."""
     from v2xpos.datasets.quadrotor import read_quadrotor_path

@@ -24,9 +24,14 @@ Each effect is a random constant with an optional random walk (``InsConfig.effec
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from .mechanization import COR_SA, COR_SG
+
+if TYPE_CHECKING:
+    from .ekf import StateLayout
 
 DEFAULT_INITIAL_SD = {
     "imu_time_offset": 0.3,            # s: serial IMU logging delays reach hundreds of ms
@@ -72,7 +77,7 @@ class EffectValues:
         self.misalignment_rad = np.zeros(3)
         self.odometer_scale = 0.0
 
-    def apply_correction(self, layout, dx: np.ndarray, corr: np.ndarray) -> None:
+    def apply_correction(self, layout: StateLayout, dx: np.ndarray, corr: np.ndarray) -> None:
         """value <- value - dx for every enabled effect (errors are estimate minus truth).
         corr is the mechanization's correction vector (scales live there)."""
         for name, i in layout.index.items():

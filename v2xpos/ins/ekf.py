@@ -26,8 +26,12 @@ Q = Q_c dt_total, split half before and half after the transition (trapezoid).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from .filter import InsConfig
 
 POS, VEL, ATT, BG, BA = 0, 3, 6, 9, 12
 BASE_STATES = 15
@@ -79,7 +83,7 @@ class StateLayout:
         return out
 
 
-def process_noise_density(layout: StateLayout, cfg) -> np.ndarray:
+def process_noise_density(layout: StateLayout, cfg: InsConfig) -> np.ndarray:
     """Diagonal of the continuous process noise Q_c (per second) from the IMU figures in cfg.
 
     Velocity: accelerometer white noise (VRW) density^2; attitude: gyro white noise (ARW)

@@ -15,8 +15,11 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import TextIO
 
 import numpy as np
+
+from v2xpos.types import MultiImuRecording
 
 from .fleet import GradeConfig
 from .grader import grade_units, public_report
@@ -62,7 +65,7 @@ def _write_json(path: Path, obj: dict) -> None:
     print(f"wrote {path}")
 
 
-def load_recording(path: str | Path):
+def load_recording(path: str | Path) -> tuple[MultiImuRecording, dict]:
     """(MultiImuRecording, grade options dict) from a folder or a toml (see module doc)."""
     from v2xpos.datasets.loader import load_multi_imu, read_descriptor
 
@@ -93,7 +96,7 @@ def _mounting(opts: dict, source: str) -> dict | None:
     return out
 
 
-def print_table(report: dict, out=None) -> None:
+def print_table(report: dict, out: TextIO | None = None) -> None:
     """One line per unit: grade, gyro RMSE and PCC per axis, clock offset, rotation, failed checks."""
     out = out or sys.stdout
     print(f"reference: {report['reference']} ({report['reference_chosen']}), {report['n_units']} units, "
@@ -115,7 +118,7 @@ def print_table(report: dict, out=None) -> None:
               f"{rot:<22} {fds:<18} {rcs:<9} {notes}", file=out)
 
 
-def reference_rate_checks(rec, window_s: float | None = None) -> dict | None:
+def reference_rate_checks(rec: MultiImuRecording, window_s: float | None = None) -> dict | None:
     """Pose-aided rate check of every unit with the recording's reference attitude as the pose
     source (seed 003 with "another INS" as pose source). The quadrotor reference attitude comes at
     10 Hz with 0.1 deg resolution, so by default the whole run is one window."""

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .fleet import AXES, FleetComparison
+from .fleet import AXES, FleetComparison, GradeConfig
 
 
 def _plt():
@@ -17,11 +17,9 @@ def _plt():
 
 
 def plot_first_parameter(fc: FleetComparison, reference: str, out_dir: str | Path,
-                         cfg=None, mounting: dict | None = None) -> list[Path]:
+                         cfg: GradeConfig | None = None, mounting: dict | None = None) -> list[Path]:
     """rmse_boxplot_{gyro,accel}.png and pcc_hist_{gyro,accel}.png of every unit against the
     reference (per axis); returns the written paths."""
-    from .fleet import GradeConfig
-
     plt = _plt()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
