@@ -194,6 +194,17 @@ def _lower_hull_candidates(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return cand[_lower_hull_indices(x[cand], y[cand])]
 
 
+def _finite_pairs(counter_s: np.ndarray, t_s: np.ndarray, caller: str) -> tuple[np.ndarray, np.ndarray]:
+    """The (counter, time) pairs where both are finite; ValueError unless two counters differ."""
+    c = np.asarray(counter_s, dtype=float)
+    t = np.asarray(t_s, dtype=float)
+    ok = np.isfinite(c) & np.isfinite(t)
+    c, t = c[ok], t[ok]
+    if c.size < 2 or np.ptp(c) <= 0.0:
+        raise ValueError(f"{caller}: need at least two distinct counter values")
+    return c, t
+
+
 def _clock_model(offset_s: float, slope: float, counter_s: np.ndarray, residual_s: np.ndarray) -> ClockModel:
     """ClockModel of ``t = offset_s + slope * counter`` with the statistics of its residuals [s]."""
     return ClockModel(offset_s=float(offset_s), drift_ppm=float((slope - 1.0) * 1e6),
@@ -213,12 +224,7 @@ def fit_clock_lower_envelope(counter_s: np.ndarray, arrival_s: np.ndarray) -> Cl
 
     counter_s: device counter [s]; arrival_s: GPS time at which each sample was seen [s].
     """
-    c = np.asarray(counter_s, dtype=float)
-    t = np.asarray(arrival_s, dtype=float)
-    ok = np.isfinite(c) & np.isfinite(t)
-    c, t = c[ok], t[ok]
-    if c.size < 2 or np.ptp(c) <= 0.0:
-        raise ValueError("fit_clock_lower_envelope: need at least two distinct counter values")
+    c, t = _finite_pairs(counter_s, arrival_s, "fit_clock_lower_envelope")
     c0, t0 = c.min(), t[np.argmin(c)]
     x, y = c - c0, t - t0  # condition the numbers; the rates are unchanged
     order = np.lexsort((y, x))
@@ -245,12 +251,7 @@ def fit_clock_lower_envelope(counter_s: np.ndarray, arrival_s: np.ndarray) -> Cl
 def fit_clock_least_squares(counter_s: np.ndarray, gps_s: np.ndarray) -> ClockModel:
     """Fit ``gps = offset + (1 + drift) * counter`` by least squares, for time pairs whose errors
     are symmetric (e.g. a boot clock stamped against receiver solutions of known GPS time)."""
-    c = np.asarray(counter_s, dtype=float)
-    t = np.asarray(gps_s, dtype=float)
-    ok = np.isfinite(c) & np.isfinite(t)
-    c, t = c[ok], t[ok]
-    if c.size < 2 or np.ptp(c) <= 0.0:
-        raise ValueError("fit_clock_least_squares: need at least two distinct counter values")
+    c, t = _finite_pairs(counter_s, gps_s, "fit_clock_least_squares")
     c0, t0 = c.mean(), t.mean()
     slope = float(np.sum((c - c0) * (t - t0)) / np.sum((c - c0) ** 2))
     offset = t0 - slope * c0
