@@ -797,16 +797,43 @@ class InsFilter:
                 "f_body_mps2": self.mem[MEM_F:MEM_F + 3].copy(), "rpy_rad": euler_from_dcm(self.C_nb),
                 "C_nb": self.C_nb.copy(), "static": self.static}
 
+    def kinematics_now(self) -> tuple[np.ndarray, np.ndarray]:
+        """Body rate w_nb^b [rad/s] (filter body axes, relative to the local-level frame) and
+        kinematic acceleration a^n = dv^n/dt [m/s^2, NED] at the last processed IMU sample.
+
+        From that sample compensated with the current bias and scale estimates,
+        w_ib = (w~ - b_g)/(1 + s_g), f = (f~ - b_a)/(1 + s_a):
+        w_nb^b = w_ib^b - C_bn (w_ie^n + w_en^n) and
+        a^n = C_nb f^b + g^n - (2 w_ie^n + w_en^n) x v^n (the velocity equation, Groves eq. 5.54).
+        Instantaneous (no smoothing, no lag); its noise is the sensor's per-sample noise.
+        """
+        if self._last_raw_f_b is None or not self.initialized:
+            w = self._last_w_b.copy() if self._last_raw_w_b is None else \
+                self._last_raw_w_b - self.corr[COR_BG:COR_BG + 3]
+            return w, self.acc_ned_mps2.copy()
+        c = self.corr
+        w_ib = (self._last_raw_w_b - c[COR_BG:COR_BG + 3]) / (1.0 + c[COR_SG:COR_SG + 3])
+        f_b = (self._last_raw_f_b - c[COR_BA:COR_BA + 3]) / (1.0 + c[COR_SA:COR_SA + 3])
+        lat, h = float(self.nav[NAV_LAT]), float(self.nav[NAV_H])
+        v = self.nav[3:6]
+        w_ie = geo.earth_rate_ned_rps(lat)
+        w_en = geo.transport_rate_ned_rps(lat, h, v)
+        a_n = self.C_nb @ f_b - np.cross(2.0 * w_ie + w_en, v)
+        a_n[2] += geo.normal_gravity_mps2(lat, h)
+        return w_ib - self.C_nb.T @ (w_ie + w_en), a_n
+
     def nav_state(self) -> NavState:
-        """Current solution at the IMU point (vehicle axes when misalignment is estimated)."""
+        """Solution at the IMU point at the last processed IMU sample (vehicle axes when
+        misalignment is estimated); rate and acceleration from ``kinematics_now`` (independent of
+        the covariance cadence ``cov_every``), standard deviations from the last covariance step."""
         Rm = self.misalignment_dcm()
         C_nv = self.C_nb @ Rm.T
-        a_n = self.acc_ned_mps2
+        w_nb_b, a_n = self.kinematics_now()
         sd = np.sqrt(np.abs(np.diag(self.P)))
         coasting = (self.t_s - self.last_gnss_t_s) > self.cfg.coast_after_s
         fix = FixStatus.DEAD_RECKONING if (coasting and self.initialized) else self.last_fix
         return NavState(t_s=float(self.t_s), lla=self.nav[:3].copy(), v_ned_mps=self.nav[3:6].copy(),
-                        acc_body_mps2=C_nv.T @ a_n, rate_body_rps=Rm @ self._last_w_b,
+                        acc_body_mps2=C_nv.T @ a_n, rate_body_rps=Rm @ w_nb_b,
                         rpy_rad=euler_from_dcm(C_nv), pos_sd_m=sd[POS:POS + 3].copy(),
                         vel_sd_mps=sd[VEL:VEL + 3].copy(), att_sd_rad=sd[ATT:ATT + 3].copy(), fix=fix)
 
