@@ -182,6 +182,56 @@ def _finite(x: float) -> float:
     return x if math.isfinite(x) else 0.0
 
 
+TTC_SCALE = 0.01
+
+
+class FramePacker:
+    """Precompiled encoder of one DBC message (little-endian integer signals, as in the shipped DBC).
+
+    Built from the cantools message's signals (start bit, length, signedness, scale, offset,
+    minimum, maximum); ``pack(values)`` takes physical values in ``names`` order and returns the
+    data bytes that ``message.encode(..., strict=False)`` gives for the same values after the
+    saturation of ``CanOutput._encode``: NaN -> 0, then clipped to [minimum, maximum], raw =
+    round((value - offset) / scale) (cantools' conversion), two's complement in ``length`` bits
+    at ``start`` of the little-endian payload (Intel byte order, DBC ``@1``). About 10x cheaper
+    than cantools' generic path; ``tests/test_output_can_packer.py`` checks it bit-exact against
+    cantools.
+    """
+
+    def __init__(self, message: Any, order: Sequence[str] | None = None):
+        by_name = {sig.name: sig for sig in message.signals}
+        names = tuple(order) if order is not None else tuple(by_name)
+        if set(names) != set(by_name):
+            raise ValueError(f"{message.name}: packer signals {sorted(names)} != DBC signals {sorted(by_name)}")
+        fields = []
+        for name in names:
+            sig = by_name[name]
+            if sig.byte_order != "little_endian" or sig.is_float:
+                raise ValueError(f"{message.name}.{name}: only little-endian integer signals are precompiled")
+            lo = -math.inf if sig.minimum is None else sig.minimum
+            hi = math.inf if sig.maximum is None else sig.maximum
+            fields.append((sig.start, (1 << sig.length) - 1, sig.conversion.scale, sig.conversion.offset, lo, hi))
+        self.frame_id = message.frame_id
+        self.length = message.length
+        self.names = names
+        self._fields = tuple(fields)
+
+    def pack(self, values: Sequence[float]) -> bytes:
+        """Data bytes of physical ``values`` given in ``names`` order."""
+        word = 0
+        for v, (start, mask, scale, offset, lo, hi) in zip(values, self._fields):
+            v = 0.0 if v != v else lo if v < lo else hi if v > hi else v
+            word |= (int(round((v - offset) / scale)) & mask) << start
+        return word.to_bytes(self.length, "little")
+
+    def pack_mapping(self, values: dict) -> bytes:
+        """Data bytes of a {signal name: physical value} mapping (every signal of the message)."""
+        if len(values) != len(self.names):
+            missing = sorted(set(self.names) - set(values))
+            raise KeyError(f"signals missing or unknown for frame 0x{self.frame_id:03X}: {missing or sorted(values)}")
+        return self.pack([values[n] for n in self.names])
+
+
 class CanOutput:
     """Sends master results as CAN frames on a python-can bus using the DBC.
 
@@ -203,56 +253,53 @@ class CanOutput:
         self._scene_counter = 0
         self._master_counter = 0
         self._msg = {}
-        self._limits: dict[int, dict] = {}
+        self._packers: dict[int, FramePacker] = {}
         for slot in range(n_slots):
             for kind, (base, _) in _TARGET_MESSAGES.items():
                 self._msg[(slot, kind)] = self.db.get_message_by_frame_id(base + slot)
         self._lane = self.db.get_message_by_frame_id(ID_LANE)
         self._object = self.db.get_message_by_frame_id(ID_OBJECT)
         self._master = self.db.get_message_by_frame_id(ID_MASTER)
+        # per slot: (STATUS, POS, RANGE, VEL, EXT) packers, signal order as in _TARGET_MESSAGES
+        self._slot_packers = [tuple(self._packer(self._msg[(slot, kind)], [f"T{slot:02d}_{sig[0]}" for sig in sigs])
+                                    for kind, (_, sigs) in _TARGET_MESSAGES.items())
+                              for slot in range(n_slots)]
 
     # -- encoding (pure) --------------------------------------------------------------
+    def _packer(self, message: Any, order: Sequence[str] | None = None) -> "FramePacker":
+        packer = self._packers.get(message.frame_id)
+        if packer is None or (order is not None and packer.names != tuple(order)):
+            packer = self._packers[message.frame_id] = FramePacker(message, order)
+        return packer
+
     def _encode(self, message: Any, values: dict) -> can.Message:
         """Frame of physical values: saturated to each signal's range, NaN sent as 0 (cantools
         cannot encode NaN; a non-finite value must not stop the other frames)."""
-        limits = self._limits.get(message.frame_id)
-        if limits is None:
-            limits = self._limits[message.frame_id] = {s.name: (s.minimum, s.maximum) for s in message.signals}
-        clamped = {}
-        for k, v in values.items():
-            lo, hi = limits[k]
-            clamped[k] = 0.0 if v != v else lo if v < lo else hi if v > hi else v
-        data = message.encode(clamped, strict=False)
-        return can.Message(arbitration_id=message.frame_id, data=data, is_extended_id=False)
+        packer = self._packer(message)
+        return can.Message(arbitration_id=message.frame_id, data=packer.pack_mapping(values), is_extended_id=False)
 
     def frames_for_result(self, res: RelativeResult, slot: int, counter: int = 0) -> list:
         """CAN frames of one target result in ``slot``; kinematic frames only when status is VALID."""
         if not 0 <= slot < self.n_slots:
             raise ValueError(f"slot {slot} outside 0..{self.n_slots - 1}")
-        p = f"T{slot:02d}_"
-        m = self._msg
+        st, pos, rng, vel, ext = self._slot_packers[slot]
         valid = res.status == TargetStatus.VALID
-        ttc_scale = 0.01
-        status = {p + "Status": int(res.status), p + "FixSide": int(res.fix_side),
-                  p + "Degraded": int(bool(res.degraded)), p + "Kind": int(res.target_kind == "pedestrian"),
-                  p + "Counter": counter & 0xFF,
-                  p + "Latency": _finite(res.latency_s * 1e3),
-                  p + "TTC": _ttc_raw_value(res.ttc_s if valid else None, ttc_scale),
-                  p + "RelYaw": math.degrees(res.rel_rpy_rad[2]) if valid else 0.0}
-        frames = [self._encode(m[(slot, "STATUS")], status)]
+        counter &= 0xFF
+        status = st.pack((int(res.status), int(res.fix_side), int(bool(res.degraded)),
+                          int(res.target_kind == "pedestrian"), counter, _finite(res.latency_s * 1e3),
+                          _ttc_raw_value(res.ttc_s if valid else None, TTC_SCALE),
+                          math.degrees(res.rel_rpy_rad[2]) if valid else 0.0))
+        frames = [can.Message(arbitration_id=st.frame_id, data=status, is_extended_id=False)]
         if not valid:
             return frames
-        r, v, a, att = res.rel_pos_body_m, res.rel_vel_body_mps, res.rel_acc_body_mps2, res.rel_rpy_rad
-        frames.append(self._encode(m[(slot, "POS")], {p + "PosX": r[0], p + "PosY": r[1], p + "PosZ": r[2]}))
-        frames.append(self._encode(m[(slot, "RANGE")], {
-            p + "Range": res.range_m, p + "Bearing": math.degrees(res.bearing_rad),
-            p + "ClosingSpeed": _finite(res.closing_speed_mps), p + "Counter": counter & 0xFF}))
-        frames.append(self._encode(m[(slot, "VEL")], {
-            p + "VelX": v[0], p + "VelY": v[1], p + "Longitudinal": _finite(res.longitudinal_m),
-            p + "Lateral": _finite(res.lateral_m)}))
-        frames.append(self._encode(m[(slot, "EXT")], {
-            p + "AccX": a[0], p + "AccY": a[1], p + "RelRoll": math.degrees(att[0]),
-            p + "RelPitch": math.degrees(att[1])}))
+        r, v, a, att = (res.rel_pos_body_m.tolist(), res.rel_vel_body_mps.tolist(), res.rel_acc_body_mps2.tolist(),
+                        res.rel_rpy_rad.tolist())
+        for packer, values in (
+                (pos, r),
+                (rng, (res.range_m, math.degrees(res.bearing_rad), _finite(res.closing_speed_mps), counter)),
+                (vel, (v[0], v[1], _finite(res.longitudinal_m), _finite(res.lateral_m))),
+                (ext, (a[0], a[1], math.degrees(att[0]), math.degrees(att[1])))):
+            frames.append(can.Message(arbitration_id=packer.frame_id, data=packer.pack(values), is_extended_id=False))
         return frames
 
     def lane_frames(self, ids: Sequence[int], lateral_m: Sequence[float],
