@@ -63,9 +63,17 @@ def _run_master(cfg_path: Path, start: float, record: Path | None, stats_path: P
 
     progress = stats_path.with_suffix(".progress")
 
+    trace = bool(os.environ.get("V2XPOS_SOAK_TRACEMALLOC"))
+    snaps = []
+    if trace:
+        import tracemalloc
+        tracemalloc.start()
+
     def sample() -> None:
         while not stop.wait(0.5):
             samples.append((time.time(), rss_bytes()))
+            if trace and len(snaps) < 2 and time.time() > start + (5.0 if not snaps else 15.0):
+                snaps.append(tracemalloc.take_snapshot())
             pipe = svc.pipeline
             if pipe is not None:
                 handled = sum(t.accepted for t in list(pipe.tracks.values())) + sum(pipe.rejected.values())
@@ -87,6 +95,8 @@ def _run_master(cfg_path: Path, start: float, record: Path | None, stats_path: P
     final["rss_samples"] = samples
     final["publish_end_unix_s"] = publish_end
     final.setdefault("clock_skew", [])
+    if len(snaps) == 2:
+        final["tracemalloc_top"] = [str(d) for d in snaps[1].compare_to(snaps[0], "lineno")[:15]]
     stats_path.write_text(json.dumps(final))
     return 0
 
