@@ -60,8 +60,13 @@ CLOSING_EPS_MPS = 1.0e-3
 
 # ----------------------------------------------------------------------------- gating
 
+_RTK_FIXES = frozenset((FixStatus.FIXED, FixStatus.FLOAT))
+
+
 def fix_failed_side(master_fix: FixStatus | int, slave_fix: FixStatus | int) -> FixSide:
     """Which side is not RTK (fixed or float): FixSide.MASTER | FixSide.SLAVE, NONE if both are."""
+    if master_fix in _RTK_FIXES and slave_fix in _RTK_FIXES:
+        return FixSide.NONE
     side = FixSide.NONE
     if not FixStatus(master_fix).is_rtk:
         side |= FixSide.MASTER
@@ -197,7 +202,13 @@ def _so3_integrals(phi: tuple) -> tuple:
     return _poly_so3(phi, 1.0, e1, e2), _poly_so3(phi, 1.0, c1, c2), _poly_so3(phi, 0.5, c2, d2)
 
 
-def _tup(a: Any) -> tuple:
+def _tup(a: Any) -> tuple | list:
+    """Plain-float sequence of a vector (tuples pass through: the fast path's own values)."""
+    t = type(a)
+    if t is tuple:
+        return a
+    if t is np.ndarray:
+        return a.tolist()
     return tuple(a.tolist()) if isinstance(a, np.ndarray) else tuple(float(x) for x in a)
 
 
@@ -246,23 +257,9 @@ def _row_sq(M: tuple) -> tuple:
             M[6] * M[6] + M[7] * M[7] + M[8] * M[8])
 
 
-def predict_state(msg: Any, dt_s: float, acc_sd_mps2: float = DEFAULT_ACC_SD_MPS2,
-                  rate_sd_rps: float = DEFAULT_RATE_SD_RPS) -> StateMessage:
-    """Latency compensation: the target state predicted by dt_s [s] with CTRA (``ctra_increments``).
-
-    Position is moved in the local-level frame at the target and converted back to geodetic with
-    the curvilinear relation (Groves 2013 eq. 2.119; error < 1 um for displacements < 10 m).
-    Covariance of the error state [dr_n, dv_n, psi_n] (block-diagonal from the message's sds) is
-    propagated as P' = F P F^T + G Q G^T with
-        F = [[I, I dt, -[C Gamma2 a dt^2 x]], [0, I, -[C Gamma1 a dt x]], [0, 0, I]],
-        acceleration noise acc_sd_mps2 entering through (C Gamma2 dt^2, C Gamma1 dt, 0) and rate
-        noise rate_sd_rps through (0, 0, C(t) dt); the returned sds are sqrt(diag P') (computed
-        in closed form per block). Attitude sd (roll, pitch, yaw) is treated as the nav-frame
-        attitude error (small tilt). The result keeps ids, fix, geometry; t_gps_s advances by dt_s;
-        acceleration and rate are held constant. Works on a StateMessage or a NavState (e.g. to
-        bring the master's own state to the current time) and returns the same type.
-    """
-    dt = float(dt_s)
+def _predict_core(msg: Any, dt: float, acc_sd_mps2: float, rate_sd_rps: float) -> tuple:
+    """CTRA prediction and covariance of ``predict_state`` in plain floats:
+    (lat, lon, h, v_ned, rpy, var_r, var_v, var_a)."""
     C = _dcm(*_tup(msg.rpy_rad))
     dr, v_new, C_new, (s_r, s_v), (CG1, CG2) = _ctra(_tup(msg.v_ned_mps), C, _tup(msg.acc_body_mps2),
                                                      _tup(msg.rate_body_rps), dt)
@@ -285,22 +282,60 @@ def predict_state(msg: Any, dt_s: float, acc_sd_mps2: float = DEFAULT_ACC_SD_MPS
     var_r = [p_r[i] + dt2 * p_v[i] + sr[i] + qa * dt4 * gr[i] for i in range(3)]
     var_v = [p_v[i] + sv[i] + qa * dt2 * gv[i] for i in range(3)]
     var_a = [p_a[i] + qw for i in range(3)]
+    return lat_new, lon_new, h - dr[2], v_new, _euler(C_new), var_r, var_v, var_a
 
+
+def predict_state(msg: Any, dt_s: float, acc_sd_mps2: float = DEFAULT_ACC_SD_MPS2,
+                  rate_sd_rps: float = DEFAULT_RATE_SD_RPS) -> StateMessage:
+    """Latency compensation: the target state predicted by dt_s [s] with CTRA (``ctra_increments``).
+
+    Position is moved in the local-level frame at the target and converted back to geodetic with
+    the curvilinear relation (Groves 2013 eq. 2.119; error < 1 um for displacements < 10 m).
+    Covariance of the error state [dr_n, dv_n, psi_n] (block-diagonal from the message's sds) is
+    propagated as P' = F P F^T + G Q G^T with
+        F = [[I, I dt, -[C Gamma2 a dt^2 x]], [0, I, -[C Gamma1 a dt x]], [0, 0, I]],
+        acceleration noise acc_sd_mps2 entering through (C Gamma2 dt^2, C Gamma1 dt, 0) and rate
+        noise rate_sd_rps through (0, 0, C(t) dt); the returned sds are sqrt(diag P') (computed
+        in closed form per block). Attitude sd (roll, pitch, yaw) is treated as the nav-frame
+        attitude error (small tilt). The result keeps ids, fix, geometry; t_gps_s advances by dt_s;
+        acceleration and rate are held constant. Works on a StateMessage or a NavState (e.g. to
+        bring the master's own state to the current time) and returns the same type.
+    """
+    dt = float(dt_s)
+    lat_new, lon_new, h_new, v_new, rpy_new, var_r, var_v, var_a = _predict_core(msg, dt, acc_sd_mps2, rate_sd_rps)
     out = type(msg).__new__(type(msg))
     out.__dict__.update(msg.__dict__)
     if isinstance(msg, StateMessage):
         out.t_gps_s = msg.t_gps_s + dt
-        out.lat_rad, out.lon_rad, out.height_m = lat_new, lon_new, h - dr[2]
+        out.lat_rad, out.lon_rad, out.height_m = lat_new, lon_new, h_new
         out.signed_payload = None
     else:
         out.t_s = msg.t_s + dt
-        out.lla = np.array((lat_new, lon_new, h - dr[2]))
+        out.lla = np.array((lat_new, lon_new, h_new))
     out.v_ned_mps = np.array(v_new)
-    out.rpy_rad = np.array(_euler(C_new))
+    out.rpy_rad = np.array(rpy_new)
     out.pos_sd_m = np.sqrt(var_r)
     out.vel_sd_mps = np.sqrt(var_v)
     out.att_sd_rad = np.sqrt(var_a)
     return out
+
+
+class _PredictedTarget:
+    """What ``relative_kinematics`` reads of a predicted target, as plain-float tuples (the
+    master's hot path: no StateMessage copy, no small numpy arrays). Same values as the
+    ``predict_state`` result (IEEE sqrt is correctly rounded in numpy and math alike)."""
+    __slots__ = ("lat_rad", "lon_rad", "height_m", "v_ned_mps", "rpy_rad", "acc_body_mps2", "rate_body_rps",
+                 "pos_sd_m", "geometry", "vehicle_id", "kind")
+
+    def __init__(self, msg: Any, dt: float, acc_sd_mps2: float, rate_sd_rps: float):
+        lat, lon, h, v, rpy, var_r, _, _ = _predict_core(msg, dt, acc_sd_mps2, rate_sd_rps)
+        self.lat_rad, self.lon_rad, self.height_m = lat, lon, h
+        self.v_ned_mps, self.rpy_rad = v, rpy
+        self.acc_body_mps2, self.rate_body_rps = tuple(_tup(msg.acc_body_mps2)), tuple(_tup(msg.rate_body_rps))
+        self.pos_sd_m = (math.sqrt(var_r[0]), math.sqrt(var_r[1]), math.sqrt(var_r[2]))
+        self.geometry = getattr(msg, "geometry", None)
+        self.vehicle_id = getattr(msg, "vehicle_id", "")
+        self.kind = getattr(msg, "kind", "vehicle")
 
 
 # ----------------------------------------------------------------------------- transform
@@ -417,8 +452,12 @@ def relative_kinematics(master_state: Any, slave_state: Any, master_points: Any 
     u_n = (x / rng, y / rng, z / rng) if rng > 0 else (C_nm[0], C_nm[3], C_nm[6])
     range_sd = math.sqrt(max(quad(u_n), 0.0))
 
-    p_m = (0.0, 0.0, 0.0) if master_points is None else \
-        _tup(np.asarray(master_points, dtype=float).reshape(-1, 3)[0])
+    if master_points is None:
+        p_m = (0.0, 0.0, 0.0)
+    elif type(master_points) is tuple and len(master_points) == 3:
+        p_m = master_points
+    else:
+        p_m = _tup(np.asarray(master_points, dtype=float).reshape(-1, 3)[0])
     outline = _target_outline(slave_state, slave_points)
     if outline.kind == "circle" or len(outline.points_body_m) == 0:
         dx, dy = r_b[0] - p_m[0], r_b[1] - p_m[1]
@@ -428,7 +467,7 @@ def relative_kinematics(master_state: Any, slave_state: Any, master_points: Any 
         d_xy = (dx * scale, dy * scale)
         u_pt = v_rel
     else:
-        P_s = [tuple(p) for p in np.asarray(outline.points_body_m, dtype=float).tolist()]
+        P_s = np.asarray(outline.points_body_m, dtype=float).tolist()
         Q_b = [_mv(C_ms, p) for p in P_s]
         ia, ib, t, qx, qy, inside = _nearest_outline_point(
             [(r_b[0] + q[0], r_b[1] + q[1]) for q in Q_b], outline.kind == "polygon", p_m[0], p_m[1])
@@ -475,7 +514,7 @@ def evaluate_target(master_state: Any, slave_msg: StateMessage, master_point: An
         return RelativeResult(target_id=slave_msg.vehicle_id, target_kind=slave_msg.kind, status=status,
                               fix_side=side, source_seq=slave_msg.seq, t_gps_s=t_m, latency_s=latency_s,
                               t_sent_wall_s=slave_msg.t_sent_wall_s)
-    target = predict_state(slave_msg, latency_s, acc_sd_mps2, rate_sd_rps) if compensate else slave_msg
+    target = _PredictedTarget(slave_msg, float(latency_s), acc_sd_mps2, rate_sd_rps) if compensate else slave_msg
     res = relative_kinematics(master_state, target, master_point)
     res.source_seq = slave_msg.seq
     res.latency_s = latency_s
