@@ -60,8 +60,16 @@ def parse_imu_payload(data: bytes) -> dict:
     mounting = m.get("mounting_xyz_deg") or {}
     if type(mounting) is not dict:
         raise ImuPayloadError("mounting_xyz_deg is not a map")
-    return {"id": vid, "fleet": m.get("fleet"), "units": out,
-            "mounting": {str(k): [float(x) for x in v] for k, v in mounting.items()}}
+    angles = {}
+    for uid, v in mounting.items():
+        try:
+            a = np.asarray(v, dtype=float)
+        except (TypeError, ValueError):
+            raise ImuPayloadError(f"mounting_xyz_deg[{uid!r}]: not numbers") from None
+        if a.shape != (3,) or not np.isfinite(a).all() or np.abs(a).max() > 360.0:
+            raise ImuPayloadError(f"mounting_xyz_deg[{uid!r}]: need 3 finite angles in [-360, 360] deg")
+        angles[str(uid)] = a.tolist()
+    return {"id": vid, "fleet": m.get("fleet"), "units": out, "mounting": angles}
 
 
 class FleetGrader:

@@ -25,6 +25,9 @@ def chunks(v, vid: str, n: int = 25):
     msgpack.packb({"T": "imu", "ver": 1, "id": "a", "units": {"u": [[1, 2, 3]]}}),
     msgpack.packb({"T": "imu", "ver": 1, "id": "a", "units": {"u": [[float("nan")] * 7]}}),
     msgpack.packb({"T": "imu", "ver": 1, "id": "", "units": {"u": [[0.0] * 7]}}),
+    msgpack.packb({"T": "imu", "ver": 1, "id": "a", "units": {"u": [[0.0] * 7]}, "mounting_xyz_deg": {"u": 5}}),
+    msgpack.packb({"T": "imu", "ver": 1, "id": "a", "units": {"u": [[0.0] * 7]}, "mounting_xyz_deg": {"u": "x"}}),
+    msgpack.packb({"T": "imu", "ver": 1, "id": "a", "units": {"u": [[0.0] * 7]}, "mounting_xyz_deg": {"u": [1, 2]}}),
 ])
 def test_malformed_imu_payloads_are_rejected(payload):
     with pytest.raises(ImuPayloadError):
