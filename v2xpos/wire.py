@@ -45,7 +45,7 @@ SCHEMA_VERSION = 1
 ENVELOPE_VERSION = 1
 MAX_MESSAGE_BYTES = 8192
 MAX_GEOMETRY_POINTS = 64
-MAX_ID_CHARS = 64
+MAX_ID_CHARS = 32
 
 MAX_SPEED_MPS = 150.0
 MAX_ACC_MPS2 = 100.0
@@ -449,7 +449,7 @@ def _ident(m: dict, key: str) -> str:
     if type(s) is not str:
         raise WireError(f"not a string ({type(s).__name__})", key)
     if not s or len(s) > MAX_ID_CHARS or not _ID_RE.fullmatch(s):
-        raise WireError("identifier must be 1-64 chars of [A-Za-z0-9_.-]", key)
+        raise WireError(f"identifier must be 1-{MAX_ID_CHARS} chars of [A-Za-z0-9_.-]", key)
     return s
 
 
