@@ -53,6 +53,10 @@ def _run_master(cfg_path: Path, start: float, record: Path | None, stats_path: P
     from master.config import MasterConfig
     from master.service import MasterService
 
+    window = os.environ.get("V2XPOS_SOAK_LATENCY_WINDOW")
+    if window:  # diagnosis only: size of the pipeline's latency percentile windows
+        import master.pipeline
+        master.pipeline.LATENCY_WINDOW = int(window)
     doc = json.loads(cfg_path.read_text())
     if record is not None:
         doc.setdefault("record", {}).update({"mcap": str(record), "mcap_max_mb": 64})
