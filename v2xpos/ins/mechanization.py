@@ -147,8 +147,11 @@ def strapdown_batch(t_s, acc_mps2, gyro_rps, i0, i1, t_prev_s, nav, C_nb, corr, 
                 mem[MEM_DTH + j] = 0.0
                 mem[MEM_DV + j] = 0.0
             mem[MEM_VALID] = 1.0
-            t_last = t_s[k]
-            continue
+            if not t_s[k] > t_last:
+                t_last = t_s[k]
+                continue
+            # first sample after a start at t_last < t_s[k]: the interval is integrated with this
+            # sample held (dropping it would label the state t_s[k] while it is still at t_last)
         dt = t_s[k] - t_last
         if dt <= 0.0:
             continue
