@@ -125,3 +125,18 @@ def test_replay_session_reproduces_outputs_exactly(recorded_session, monkeypatch
     monkeypatch.setattr(rs, "read_session", altered)
     bad = rs.replay_session(path)
     assert not bad.identical and bad.mismatches
+
+
+def test_recording_cut_short_is_read_up_to_the_damage(recorded_session, tmp_path):
+    """A master killed mid-run leaves a file without summary: everything before the cut is kept."""
+    path, pipe, recorder = recorded_session
+    last = recorder.files[-1]
+    data = last.read_bytes()
+    last.write_bytes(data[: int(len(data) * 0.6)])
+    errors: list[str] = []
+    msgs = list(rec.read_recording(path, errors=errors))
+    assert errors and last.name in errors[0]
+    n_rx = sum(1 for m in msgs if m.topic == rec.TOPIC_RX)
+    assert 0 < n_rx < recorder.recorded[rec.TOPIC_RX]
+    report = rs.replay_session(path)
+    assert report.damaged and report.identical and report.matched == report.recorded_outputs > 0

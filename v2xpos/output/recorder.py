@@ -36,7 +36,8 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
-from mcap.reader import make_reader
+from mcap.records import Channel, Message, Metadata
+from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from v2xpos.types import FixStatus, NavState
@@ -293,31 +294,52 @@ def recording_files(path: str | Path) -> list[Path]:
     return [path, *rotated]
 
 
+def _stream_records(f: Path) -> tuple[list[tuple[int, str, int, bytes]], dict[str, str], str | None]:
+    """Messages (sequence, topic, log time, data) and session metadata of one file read as a
+    stream -- works on a file cut short (a crash before the summary was written): reading stops
+    at the damaged tail, whose error is returned."""
+    channels: dict[int, str] = {}
+    rows: list[tuple[int, str, int, bytes]] = []
+    session: dict[str, str] = {}
+    error = None
+    with open(f, "rb") as fh:
+        try:
+            for record in StreamReader(fh).records:
+                if isinstance(record, Channel):
+                    channels[record.id] = record.topic
+                elif isinstance(record, Message):
+                    rows.append((record.sequence, channels.get(record.channel_id, "?"), record.log_time,
+                                 record.data))
+                elif isinstance(record, Metadata) and record.name == SESSION_METADATA:
+                    session = dict(record.metadata)
+        except Exception as exc:  # truncated or corrupt tail: keep everything before it
+            error = f"{f}: stopped at a damaged record ({type(exc).__name__}: {exc})"
+    return rows, session, error
+
+
 def read_session(path: str | Path) -> dict[str, Any]:
     """Session metadata of the first file, values JSON-decoded."""
-    with open(recording_files(path)[0], "rb") as fh:
-        for meta in make_reader(fh).iter_metadata():
-            if meta.name == SESSION_METADATA:
-                return {k: json.loads(v) for k, v in meta.metadata.items()}
-    return {}
+    _, session, _ = _stream_records(recording_files(path)[0])
+    return {k: json.loads(v) for k, v in session.items()}
 
 
-def read_recording(path: str | Path, topics: tuple[str, ...] | None = None) -> Iterator[RecordedMessage]:
+def read_recording(path: str | Path, topics: tuple[str, ...] | None = None,
+                   errors: list[str] | None = None) -> Iterator[RecordedMessage]:
     """Messages of all files in write order (by the recorder's sequence number within a file).
 
-    The master state repeated at the head of a rotated file is skipped (it duplicates the last
-    state of the previous file).
+    Files are read as streams, so a recording whose last file was cut short (the master was
+    killed) yields everything before the damage; the damage is described in ``errors`` when a
+    list is given. The master state repeated at the head of a rotated file is skipped (it
+    duplicates the last state of the previous file).
     """
-    files = recording_files(path)
-    for i, f in enumerate(files):
-        with open(f, "rb") as fh:
-            reader = make_reader(fh)
-            rows = [(m.sequence, ch.topic, m.log_time, m.data)
-                    for _, ch, m in reader.iter_messages(topics=list(topics) if topics else None,
-                                                         log_time_order=False)]
+    for i, f in enumerate(recording_files(path)):
+        rows, _, error = _stream_records(f)
+        if error is not None and errors is not None:
+            errors.append(error)
         rows.sort(key=lambda r: r[0])
         for j, (_, topic, log_time, data) in enumerate(rows):
-            doc = json.loads(data)
             if i > 0 and j == 0 and topic == TOPIC_NAV:
                 continue
-            yield RecordedMessage(topic, log_time, doc)
+            if topics and topic not in topics:
+                continue
+            yield RecordedMessage(topic, log_time, json.loads(data))
