@@ -100,22 +100,25 @@ def _roll_rows(log: ResidualLog, t0_s: float, roll_sd_rad: float) -> tuple[list,
 
 
 def residual_rows(log: ResidualLog, applied: EffectSet, weights: dict | None, t0_s: float,
-                  roll_sd_rad: float) -> tuple[RowSet, dict]:
+                  roll_sd_rad: float, ref_times: tuple[float, float]) -> tuple[RowSet, dict]:
     """Rows from GNSS position/velocity and NHC innovations (each component divided by the
     baseline innovation sd in ``weights``, or by its own sd when weights is None) plus the block
-    mean vehicle roll. Keys remove the time shifts applied by ``correct``."""
+    mean vehicle roll. Keys are times relative to the first GNSS tag / first IMU stamp of the
+    replayed recording (``ref_times``), with the applied clock drift removed, so that the same
+    epoch keeps its key when stamps or tags are shifted."""
     keys, vals, ts = [], [], []
     new_w = {}
-    tau, drift = applied.imu_time_offset_s, applied.imu_clock_drift_ppm
+    drift = applied.imu_clock_drift_ppm
+    gnss0, imu0 = ref_times
     for kind in ("gnss_pos", "gnss_vel", "nhc"):
         if kind not in log:
             continue
         s = log[kind]
         if kind.startswith("gnss"):
-            t_orig = s.t_s + applied.gnss_latency_s
+            t_rel = s.t_s - gnss0
         else:
-            t_orig = s.t_s - tau - 1e-6 * drift * (s.t_s - t0_s)
-        kms = np.round(t_orig * 1000.0).astype(np.int64)
+            t_rel = (s.t_s - imu0) / (1.0 + 1e-6 * drift)
+        kms = np.round(t_rel * 1000.0).astype(np.int64)
         for i in range(len(s)):
             for c in range(s.innovation.shape[1]):
                 key = (kind, int(kms[i]), c)
@@ -141,9 +144,29 @@ def residual_rows(log: ResidualLog, applied: EffectSet, weights: dict | None, t0
     if weights is None:
         for kk in k:
             new_w[kk] = roll_sd_rad
+        # variance components: rescale each kind to unit mean square (Koch 1999, sec. 3.6), so that
+        # an over- or under-confident filter tuning does not set the relative weights of the kinds
+        kinds = np.array([kk[0] for kk in keys])
+        vals_a = np.asarray(vals, float)
+        for kind in set(kinds.tolist()):
+            sel = kinds == kind
+            if kind == "roll" or sel.sum() < 10:
+                continue
+            f = float(np.sqrt(np.mean(vals_a[sel] ** 2)))
+            if f > 0:
+                vals_a[sel] /= f
+                for j in np.flatnonzero(sel):
+                    new_w[keys[j]] *= f
+        vals = vals_a.tolist()
     arr = np.empty(len(keys), dtype=object)
     arr[:] = keys
     return RowSet(arr, np.asarray(vals), np.asarray(ts)), new_w
+
+
+def _ref_times(ds: Dataset, theta: np.ndarray) -> tuple[float, float]:
+    """First GNSS tag and first IMU stamp of ``correct(ds, theta)``."""
+    e = EffectSet.from_vector(theta)
+    return float(ds.gnss.t_s[0] - e.gnss_latency_s), float(ds.imu.t_s[0] + e.imu_time_offset_s)
 
 
 def _align(base: RowSet, other: RowSet) -> np.ndarray:
@@ -181,12 +204,12 @@ class Calibration:
     replays: int = 0
 
 
-CALIBRATION_REPLAY_CONFIG = {"gate_probability": 1.0, "use_gnss_velocity": False}
+CALIBRATION_REPLAY_CONFIG = {"gate_probability": 1.0}
 """Replays that feed the fit run without the chi-square gate (a gate decision that flips between
 two replays makes the innovation sequence jump and spoils the finite differences) and without the
-receiver's velocities: an RTK engine's velocity may be a smoothed, lagged state (on drive_0708 the
-course from the reported velocities lags the course from the positions by ~0.17 s,
-``kinematic.fit_timing``), which would bias the time offset; positions are the outage reference."""
+receiver's velocities when they lag the positions: an RTK engine's velocity may be a smoothed,
+lagged state (``kinematic.velocity_lag`` compares the course from velocities and from positions
+against the gyro); a lag would bias the time offset, and positions are the outage reference."""
 CALIBRATION_OUTAGES = OutageSchedule(length_s=5.0, every_s=15.0, first_s=20.0)
 """Short GNSS gaps in the fit replays: the first innovation after each gap is a 5 s dead-reckoning
 prediction error, so the likelihood also weighs the multi-step prediction that outages need
@@ -224,10 +247,12 @@ class Estimator:
         self.coarse_report: dict = {}
         self.active = active_parameters(ds.platform)
         self.schedule: OutageSchedule | None = CALIBRATION_OUTAGES
+        self.velocity_lag: tuple | None = None
+        self.config = dict(CALIBRATION_REPLAY_CONFIG)
 
     def _replay(self, ds: Dataset, theta: np.ndarray, label: str) -> ReplayOutcome:
         self.replays += 1
-        return replay(correct(ds, EffectSet.from_vector(theta)), self.schedule, config=CALIBRATION_REPLAY_CONFIG,
+        return replay(correct(ds, EffectSet.from_vector(theta)), self.schedule, config=self.config,
                       progress=self.progress, label=label)
 
     def coarse(self) -> np.ndarray:
@@ -246,7 +271,18 @@ class Estimator:
         if self.active[P_MISALIGN].all():
             th[P_MISALIGN] = np.asarray(rep.get("misalignment_rad", np.zeros(3)), float)
         th[P_LEVER_ARM] = np.asarray(rep.get("lever_arm_m", self.ds.lever_arm_m), float) - np.asarray(self.ds.lever_arm_m)
+        self.check_velocity_lag(th)
         return th
+
+    def check_velocity_lag(self, theta: np.ndarray) -> None:
+        """Leave the receiver velocities out of the fit when they lag the positions by > 3 sd."""
+        from v2xpos.rotation import dcm_from_euler
+        from .kinematic import velocity_lag
+        C = dcm_from_euler(*theta[P_MISALIGN]) @ np.asarray(self.ds.imu_to_body, float)
+        self.velocity_lag = velocity_lag(self.ds.imu, self.ds.gnss, C)
+        if self.velocity_lag is not None:
+            lag, sd = self.velocity_lag
+            self.config["use_gnss_velocity"] = not (abs(lag) > 3.0 * sd)
 
     def true_cost(self, ds: Dataset, theta: np.ndarray, label: str) -> tuple[float, RowSet]:
         """Residual cost of a replay at theta over the rows shared with the linearisation point;
@@ -258,7 +294,8 @@ class Estimator:
 
     def rows(self, ds: Dataset, theta: np.ndarray, label: str) -> tuple[RowSet, ReplayOutcome]:
         out = self._replay(ds, theta, label)
-        rows, _ = residual_rows(out.log, EffectSet.from_vector(theta), self.weights, self.t0_s, self.roll_sd)
+        rows, _ = residual_rows(out.log, EffectSet.from_vector(theta), self.weights, self.t0_s, self.roll_sd,
+                                _ref_times(ds, theta))
         return rows, out
 
     def linearize(self, theta0: np.ndarray, keep_weights: bool = False) -> RowSet:
@@ -267,10 +304,11 @@ class Estimator:
         if not keep_weights or self.weights is None:
             self.roll_sd = _roll_block_sd(out.log, self.t0_s)
             self.base_rows, self.weights = residual_rows(out.log, EffectSet.from_vector(theta0), None,
-                                                         self.t0_s, self.roll_sd)
+                                                         self.t0_s, self.roll_sd, _ref_times(self.ds, theta0))
             rows0 = self.base_rows
         else:
-            rows0, _ = residual_rows(out.log, EffectSet.from_vector(theta0), self.weights, self.t0_s, self.roll_sd)
+            rows0, _ = residual_rows(out.log, EffectSet.from_vector(theta0), self.weights, self.t0_s, self.roll_sd,
+                                     _ref_times(self.ds, theta0))
         r0 = _align(self.base_rows, rows0)
         self.theta_lin = theta0.copy()
         J = np.zeros((len(self.base_rows.r), N_PARAMS))
@@ -321,16 +359,37 @@ class Estimator:
         return theta
 
     def refine(self, ds: Dataset, theta_start: np.ndarray, iterations: int = 1) -> tuple[Fit, LinearProblem, ReplayOutcome]:
-        """Chord iterations on ``ds`` with the stored Jacobian, then the fit at the final point."""
-        theta = theta_start.copy()
-        for k in range(iterations):
-            rows, _ = self.rows(ds, theta, f"chord {k + 1}")
-            theta = identify.fit(self.problem(rows, theta), systematic_sd=self.systematic_sd()).theta
-        rows, out = self.rows(ds, theta, "at estimate")
-        prob = self.problem(rows, theta)
-        f = identify.fit(prob, systematic_sd=self.systematic_sd())
-        f = identify.decide(prob, f)
-        return f, prob, out
+        """Quasi-Newton iterations on ``ds`` starting from the stored finite-difference Jacobian,
+        improved after every step by Broyden's rank-one update J += (dr - J dth) dth^T / |dth|^2
+        (Broyden 1965, Math. Comp. 19) so that a recording derived from the linearised one
+        converges with a few replays; then the fit at the final point."""
+        J_saved = self.J
+        self.J = self.J.copy()
+        try:
+            theta = theta_start.copy()
+            rows, out = self.rows(ds, theta, "refine start")
+            r_prev = _align(self.base_rows, rows)
+            for k in range(iterations):
+                prob = self.problem(rows, theta)
+                new = identify.fit(prob, systematic_sd=self.systematic_sd()).theta
+                rows, out = self.rows(ds, new, f"refine {k + 1}")
+                r_new = _align(self.base_rows, rows)
+                dth = new - theta
+                ok = np.isfinite(r_new) & np.isfinite(r_prev) & np.all(np.isfinite(self.J), axis=1)
+                nrm = float(dth[self.active] @ dth[self.active])
+                if nrm > 0:
+                    upd = np.zeros_like(self.J)
+                    upd[ok] = np.outer(r_new[ok] - r_prev[ok] - self.J[ok] @ dth, dth) / nrm
+                    upd[:, ~self.active] = 0.0
+                    self.J = self.J + upd
+                theta, r_prev = new, r_new
+            prob = self.problem(rows, theta)
+            f = identify.fit(prob, systematic_sd=self.systematic_sd())
+            f = identify.decide(prob, f)
+            return f, prob, out
+        finally:
+            self.J_refined = self.J
+            self.J = J_saved
 
     def confirm(self, ds: Dataset, f: Fit, prob: LinearProblem) -> Fit:
         """Real error reduction: for every effect beyond 3 sd, replay with that effect removed; it
@@ -364,7 +423,7 @@ def calibrate_dataset(ds: Dataset, schedule: OutageSchedule, progress: bool = Tr
     before = metrics_replay(ds, schedule, progress)
     theta_c = est.coarse()
     theta = est.gauss_newton(theta_c, iterations=gn_iterations)
-    f, prob, out_fit = est.refine(ds, theta, iterations=0)
+    f, prob, out_fit = est.refine(ds, theta, iterations=2)
     f = est.confirm(ds, f, prob)
     a, b = identify.halves(prob)
     f1 = identify.fit(a, systematic_sd=est.systematic_sd())

@@ -64,9 +64,24 @@ def course_from_positions(gnss: GnssData) -> tuple[np.ndarray, np.ndarray, np.nd
 
 
 def heading_pairs(gnss: GnssData, min_speed_mps: float = 2.0, max_gap_s: float = 0.6,
-                  pos_sd_m: float = 0.02) -> tuple:
+                  pos_sd_m: float = 0.02, source: str = "positions") -> tuple:
     """(t_a, t_b, dpsi, sd_dpsi) over consecutive GNSS epochs when both are moving; course from
-    positions (``course_from_positions``), sd from the position noise over the chord."""
+    positions (``course_from_positions``, sd from the position noise over the chord) or, with
+    source="velocities", from the receiver's velocities (sd from their sigmas)."""
+    if source == "velocities":
+        if gnss.vel_ned_mps is None:
+            return (np.zeros(0),) * 4
+        v = np.asarray(gnss.vel_ned_mps, float)
+        t = np.asarray(gnss.t_s, float)
+        psi = np.arctan2(v[:, 1], v[:, 0])
+        sp = np.hypot(v[:, 0], v[:, 1])
+        sd_v = (np.full(len(v), 0.05) if gnss.vel_sd_ned_mps is None
+                else np.maximum(np.asarray(gnss.vel_sd_ned_mps, float)[:, :2].max(axis=1), 0.01))
+        a, b = np.arange(len(t) - 1), np.arange(1, len(t))
+        dt = t[b] - t[a]
+        ok = (sp[a] > min_speed_mps) & (sp[b] > min_speed_mps) & (dt > 0) & (dt < max_gap_s)
+        a, b = a[ok], b[ok]
+        return t[a], t[b], np.asarray(wrap_pi(psi[b] - psi[a]), float), np.hypot(sd_v[a] / sp[a], sd_v[b] / sp[b])
     t, psi, sp = course_from_positions(gnss)
     if len(t) < 4:
         return (np.zeros(0),) * 4
@@ -93,13 +108,13 @@ def yaw_integral(imu: ImuData, C_vehicle_imu: np.ndarray) -> tuple[np.ndarray, n
 
 def fit_timing(imu: ImuData, gnss: GnssData, C_vehicle_imu: np.ndarray, t0_s: float | None = None,
                tau_search_s: float = 0.5, estimate_drift: bool = True,
-               t_range_s: tuple[float, float] | None = None) -> TimingFit | None:
+               t_range_s: tuple[float, float] | None = None, source: str = "positions") -> TimingFit | None:
     """Estimate (tau, drift, yaw-gyro scale, yaw bias) as in the module docstring.
 
     t_range_s limits the GNSS pairs to a GPS time interval (e.g. one half of the drive).
     Returns None when fewer than 50 usable pairs exist.
     """
-    ta, tb, dpsi, sd = heading_pairs(gnss)
+    ta, tb, dpsi, sd = heading_pairs(gnss, source=source)
     if t_range_s is not None:
         keep = (ta >= t_range_s[0]) & (tb <= t_range_s[1])
         ta, tb, dpsi, sd = ta[keep], tb[keep], dpsi[keep], sd[keep]
@@ -168,3 +183,13 @@ def fit_timing(imu: ImuData, gnss: GnssData, C_vehicle_imu: np.ndarray, t0_s: fl
                      drift_sd_ppm=float(sdv[1]) if estimate_drift else float("inf"),
                      gyro_scale_z=float(1.0 / scale - 1.0), gyro_scale_z_sd=float(sdv[i_s]),
                      bias_rps=float(bias), n=m, t_mid_s=float(np.mean(0.5 * (ta + tb)[mask])))
+
+
+def velocity_lag(imu: ImuData, gnss: GnssData, C_vehicle_imu: np.ndarray) -> tuple[float, float] | None:
+    """Lag of the receiver's velocities behind its positions [s] and its sd: the difference of the
+    timing fitted with the course from velocities and from positions (same gyro, same epochs)."""
+    fp = fit_timing(imu, gnss, C_vehicle_imu, estimate_drift=False)
+    fv = fit_timing(imu, gnss, C_vehicle_imu, estimate_drift=False, source="velocities")
+    if fp is None or fv is None:
+        return None
+    return fv.tau_s - fp.tau_s, float(np.hypot(fp.tau_sd_s, fv.tau_sd_s))
