@@ -47,7 +47,7 @@ def free_port() -> int:
 
 # ----------------------------------------------------------------------------- master role
 
-def _run_master(cfg_path: Path, start: float, record: Path | None, stats_path: Path, publish_end: float) -> int:
+def _run_master(cfg_path: Path, start_file: Path, record: Path | None, stats_path: Path) -> int:
     import asyncio
 
     from master.config import MasterConfig
@@ -61,7 +61,7 @@ def _run_master(cfg_path: Path, start: float, record: Path | None, stats_path: P
     if record is not None:
         doc.setdefault("record", {}).update({"mcap": str(record), "mcap_max_mb": 64})
     cfg = MasterConfig.from_dict(doc, str(cfg_path))
-    svc = MasterService(cfg, start)
+    svc = MasterService(cfg, None, str(start_file))  # start stamp from the handshake
     samples: list[tuple[float, int]] = []
     stop = threading.Event()
 
@@ -76,7 +76,7 @@ def _run_master(cfg_path: Path, start: float, record: Path | None, stats_path: P
     def sample() -> None:
         while not stop.wait(0.5):
             samples.append((time.time(), rss_bytes()))
-            if trace and len(snaps) < 2 and time.time() > start + (5.0 if not snaps else 15.0):
+            if trace and len(snaps) < 2 and time.time() > svc.start + (5.0 if not snaps else 15.0):
                 snaps.append(tracemalloc.take_snapshot())
             pipe = svc.pipeline
             if pipe is not None:
@@ -97,7 +97,6 @@ def _run_master(cfg_path: Path, start: float, record: Path | None, stats_path: P
     final["recorded"] = dict(svc.recorder.recorded) if svc.recorder is not None else {}
     final["mcap_files"] = [str(p) for p in svc.recorder.files] if svc.recorder is not None else []
     final["rss_samples"] = samples
-    final["publish_end_unix_s"] = publish_end
     final.setdefault("clock_skew", [])
     if len(snaps) == 2:
         final["tracemalloc_top"] = [str(d) for d in snaps[1].compare_to(snaps[0], "lineno")[:15]]
@@ -107,8 +106,8 @@ def _run_master(cfg_path: Path, start: float, record: Path | None, stats_path: P
 
 # ----------------------------------------------------------------------------- slave role
 
-def _run_slaves(ids: list[str], keys_dir: Path | None, endpoint: str, start: float, duration: float,
-                rate: float, out_path: Path, extra_json5: dict | None = None) -> int:
+def _run_slaves(ids: list[str], keys_dir: Path | None, endpoint: str, start_file: Path, ready_id: str,
+                duration: float, rate: float, out_path: Path, extra_json5: dict | None = None) -> int:
     import numpy as np
 
     from sim.scenarios import DEFAULT_EPOCH_GPS_S
@@ -121,6 +120,12 @@ def _run_slaves(ids: list[str], keys_dir: Path | None, endpoint: str, start: flo
     signers = {vid: (MessageSigner.from_file(keys_dir / f"{vid}.key") if keys_dir is not None else None)
                for vid in ids}
     pubs = {vid: link.publisher(state_key(SOAK_FLEET, vid), block=True) for vid in ids}
+    from sim.launcher import signal_ready_and_wait
+    start = signal_ready_and_wait(start_file, ready_id)
+    if start is None:
+        link.close()
+        print(f"no start stamp in {start_file}", file=sys.stderr)
+        return 2
     geom = Geometry.box(3.8, 1.0, 0.9)
     sd = np.full(3, 0.01)
     sent = {vid: 0 for vid in ids}
@@ -212,25 +217,32 @@ def run_soak(slaves: int = 32, rate: float = 100.0, duration: float = 60.0, out_
            "output": {"zenoh": {"enabled": True}},
            "security": {"trust_list": str(out / "trust.json")} if signed else {}}
     (out / "master.json").write_text(json.dumps(cfg))
-    start = time.time() + lead_s
+    start_file = out / "start"
+    for old in out.glob("start*"):
+        old.unlink()
     py = [sys.executable, "-m", "master.bench_soak"]
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     repo = Path(__file__).resolve().parents[1]
-    master = subprocess.Popen(py + ["--role", "master", "--config", str(out / "master.json"), "--start", repr(start),
-                                    "--stats", str(out / "master_stats.json"), "--publish-end", repr(start + duration)]
+    master = subprocess.Popen(py + ["--role", "master", "--config", str(out / "master.json"), "--start-file",
+                                    str(start_file), "--stats", str(out / "master_stats.json")]
                               + (["--record", str(out / "session.mcap")] if record else []),
                               cwd=repo, env=env, stdout=subprocess.DEVNULL, stderr=open(out / "master.log", "w"))
-    time.sleep(1.0)
     groups = [ids[i:i + per_process] for i in range(0, len(ids), per_process)]
     procs = []
     for g, group in enumerate(groups):
         procs.append(subprocess.Popen(py + ["--role", "slaves", "--ids", ",".join(group)]
                                       + (["--keys", str(keys)] if signed else []) + [
-                                            "--endpoint", endpoint, "--start", repr(start), "--duration",
+                                            "--endpoint", endpoint, "--start-file", str(start_file),
+                                            "--ready-id", f"slaves_{g}", "--duration",
                                             repr(duration), "--rate", repr(rate), "--extra-json5", json.dumps(extra),
                                             "--out", str(out / f"slaves_{g}.json")],
                                       cwd=repo, env=env, stdout=subprocess.DEVNULL,
                                       stderr=open(out / f"slaves_{g}.log", "w")))
+    # start handshake (sim.launcher): every process signals ready once its session is open, then
+    # all get the same start stamp lead_s ahead (the master declares its subscriber meanwhile)
+    from sim.launcher import release_when_ready
+    start = release_when_ready(start_file, ["ego", *[f"slaves_{g}" for g in range(len(groups))]],
+                               lead_s=lead_s, timeout_s=180.0)
     # the master runs until every slave has finished (publishers may be slowed down by BLOCK
     # back-pressure) and it has worked off its backlog, then gets SIGTERM
     total = lead_s + duration + 1.0
@@ -335,10 +347,10 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m master.bench_soak")
     p.add_argument("--role", choices=("master", "slaves"), required=True)
     p.add_argument("--config")
-    p.add_argument("--start", type=float, required=True)
+    p.add_argument("--start-file", required=True)
+    p.add_argument("--ready-id", default="slaves")
     p.add_argument("--record")
     p.add_argument("--stats")
-    p.add_argument("--publish-end", type=float, default=math.nan)
     p.add_argument("--ids")
     p.add_argument("--keys")
     p.add_argument("--endpoint")
@@ -348,10 +360,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--extra-json5", default="{}")
     a = p.parse_args(argv)
     if a.role == "master":
-        return _run_master(Path(a.config), a.start, Path(a.record) if a.record else None, Path(a.stats),
-                           a.publish_end)
-    return _run_slaves(a.ids.split(","), Path(a.keys) if a.keys else None, a.endpoint, a.start, a.duration, a.rate,
-                       Path(a.out), json.loads(a.extra_json5))
+        return _run_master(Path(a.config), Path(a.start_file), Path(a.record) if a.record else None,
+                           Path(a.stats))
+    return _run_slaves(a.ids.split(","), Path(a.keys) if a.keys else None, a.endpoint, Path(a.start_file),
+                       a.ready_id, a.duration, a.rate, Path(a.out), json.loads(a.extra_json5))
 
 
 if __name__ == "__main__":
