@@ -57,6 +57,7 @@ sender (its counter began again), not a replay or reordering."""
 LATENCY_WINDOW = 100_000
 """Latency samples kept for the percentiles (ring buffer: memory stays bounded)."""
 
+_STATUS_NAME = {s: s.name.lower() for s in TargetStatus}
 _KEY_RE = re.compile(r"^v2xpos/([^/]+)/vehicle/([^/]+)/state$")
 
 
@@ -133,6 +134,11 @@ class MasterPipeline:
         self._known = set(config.known_vehicles)
         for vid in self._known:
             self.tracks[vid] = TargetTrack(vid)
+
+    def warm_up(self) -> None:
+        """Compile (or load from numba's cache) the compensation kernel before the first message."""
+        from v2xpos.relative_jit import warm_up
+        warm_up()
 
     # ------------------------------------------------------------------ validation
     def _reject(self, reason: str, vehicle_id: str | None) -> None:
@@ -234,7 +240,7 @@ class MasterPipeline:
             track.status = res.status
             track.fix_side = res.fix_side
             track.last_result = res
-            track.results[res.status.name.lower()] += 1
+            track.results[_STATUS_NAME[res.status]] += 1
         for sink in self.sinks:
             sink.write(res)
         t_done = self.clock_wall()

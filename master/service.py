@@ -117,6 +117,7 @@ class MasterService:
                               evaluate_uncompensated=cfg.evaluate_uncompensated,
                               record=cfg.results_npz is not None)
         self.pipeline = MasterPipeline(pcfg, self.sinks, authenticator=auth)
+        self.pipeline.warm_up()
         self.recorder = None
         if cfg.mcap:
             from v2xpos.output.recorder import McapRecorder, RecordingPipeline

@@ -320,24 +320,6 @@ def predict_state(msg: Any, dt_s: float, acc_sd_mps2: float = DEFAULT_ACC_SD_MPS
     return out
 
 
-class _PredictedTarget:
-    """What ``relative_kinematics`` reads of a predicted target, as plain-float tuples (the
-    master's hot path: no StateMessage copy, no small numpy arrays). Same values as the
-    ``predict_state`` result (IEEE sqrt is correctly rounded in numpy and math alike)."""
-    __slots__ = ("lat_rad", "lon_rad", "height_m", "v_ned_mps", "rpy_rad", "acc_body_mps2", "rate_body_rps",
-                 "pos_sd_m", "geometry", "vehicle_id", "kind")
-
-    def __init__(self, msg: Any, dt: float, acc_sd_mps2: float, rate_sd_rps: float):
-        lat, lon, h, v, rpy, var_r, _, _ = _predict_core(msg, dt, acc_sd_mps2, rate_sd_rps)
-        self.lat_rad, self.lon_rad, self.height_m = lat, lon, h
-        self.v_ned_mps, self.rpy_rad = v, rpy
-        self.acc_body_mps2, self.rate_body_rps = tuple(_tup(msg.acc_body_mps2)), tuple(_tup(msg.rate_body_rps))
-        self.pos_sd_m = (math.sqrt(var_r[0]), math.sqrt(var_r[1]), math.sqrt(var_r[2]))
-        self.geometry = getattr(msg, "geometry", None)
-        self.vehicle_id = getattr(msg, "vehicle_id", "")
-        self.kind = getattr(msg, "kind", "vehicle")
-
-
 # ----------------------------------------------------------------------------- transform
 
 def _target_outline(slave_state: Any, slave_points: Any) -> Geometry:
@@ -493,6 +475,22 @@ def relative_kinematics(master_state: Any, slave_state: Any, master_points: Any 
         lateral_m=float(d_xy[1]), gap_m=gap, closing_speed_mps=closing, ttc_s=ttc)
 
 
+def _point3(point: Any) -> np.ndarray:
+    if point is None:
+        return np.zeros(3)
+    if type(point) is np.ndarray and point.shape == (3,) and point.dtype == np.float64:
+        return point
+    return np.array(np.asarray(point, dtype=float).reshape(-1, 3)[0])
+
+
+def _evaluate_compiled(*args: Any) -> RelativeResult:
+    """``relative_jit.evaluate_compiled`` (imported on first use: numba compiles or loads its cache)."""
+    global _evaluate_compiled
+    from v2xpos.relative_jit import evaluate_compiled
+    _evaluate_compiled = evaluate_compiled
+    return evaluate_compiled(*args)
+
+
 def evaluate_target(master_state: Any, slave_msg: StateMessage, master_point: Any = None,
                     timeout_s: float = DEFAULT_TIMEOUT_S,
                     future_tolerance_s: float = DEFAULT_FUTURE_TOLERANCE_S,
@@ -503,6 +501,8 @@ def evaluate_target(master_state: Any, slave_msg: StateMessage, master_point: An
     Returns a RelativeResult with target_id/kind/source_seq/latency_s/t_sent_wall_s filled; for
     FIX_INVALID (with fix_side), TIMEOUT and FUTURE the kinematic fields are NaN (no output from
     that message). ``compensate=False`` transforms the unpredicted message (for comparisons).
+    The compensated path runs the compiled kernel ``v2xpos.relative_jit`` (same equations as
+    ``predict_state`` + ``relative_kinematics``, agreement to ~1e-13 tested).
     The caller fills fleet, master_id, seq and degraded.
     """
     t_m = _t_of(master_state)
@@ -514,8 +514,11 @@ def evaluate_target(master_state: Any, slave_msg: StateMessage, master_point: An
         return RelativeResult(target_id=slave_msg.vehicle_id, target_kind=slave_msg.kind, status=status,
                               fix_side=side, source_seq=slave_msg.seq, t_gps_s=t_m, latency_s=latency_s,
                               t_sent_wall_s=slave_msg.t_sent_wall_s)
-    target = _PredictedTarget(slave_msg, float(latency_s), acc_sd_mps2, rate_sd_rps) if compensate else slave_msg
-    res = relative_kinematics(master_state, target, master_point)
+    if compensate:
+        res = _evaluate_compiled(master_state, slave_msg, latency_s, _point3(master_point), acc_sd_mps2,
+                                 rate_sd_rps, t_m)
+    else:
+        res = relative_kinematics(master_state, slave_msg, master_point)
     res.source_seq = slave_msg.seq
     res.latency_s = latency_s
     res.t_sent_wall_s = slave_msg.t_sent_wall_s

@@ -297,6 +297,8 @@ class Envelope:
 # ----------------------------------------------------------------------------- encoding
 
 def _f3(a: np.ndarray) -> list:
+    if type(a) is np.ndarray and a.dtype == np.float64 and a.shape == (3,):
+        return a.tolist()
     return [float(a[0]), float(a[1]), float(a[2])]
 
 
@@ -475,10 +477,38 @@ def _vec3(m: dict, key: str, bound: float, nonneg: bool = False) -> np.ndarray:
     raise WireError(f"out of range (|x| <= {bound:g})", key)
 
 
+_NUMBER_TYPES = frozenset((float, int))
+_VALID_GEOMETRY_CACHE: dict = {}
+_GEOMETRY_CACHE_MAX = 4096
+"""Geometry maps already validated (kind, flat points, radius): a vehicle sends the same outline in
+every message, so its per-value checks run once. Bounded; cleared when full."""
+
+
 def _geometry(m: dict) -> Geometry:
     g = _get(m, "g")
     if type(g) is not dict:
         raise WireError("geometry is not a map", "g")
+    p, r = g.get("p", []), g.get("r", 0.0)
+    key = None
+    # equal keys may differ in type (True == 1.0): a hit also needs plain numbers only
+    if type(p) is list and (type(r) is float or type(r) is int) and _NUMBER_TYPES.issuperset(map(type, p)):
+        try:
+            key = (g.get("k"), tuple(p), r, "r" in g)
+            cached = _VALID_GEOMETRY_CACHE.get(key)
+        except TypeError:   # unhashable kind
+            key = cached = None
+        if cached is not None:
+            return Geometry(kind=cached[0], points_body_m=np.array(p, dtype=float).reshape(cached[1], 3),
+                            radius_m=cached[2])
+    geometry = _validate_geometry(g)
+    if key is not None:
+        if len(_VALID_GEOMETRY_CACHE) >= _GEOMETRY_CACHE_MAX:
+            _VALID_GEOMETRY_CACHE.clear()
+        _VALID_GEOMETRY_CACHE[key] = (geometry.kind, len(geometry.points_body_m), geometry.radius_m)
+    return geometry
+
+
+def _validate_geometry(g: dict) -> Geometry:
     kind = g.get("k")
     if kind not in GEOMETRY_KINDS:
         raise WireError(f"geometry kind must be one of {GEOMETRY_KINDS}", "g.k")
@@ -502,14 +532,16 @@ def _geometry(m: dict) -> Geometry:
     return Geometry(kind=kind, points_body_m=np.array(p, dtype=float).reshape(n, 3), radius_m=radius)
 
 
+_FIX_BY_CODE = {int(f): f for f in FixStatus}
+
+
 def decode_state_body(body: bytes) -> StateMessage:
     """Validated StateMessage from its msgpack body (no envelope)."""
     m = _unpack_body(body, "state")
     fix_code = _uint(m, "fix", 255)
-    try:
-        fix = FixStatus(fix_code)
-    except ValueError:
-        raise WireError(f"unknown fix status {fix_code}", "fix") from None
+    fix = _FIX_BY_CODE.get(fix_code)
+    if fix is None:
+        raise WireError(f"unknown fix status {fix_code}", "fix")
     kind = _get(m, "kind")
     if kind not in KINDS:
         raise WireError(f"kind must be one of {KINDS}", "kind")
