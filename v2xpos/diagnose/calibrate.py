@@ -430,7 +430,7 @@ def calibrate_dataset(ds: Dataset, schedule: OutageSchedule, progress: bool = Tr
     f2 = identify.fit(b, systematic_sd=est.systematic_sd())
     sig = EffectSet.from_vector(np.where(f.significant, f.theta, 0.0))
     after = metrics_replay(correct(ds, sig), schedule, progress)
-    base_fit = replay(ds, None, config=CALIBRATION_REPLAY_CONFIG, progress=progress, label="declared model")
+    base_fit = replay(ds, est.schedule, config=est.config, progress=progress, label="declared model")
     est.replays += 3
     return Calibration(dataset=ds.name, fit=f, problem=prob, theta_coarse=theta_c, fit_first=f1,
                        fit_second=f2, effects_significant=sig, before=before, after=after,

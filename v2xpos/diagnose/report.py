@@ -51,6 +51,19 @@ def _pairs(log: ResidualLog) -> dict[str, tuple]:
         ok = p.accepted & (p.speed_mps > MIN_SPEED_MPS)
         p = p.select(ok)
         pb = p.in_body()
+        if "gnss_vel" not in log:
+            # position innovations when the fit ran without receiver velocities: a time offset
+            # moves the antenna along track by v dt, a lever arm by a constant in the body frame
+            yr = p.rate_body_rps[:, 2]
+            out["imu_time_offset_s"] = (pb[:, 0], p.speed_mps, "along-track pos. innovation [m]", "speed [m/s]", p.t_s)
+            out["gnss_latency_s"] = out["imu_time_offset_s"]
+            out["lever_arm_x_m"] = (pb[:, 0], p.speed_mps, "along-track pos. innovation [m] (intercept)",
+                                    "speed [m/s]", p.t_s)
+            out["lever_arm_y_m"] = (pb[:, 1], yr, "lateral pos. innovation [m]", "yaw rate [rad/s]", p.t_s)
+            out["gyro_scale_z"] = (pb[:, 1], p.speed_mps * yr, "lateral pos. innovation [m]",
+                                   "speed x yaw rate [m/s^2]", p.t_s)
+            out["accel_scale_x"] = (pb[:, 0], p.f_body_mps2[:, 0], "along-track pos. innovation [m]", "f_x [m/s^2]", p.t_s)
+            out["accel_scale_y"] = (pb[:, 1], p.f_body_mps2[:, 1], "lateral pos. innovation [m]", "f_y [m/s^2]", p.t_s)
         out["lever_arm_z_m"] = (pb[:, 2], p.speed_mps, "vertical pos. innovation [m]", "speed [m/s]", p.t_s)
         out["misalign_roll_rad"] = (np.degrees(p.rpy_rad[:, 0]), p.t_s - p.t_s[0] if len(p) else p.t_s,
                                     "vehicle roll [deg]", "time [s]", p.t_s)
@@ -128,7 +141,7 @@ def write_report(cal, out_dir: Path) -> Path:
     for name in PARAM_NAMES:
         if name not in before or name not in after:
             continue
-        fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4))
         for ax, pairs, title in ((axes[0], before, "declared model"), (axes[1], after, "calibrated model")):
             r, x, ylab, xlab, _t = pairs[name]
             ax.plot(x, r, ".", ms=1.5, alpha=0.25, color="0.5")
@@ -142,6 +155,7 @@ def write_report(cal, out_dir: Path) -> Path:
             pad = 0.2 * (hi - lo + 1e-9)
             ax.set_ylim(lo - pad, hi + pad)
         axes[0].set_ylabel(before[name][2])
+        axes[1].set_ylabel(after[name][2])
         i = PARAM_NAMES.index(name)
         fig.suptitle(f"{name}: {f.theta[i]:+.4g} +- {f.sd[i]:.2g}  "
                      f"({'significant' if f.significant[i] else 'not significant'})", fontsize=10)
