@@ -446,8 +446,22 @@ def _uint(m: dict, key: str, hi: int = MAX_UINT64) -> int:
     return x
 
 
+_VALID_IDENTS: set = set()
+_IDENT_CACHE_MAX = 4096
+
+
 def _ident(m: dict, key: str) -> str:
     s = _get(m, key)
+    if type(s) is str and s in _VALID_IDENTS:
+        return s
+    s = _check_ident(s, key)
+    if len(_VALID_IDENTS) >= _IDENT_CACHE_MAX:
+        _VALID_IDENTS.clear()
+    _VALID_IDENTS.add(s)
+    return s
+
+
+def _check_ident(s: Any, key: str) -> str:
     if type(s) is not str:
         raise WireError(f"not a string ({type(s).__name__})", key)
     if not s or len(s) > MAX_ID_CHARS or not _ID_RE.fullmatch(s):
@@ -456,6 +470,11 @@ def _ident(m: dict, key: str) -> str:
 
 
 def _vec3(m: dict, key: str, bound: float, nonneg: bool = False) -> np.ndarray:
+    return np.array(_vec3_list(m, key, bound, nonneg), dtype=float)
+
+
+def _vec3_list(m: dict, key: str, bound: float, nonneg: bool = False) -> list:
+    """The validated 3-number list of ``key``."""
     try:
         v = m[key]
     except KeyError:
@@ -469,7 +488,7 @@ def _vec3(m: dict, key: str, bound: float, nonneg: bool = False) -> np.ndarray:
     lo = 0.0 if nonneg else -bound
     # chained comparisons are False for NaN, so this also rejects non-finite values
     if lo <= a <= bound and lo <= b <= bound and lo <= c <= bound:
-        return np.array(v, dtype=float)
+        return v
     if not (math.isfinite(a) and math.isfinite(b) and math.isfinite(c)):
         raise WireError("non-finite number", key)
     if nonneg and (a < 0 or b < 0 or c < 0):
@@ -545,24 +564,34 @@ def decode_state_body(body: bytes) -> StateMessage:
     kind = _get(m, "kind")
     if kind not in KINDS:
         raise WireError(f"kind must be one of {KINDS}", "kind")
-    v = _vec3(m, "v", MAX_SPEED_MPS)
+    v = _vec3_list(m, "v", MAX_SPEED_MPS)
     if v[0] * v[0] + v[1] * v[1] + v[2] * v[2] > MAX_SPEED_MPS * MAX_SPEED_MPS:
         raise WireError(f"speed above {MAX_SPEED_MPS:g} m/s", "v")
-    rpy = _vec3(m, "rpy", 2.0 * math.pi)
+    rpy = _vec3_list(m, "rpy", 2.0 * math.pi)
     if abs(rpy[0]) > math.pi or abs(rpy[1]) > 0.5 * math.pi:
         raise WireError("roll must be within +-pi and pitch within +-pi/2", "rpy")
     iq = m.get("iq")
     if iq is not None and type(iq) is not dict:
         raise WireError("imu_quality is not a map", "iq")
-    return StateMessage(
-        fleet=_ident(m, "fleet"), vehicle_id=_ident(m, "id"), seq=_uint(m, "seq"),
-        t_gps_s=_num(m, "t", 0.0, MAX_T_GPS_S), fix=fix,
-        lat_rad=_num(m, "lat", -0.5 * math.pi, 0.5 * math.pi), lon_rad=_num(m, "lon", -math.pi, math.pi),
-        height_m=_num(m, "h", MIN_HEIGHT_M, MAX_HEIGHT_M), v_ned_mps=v,
-        acc_body_mps2=_vec3(m, "a", MAX_ACC_MPS2), rate_body_rps=_vec3(m, "w", MAX_RATE_RPS),
-        rpy_rad=rpy, pos_sd_m=_vec3(m, "sp", MAX_SD, True), vel_sd_mps=_vec3(m, "sv", MAX_SD, True),
-        att_sd_rad=_vec3(m, "sa", MAX_SD, True), geometry=_geometry(m), kind=kind,
-        schema=m["ver"], t_sent_wall_s=_opt_num(m, "tw", 0.0, MAX_T_GPS_S), imu_quality=iq)
+    # validated in the same order as the fields below; the seven 3-vectors become rows of one
+    # array (one numpy allocation per message instead of seven)
+    fleet, vehicle_id, seq = _ident(m, "fleet"), _ident(m, "id"), _uint(m, "seq")
+    t_gps_s = _num(m, "t", 0.0, MAX_T_GPS_S)
+    lat = _num(m, "lat", -0.5 * math.pi, 0.5 * math.pi)
+    lon = _num(m, "lon", -math.pi, math.pi)
+    h = _num(m, "h", MIN_HEIGHT_M, MAX_HEIGHT_M)
+    vecs = np.array((v, _vec3_list(m, "a", MAX_ACC_MPS2), _vec3_list(m, "w", MAX_RATE_RPS), rpy,
+                     _vec3_list(m, "sp", MAX_SD, True), _vec3_list(m, "sv", MAX_SD, True),
+                     _vec3_list(m, "sa", MAX_SD, True)), dtype=float)
+    geometry = _geometry(m)
+    t_sent = _opt_num(m, "tw", 0.0, MAX_T_GPS_S)
+    msg = StateMessage.__new__(StateMessage)
+    msg.__dict__.update(
+        fleet=fleet, vehicle_id=vehicle_id, seq=seq, t_gps_s=t_gps_s, fix=fix, lat_rad=lat, lon_rad=lon,
+        height_m=h, v_ned_mps=vecs[0], acc_body_mps2=vecs[1], rate_body_rps=vecs[2], rpy_rad=vecs[3],
+        pos_sd_m=vecs[4], vel_sd_mps=vecs[5], att_sd_rad=vecs[6], geometry=geometry, kind=kind,
+        schema=m["ver"], t_sent_wall_s=t_sent, imu_quality=iq, sig=None, key_id=None, signed_payload=None)
+    return msg
 
 
 def decode_state(data: bytes) -> StateMessage:
