@@ -292,12 +292,31 @@ def evaluate_kernel(m_lla, m_v, m_a, m_w, m_rpy, m_psd, m_asd,
     return out
 
 
+_F64 = np.dtype(np.float64)
+
+
 def _arr3(a: Any) -> np.ndarray:
-    return a if type(a) is np.ndarray and a.dtype == np.float64 and a.shape == (3,) else \
+    return a if type(a) is np.ndarray and a.dtype == _F64 and a.shape == (3,) else \
         np.asarray(a, dtype=float).reshape(3)
 
 
 _EMPTY_POINTS = np.zeros((0, 3))
+_KINEMATIC_ARRAYS = ("rel_pos_body_m", "rel_pos_sd_m", "rel_vel_body_mps", "rel_acc_body_mps2", "rel_rpy_rad")
+_RESULT_DEFAULTS = RelativeResult().__dict__
+# results are built from a copy of the defaults (cheaper than the dataclass __init__); only valid
+# while every mutable default is one of the arrays replaced below
+_FAST_RESULT = all(k in _KINEMATIC_ARRAYS or not isinstance(v, (np.ndarray, list, dict, set))
+                   for k, v in _RESULT_DEFAULTS.items())
+
+
+def _result(fields: dict) -> RelativeResult:
+    if not _FAST_RESULT:
+        return RelativeResult(**fields)
+    res = RelativeResult.__new__(RelativeResult)
+    d = res.__dict__
+    d.update(_RESULT_DEFAULTS)
+    d.update(fields)
+    return res
 
 
 def evaluate_compiled(master_state: Any, slave_msg: Any, dt_s: float, master_point: np.ndarray,
@@ -324,14 +343,14 @@ def evaluate_compiled(master_state: Any, slave_msg: Any, dt_s: float, master_poi
                         pts, kind, radius, master_point, float(dt_s), float(acc_sd_mps2), float(rate_sd_rps))
     v = o.tolist()
     ttc = v[OUT_TTC]
-    return RelativeResult(
+    return _result(dict(
         target_id=str(getattr(slave_msg, "vehicle_id", "")), target_kind=str(getattr(slave_msg, "kind", "vehicle")),
         t_gps_s=t_master_s, rel_pos_body_m=o[OUT_POS:OUT_POS + 3], rel_pos_sd_m=o[OUT_POS_SD:OUT_POS_SD + 3],
         rel_vel_body_mps=o[OUT_VEL:OUT_VEL + 3], rel_acc_body_mps2=o[OUT_ACC:OUT_ACC + 3],
         rel_rpy_rad=o[OUT_RPY:OUT_RPY + 3], range_m=v[OUT_RANGE], range_sd_m=v[OUT_RANGE_SD],
         bearing_rad=v[OUT_BEARING], elevation_rad=v[OUT_ELEVATION], longitudinal_m=v[OUT_LONGITUDINAL],
         lateral_m=v[OUT_LATERAL], gap_m=v[OUT_GAP], closing_speed_mps=v[OUT_CLOSING],
-        ttc_s=None if ttc != ttc else ttc)
+        ttc_s=None if ttc != ttc else ttc))
 
 
 def warm_up() -> None:
