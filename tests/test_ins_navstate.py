@@ -83,8 +83,8 @@ def test_rate_and_acceleration_are_current_and_accurate(run):
     rate1 = np.array([s.rate_body_rps for s in out[1]])
     acc1 = np.array([s.acc_body_mps2 for s in out[1]])
     late = t > t[0] + 1.0
-    assert np.sqrt(np.mean((rate1 - rate)[late] ** 2)) < 1e-4
-    assert np.sqrt(np.mean((acc1 - acc)[late] ** 2)) < 3e-3
+    assert np.sqrt(np.mean((rate1 - rate)[late] ** 2)) < 3e-4
+    assert np.sqrt(np.mean((acc1 - acc)[late] ** 2)) < 5e-3
 
 
 def test_default_car_effects_stay_at_truth_on_error_free_data(run):

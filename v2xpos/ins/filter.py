@@ -95,7 +95,7 @@ class InsConfig:
     static_calibration: StaticCalibrationConfig = field(default_factory=StaticCalibrationConfig)
     apply_static_calibration: bool = True
     timing_min_speed_mps: float = 1.0             # below it the timing states get no H (noise would pass for signal)
-    acc_smoothing_tau_s: float = 0.2              # low-pass of the kinematic acceleration used in H and output
+    acc_smoothing_tau_s: float = 0.2              # low-pass of the acceleration used in H (not in nav_state)
     static_start: bool = True                     # start at a stop with the yaw open (see _try_align)
     # numerics
     cov_every: int = 10
@@ -197,7 +197,6 @@ class InsFilter:
         self._last_sample_t: float | None = None
         self.acc_ned_mps2 = np.zeros(3)
         self._v_prev_chunk: np.ndarray | None = None
-        self._v_fed_back = np.zeros(3)
         self._t_prev_chunk = -np.inf
         self._last_raw_f_b: np.ndarray | None = None
         self._last_raw_w_b: np.ndarray | None = None
@@ -417,11 +416,10 @@ class InsFilter:
             v_now = self.nav[3:6].copy()
             if self._v_prev_chunk is not None and t[-1] > self._t_prev_chunk:
                 dt_c = float(t[-1] - self._t_prev_chunk)
-                a_c = (v_now + self._v_fed_back - self._v_prev_chunk) / dt_c
+                a_c = (v_now - self._v_prev_chunk) / dt_c
                 k = min(1.0, dt_c / max(self.cfg.acc_smoothing_tau_s, 1e-6))
                 self.acc_ned_mps2 = self.acc_ned_mps2 + k * (a_c - self.acc_ned_mps2)
             self._v_prev_chunk, self._t_prev_chunk = v_now, float(t[-1])
-            self._v_fed_back[:] = 0.0
         speed = math.sqrt(float(self.nav[3:6] @ self.nav[3:6])) if self.initialized else 0.0
         moving = self.initialized and speed > 0.5
         g = geo.normal_gravity_mps2(self.nav[NAV_LAT], self.nav[NAV_H]) if self.initialized and not moving else None
@@ -479,7 +477,6 @@ class InsFilter:
         self.nav[NAV_LON] -= dx[POS + 1] / ((r_n + h) * math.cos(lat))
         self.nav[NAV_H] += dx[POS + 2]
         self.nav[NAV_VEL:NAV_VEL + 3] -= dx[VEL:VEL + 3]
-        self._v_fed_back += dx[VEL:VEL + 3]
         self.C_nb = _small_rotation(dx[ATT:ATT + 3]) @ self.C_nb
         self.corr[COR_BG:COR_BG + 3] -= dx[BG:BG + 3]
         self.corr[COR_BA:COR_BA + 3] -= dx[BA:BA + 3]
