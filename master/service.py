@@ -297,11 +297,17 @@ class MasterService:
             Path(cfg.summary_json).write_text(json.dumps(final, indent=1))
 
 
-BATCH_WINDOW_S = float(os.environ.get("V2XPOS_BATCH_WINDOW_S", "0.0005"))
-"""After the first sample of a batch arrives the dispatch thread waits this long, then takes
+BATCH_WINDOW_MIN_S = 0.00025
+BATCH_WINDOW_MAX_S = float(os.environ.get("V2XPOS_BATCH_WINDOW_MAX_S", "0.002"))
+BATCH_WINDOW_PER_MSG_PER_S = BATCH_WINDOW_MAX_S / 6400.0
+"""After the first sample of a batch arrives the dispatch thread waits a window, then takes
 everything queued (up to MAX_BATCH) and runs it through the pipeline under one lock. Grouping
 messages keeps the interpreter's working set in cache: on the shared 2-core machine a message
-processed alone after a pause costs ~3x the CPU of one processed right after another."""
+processed alone after a pause costs ~3x the CPU (0.29 ms) of one processed right after another
+(0.08 ms). The window grows with the received message rate (measured over RATE_WINDOW_S), from
+BATCH_WINDOW_MIN_S at low rates (8 slaves at 100 Hz: 0.25 ms) to BATCH_WINDOW_MAX_S at 6,400
+messages/s (64 slaves at 100 Hz), where the added wait buys the CPU to keep up."""
+RATE_WINDOW_S = 0.5
 MAX_BATCH = 64
 FIFO_CAPACITY = 65536
 
@@ -330,14 +336,19 @@ class _InlineDispatch:
 
     def _run(self) -> None:
         sub = self._sub
+        window_s = BATCH_WINDOW_MIN_S
+        t_rate0, n_rate = time.time(), 0
         while True:
             try:
                 first = sub.recv()
             except Exception:   # the session closed (zenoh raises its own error type)
                 return
             t_arr = time.time()
-            if BATCH_WINDOW_S > 0.0:
-                time.sleep(BATCH_WINDOW_S)
+            if t_arr - t_rate0 >= RATE_WINDOW_S:
+                rate = n_rate / (t_arr - t_rate0)
+                window_s = min(BATCH_WINDOW_MAX_S, max(BATCH_WINDOW_MIN_S, rate * BATCH_WINDOW_PER_MSG_PER_S))
+                t_rate0, n_rate = t_arr, 0
+            time.sleep(window_s)
             batch = [first]
             while len(batch) < MAX_BATCH:
                 try:
@@ -347,6 +358,7 @@ class _InlineDispatch:
                 if sample is None:
                     break
                 batch.append(sample)
+            n_rate += len(batch)
             self.on_batch([(s.payload.to_bytes(), str(s.key_expr)) for s in batch], t_arr)
 
     def on_batch(self, items: list, t_arrival_wall_s: float) -> None:
