@@ -129,6 +129,9 @@ def simulate_gnss(traj: Trajectory, model: GnssErrorModel | None = None,
         gm[k] = phi * gm[k - 1] + np.sqrt(1 - phi ** 2) * rng.normal(0, 1, 3)
     err = white + gm * sd * np.sqrt(model.gm_share)
     lla = geo.ned_to_lla(r_ant + err, traj.lla0)
-    vel = s["v_ned_mps"] + rng.normal(0, model.vel_sd_mps, (len(t), 3))
+    # antenna velocity: v_ant = v + C_nb (w_nb^b x l^b) (Groves 2013 eq. 14.124, Earth rate neglected)
+    v_ant = s["v_ned_mps"] + np.einsum("nij,nj->ni", s["C_nb"],
+                                       np.cross(s["w_nb_b_rps"], np.asarray(model.lever_arm_m, float)))
+    vel = v_ant + rng.normal(0, model.vel_sd_mps, (len(t), 3))
     return GnssData(t_s=t - model.latency_s, lla=lla, fix=fix, sd_ned_m=sd,
                     vel_ned_mps=vel, vel_sd_ned_mps=np.full((len(t), 3), model.vel_sd_mps))

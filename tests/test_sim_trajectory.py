@@ -62,3 +62,16 @@ def test_sensor_models_apply_declared_errors():
     gn = simulate_gnss(tr, GnssErrorModel(rate_hz=5.0), fix_schedule=[(5, 10, 4)])
     ned = geo.lla_to_ned(gn.lla, tr.lla0)
     assert np.std(ned[gn.fix == 5, 0]) < 0.03 and np.std(ned[gn.fix == 4, 0]) > 0.03
+
+
+def test_gnss_velocity_is_the_antenna_velocity():
+    tr = generate([Segment(10.0, yaw_rate_rps=0.3)], speed0_mps=10.0, roll_per_lat_acc_rad=0.0)
+    lever = np.array([0.0, 0.0, -1.5])            # antenna 1.5 m above the IMU: no effect in an unbanked turn
+    gn = simulate_gnss(tr, GnssErrorModel(vel_sd_mps=0.0, lever_arm_m=np.array([2.0, 0.0, 0.0])))
+    s = tr.sample(gn.t_s)
+    # antenna 2 m ahead of the IMU, yaw rate 0.3 rad/s: extra 0.6 m/s towards the body's right
+    right_ned = np.einsum("nij,j->ni", s["C_nb"], [0.0, 1.0, 0.0])
+    extra = np.einsum("ni,ni->n", gn.vel_ned_mps - s["v_ned_mps"], right_ned)
+    assert np.allclose(extra[5:-5], 0.6, atol=0.01)
+    gn0 = simulate_gnss(tr, GnssErrorModel(vel_sd_mps=0.0, lever_arm_m=lever))
+    assert np.allclose(gn0.vel_ned_mps, tr.sample(gn0.t_s)["v_ned_mps"], atol=1e-3)
