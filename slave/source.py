@@ -78,7 +78,7 @@ class InsSimSource:
     """Simulated sensors of one actor through the real GNSS/INS filter (see module docstring)."""
 
     def __init__(self, sc: Scenario, actor: Actor, platform: str | None = None, effects: tuple = (),
-                 cov_every: int = 1):
+                 cov_every: int = 10):
         from v2xpos.ins import InsConfig, InsFilter
         self.name = "ins"
         self.actor = actor
