@@ -242,12 +242,6 @@ def simulated_recording(duration_s: float = 180.0, seed: int = 0, effects: Effec
     gmodel = sensors.GnssErrorModel(rate_hz=gnss_rate_hz, lever_arm_m=np.asarray(e.gnss_lever_arm_m, float),
                                     vel_sd_mps=0.03)
     gnss = sensors.simulate_gnss(traj, gmodel, rng=rng)
-    if np.any(e.gnss_lever_arm_m):
-        # the simulator reports the reference point's velocity; the antenna moves with
-        # v + C_nb (w_nb x l) (Groves 2013 eq. 14.122), which is what a receiver measures
-        smp = traj.sample(gnss.t_s)
-        gnss.vel_ned_mps = gnss.vel_ned_mps + np.einsum(
-            "nij,nj->ni", smp["C_nb"], np.cross(smp["w_nb_b_rps"], np.asarray(e.gnss_lever_arm_m, float)))
     ds = Dataset(name=f"sim_drive_{seed}", platform="car", imu=imu, gnss=gnss, imu_to_body=B,
                  lever_arm_m=np.zeros(3), lever_arm_sd_m=0.1, notes={"simulated": True})
     extra = EffectSet(imu_clock_drift_ppm=e.imu_clock_drift_ppm, gnss_latency_s=e.gnss_latency_s)
