@@ -397,7 +397,7 @@ class MessageAuthenticator:
             return self._reject(reason)
         t = float(msg.t_gps_s)
         self.clock.update(msg.vehicle_id, int(msg.seq), t,
-                          now_gps_s if t_arrival_gps_s is None else float(t_arrival_gps_s))
+                          now_gps_s if t_arrival_gps_s is None else float(t_arrival_gps_s), snapshot=False)
         if t > now_gps_s + self.future_tolerance_s:
             return self._reject(REJECT_FUTURE)
         if t < now_gps_s - self.max_age_s:
@@ -494,8 +494,10 @@ class ClockSkewMonitor:
     def all_status(self) -> list[ClockSkewStatus]:
         return [replace(t.status) for t in self._tracks.values()]
 
-    def update(self, vehicle_id: str, seq: int, t_tx_s: float, t_rx_s: float) -> ClockSkewStatus:
-        """Feed one received message; returns a snapshot of the sender's current status."""
+    def update(self, vehicle_id: str, seq: int, t_tx_s: float, t_rx_s: float,
+               snapshot: bool = True) -> ClockSkewStatus | None:
+        """Feed one received message; returns a snapshot of the sender's current status
+        (None with ``snapshot=False``: the per-message admission path does not need the copy)."""
         tr = self._tracks.get(vehicle_id)
         if tr is None:
             tr = self._tracks[vehicle_id] = _SkewTrack(vehicle_id)
@@ -528,7 +530,7 @@ class ClockSkewMonitor:
             reasons.append(f"drift {st.drift_ppm:+.0f} ppm")
         st.skewed = bool(reasons)
         st.reason = "; ".join(reasons)
-        return replace(st)
+        return replace(st) if snapshot else None
 
     def _block(self, tr: _SkewTrack, t_tx_s: float, t_rx_s: float) -> None:
         delay = t_rx_s - t_tx_s
