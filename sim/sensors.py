@@ -87,7 +87,8 @@ def simulate_imu(traj: Trajectory, model: ImuErrorModel | None = None, rate_hz: 
 @dataclass
 class GnssErrorModel:
     """GNSS receiver model: 1-sigma horizontal/vertical noise per fix status [m], Gauss-Markov share,
-    velocity noise [m/s], output rate, latency (solution reported late by latency_s)."""
+    velocity noise [m/s], output rate, latency_s (each solution is tagged latency_s after the instant
+    it describes)."""
     rate_hz: float = 10.0
     sd_h_m: dict = field(default_factory=lambda: {FixStatus.FIXED: 0.01, FixStatus.FLOAT: 0.15,
                                                   FixStatus.DGPS: 0.5, FixStatus.SINGLE: 1.5})
@@ -106,7 +107,8 @@ def simulate_gnss(traj: Trajectory, model: GnssErrorModel | None = None,
 
     fix_schedule: (t_start_s, t_end_s, status) intervals relative to the trajectory start; outside
     them the fix is FIXED. Status NONE produces no epoch. With latency_s > 0 the time tag of each
-    epoch is t_true - latency_s (the solution describes an earlier instant than it claims).
+    epoch is t_true + latency_s: the solution describes an instant latency_s earlier than its tag
+    (the convention of ``gnss_latency_s``: a tag is valid at t_tag - gnss_latency_s).
     """
     model = model or GnssErrorModel()
     rng = rng or np.random.default_rng(1)
@@ -133,5 +135,5 @@ def simulate_gnss(traj: Trajectory, model: GnssErrorModel | None = None,
     v_ant = s["v_ned_mps"] + np.einsum("nij,nj->ni", s["C_nb"],
                                        np.cross(s["w_nb_b_rps"], np.asarray(model.lever_arm_m, float)))
     vel = v_ant + rng.normal(0, model.vel_sd_mps, (len(t), 3))
-    return GnssData(t_s=t - model.latency_s, lla=lla, fix=fix, sd_ned_m=sd,
+    return GnssData(t_s=t + model.latency_s, lla=lla, fix=fix, sd_ned_m=sd,
                     vel_ned_mps=vel, vel_sd_ned_mps=np.full((len(t), 3), model.vel_sd_mps))

@@ -75,3 +75,11 @@ def test_gnss_velocity_is_the_antenna_velocity():
     assert np.allclose(extra[5:-5], 0.6, atol=0.01)
     gn0 = simulate_gnss(tr, GnssErrorModel(vel_sd_mps=0.0, lever_arm_m=lever))
     assert np.allclose(gn0.vel_ned_mps, tr.sample(gn0.t_s)["v_ned_mps"], atol=1e-3)
+
+
+def test_gnss_latency_tags_epochs_late():
+    tr = generate([Segment(10.0)], speed0_mps=10.0, yaw0_rad=0.0)
+    gn = simulate_gnss(tr, GnssErrorModel(latency_s=0.05, sd_h_m={5: 0.0}, vertical_factor=0.0, vel_sd_mps=0.0))
+    north_m = geo.lla_to_ned(gn.lla, tr.lla0)[:, 0]
+    # the position is the truth 50 ms before the tag: 0.5 m behind where the vehicle is at the tag time
+    assert np.allclose(north_m - tr.sample(gn.t_s)["r_ned_m"][:, 0], -0.5, atol=1e-3)
