@@ -298,7 +298,7 @@ class MasterService:
 
 
 BATCH_WINDOW_MIN_S = 0.00025
-BATCH_WINDOW_MAX_S = float(os.environ.get("V2XPOS_BATCH_WINDOW_MAX_S", "0.002"))
+BATCH_WINDOW_MAX_S = float(os.environ.get("V2XPOS_BATCH_WINDOW_MAX_S", "0.0005"))
 BATCH_WINDOW_PER_MSG_PER_S = BATCH_WINDOW_MAX_S / 6400.0
 """After the first sample of a batch arrives the dispatch thread waits a window, then takes
 everything queued (up to MAX_BATCH) and runs it through the pipeline under one lock. Grouping
@@ -306,7 +306,9 @@ messages keeps the interpreter's working set in cache: on the shared 2-core mach
 processed alone after a pause costs ~3x the CPU (0.29 ms) of one processed right after another
 (0.08 ms). The window grows with the received message rate (measured over RATE_WINDOW_S), from
 BATCH_WINDOW_MIN_S at low rates (8 slaves at 100 Hz: 0.25 ms) to BATCH_WINDOW_MAX_S at 6,400
-messages/s (64 slaves at 100 Hz), where the added wait buys the CPU to keep up."""
+messages/s (64 slaves at 100 Hz). Longer maximum windows (1-2 ms) gave bigger batches but, on the
+shared machine, worse e2e p99 in `v2xpos bench fanin` (each wait is one more chance to lose the
+core); V2XPOS_BATCH_WINDOW_MAX_S overrides it for such comparisons."""
 RATE_WINDOW_S = 0.5
 MAX_BATCH = 128
 """Most messages per lock hold (~10 ms of work); a full batch means a backlog: the next batch is
