@@ -297,18 +297,17 @@ class MasterService:
             Path(cfg.summary_json).write_text(json.dumps(final, indent=1))
 
 
-BATCH_WINDOW_MIN_S = 0.00025
-BATCH_WINDOW_MAX_S = float(os.environ.get("V2XPOS_BATCH_WINDOW_MAX_S", "0.0005"))
+BATCH_WINDOW_MAX_S = float(os.environ.get("V2XPOS_BATCH_WINDOW_MAX_S", "0"))
+BATCH_WINDOW_MIN_S = min(0.00025, BATCH_WINDOW_MAX_S)
 BATCH_WINDOW_PER_MSG_PER_S = BATCH_WINDOW_MAX_S / 6400.0
-"""After the first sample of a batch arrives the dispatch thread waits a window, then takes
-everything queued (up to MAX_BATCH) and runs it through the pipeline under one lock. Grouping
-messages keeps the interpreter's working set in cache: on the shared 2-core machine a message
-processed alone after a pause costs ~3x the CPU (0.29 ms) of one processed right after another
-(0.08 ms). The window grows with the received message rate (measured over RATE_WINDOW_S), from
-BATCH_WINDOW_MIN_S at low rates (8 slaves at 100 Hz: 0.25 ms) to BATCH_WINDOW_MAX_S at 6,400
-messages/s (64 slaves at 100 Hz). Longer maximum windows (1-2 ms) gave bigger batches but, on the
-shared machine, worse e2e p99 in `v2xpos bench fanin` (each wait is one more chance to lose the
-core); V2XPOS_BATCH_WINDOW_MAX_S overrides it for such comparisons."""
+"""Optional batching wait: after the first sample of a batch arrives the dispatch thread waits a
+window growing with the received rate (BATCH_WINDOW_MIN_S .. BATCH_WINDOW_MAX_S at 6,400
+messages/s), then takes everything queued (up to MAX_BATCH). Default 0: no wait, a batch is what
+queued while the previous one was processed. Bigger batches cost less CPU per message (a message
+handled alone after a pause costs ~0.29 ms of CPU on the shared 2-core machine, one right after
+another ~0.08 ms), but in `v2xpos bench fanin` every waiting window (0.5 / 2 ms) gave worse e2e
+p99 than none: each wait is one more chance to lose the core. V2XPOS_BATCH_WINDOW_MAX_S sets it
+for such comparisons."""
 RATE_WINDOW_S = 0.5
 MAX_BATCH = 128
 """Most messages per lock hold (~10 ms of work); a full batch means a backlog: the next batch is
@@ -318,10 +317,11 @@ FIFO_CAPACITY = 65536
 
 class _InlineDispatch:
     """Pipeline on a dedicated dispatch thread that drains the zenoh subscriber's FIFO channel in
-    batches (``BATCH_WINDOW_S``; no per-sample zenoh-python callback thread hand-over, no
-    asyncio hop); ``MasterService.lock`` serialises it with the loop's tick and status tasks.
-    Every sample of a batch is stamped with the batch's wake-up time as its arrival, so the
-    reported pipeline time includes the batching wait."""
+    batches (everything queued, up to MAX_BATCH; optional wait ``BATCH_WINDOW_MAX_S``): no
+    per-sample zenoh-python callback thread hand-over, no asyncio hop; ``MasterService.lock``
+    serialises it with the loop's tick and status tasks. Every sample of a batch is stamped with
+    the batch's wake-up time as its arrival, so the reported pipeline time includes any wait
+    behind earlier samples of the same batch (not the time queued before the wake-up)."""
 
     def __init__(self, svc: MasterService):
         self.svc = svc
@@ -353,7 +353,7 @@ class _InlineDispatch:
                 rate = n_rate / (t_arr - t_rate0)
                 window_s = min(BATCH_WINDOW_MAX_S, max(BATCH_WINDOW_MIN_S, rate * BATCH_WINDOW_PER_MSG_PER_S))
                 t_rate0, n_rate = t_arr, 0
-            if not backlog:
+            if window_s > 0.0 and not backlog:
                 time.sleep(window_s)
             batch = [first]
             while len(batch) < MAX_BATCH:
