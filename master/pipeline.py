@@ -35,13 +35,14 @@ from __future__ import annotations
 import math
 import re
 import time
-from collections import Counter, defaultdict, deque
+from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from typing import Any, Callable, Protocol
 
 import numpy as np
 
 from v2xpos.relative import check_latency, evaluate_target
+from v2xpos.stats import LatencyHistogram
 from v2xpos.wire import FixSide, RelativeResult, StateMessage, TargetStatus, WireError, decode_state
 
 REJECT_MALFORMED = "malformed"
@@ -54,8 +55,9 @@ REJECT_SELF = "own_id"
 RESTART_SEQ_GAP = 1024
 """A sequence number this far below the last one, with a later time of validity, is a restarted
 sender (its counter began again), not a replay or reordering."""
-LATENCY_WINDOW = 100_000
-"""Latency samples kept for the percentiles (ring buffer: memory stays bounded)."""
+LATENCY_WINDOW = 4096
+"""Latency samples kept exactly for windowed percentiles; whole-run percentiles come from a
+constant-memory log histogram (``v2xpos.stats``), so memory stays bounded on any run length."""
 
 _STATUS_NAME = {s: s.name.lower() for s in TargetStatus}
 _KEY_RE = re.compile(r"^v2xpos/([^/]+)/vehicle/([^/]+)/state$")
@@ -123,8 +125,8 @@ class MasterPipeline:
         self.degraded_vehicles: set[str] = set()
         self.seq = 0
         self.processed = 0
-        self.pipeline_ms: deque = deque(maxlen=LATENCY_WINDOW)
-        self.e2e_ms: deque = deque(maxlen=LATENCY_WINDOW)
+        self.pipeline_ms = LatencyHistogram(recent=LATENCY_WINDOW)
+        self.e2e_ms = LatencyHistogram(recent=LATENCY_WINDOW)
         self.records: dict[str, list] = defaultdict(list)
         self.scene_updates = 0
         self.last_scene = None
@@ -319,10 +321,9 @@ class MasterPipeline:
     # ------------------------------------------------------------------ summaries
     def summary(self, window: int | None = None) -> dict:
         """Counters and per-target status for monitors (JSON-serialisable); latency percentiles over
-        the last ``window`` messages (None = all)."""
-        def pct(a: deque, q: float) -> float | None:
-            a = list(a) if window is None else list(a)[-window:]
-            return float(np.percentile(a, q)) if a else None
+        the last ``window`` messages (exact), or over the whole run (None; log-histogram, 1.2 %)."""
+        def pct(a: LatencyHistogram, q: float) -> float | None:
+            return a.percentile(q, window)
         return {
             "processed": self.processed, "rejected": dict(self.rejected),
             "pipeline_ms_p50": pct(self.pipeline_ms, 50), "pipeline_ms_p99": pct(self.pipeline_ms, 99),
