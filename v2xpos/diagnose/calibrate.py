@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from v2xpos.ins.replay import add_schedule_arguments, load_for_command
 from v2xpos.types import Dataset
 
 from . import identify, structure
@@ -473,20 +474,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset", help="dataset.toml of the recording")
     parser.add_argument("--json", help="write the result JSON here")
     parser.add_argument("--plots", help="directory for the report (PNG figures + report.md)")
-    parser.add_argument("--outage-length", type=float, default=15.0, help="GNSS outage length [s] (default 15)")
-    parser.add_argument("--outage-every", type=float, default=45.0, help="outage period [s] (default 45)")
-    parser.add_argument("--outage-first", type=float, default=40.0,
-                        help="first outage start after the first GNSS epoch [s] (default 40)")
+    add_schedule_arguments(parser)
     parser.add_argument("--iterations", type=int, default=2, help="Gauss-Newton iterations (default 2)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
 def run(args: argparse.Namespace) -> int:
-    from v2xpos.datasets import load_dataset
-    try:
-        ds = load_dataset(args.dataset)
-    except (OSError, ValueError) as e:
-        print(f"calibrate: cannot load {args.dataset}: {e}", file=sys.stderr)
+    ds = load_for_command(args.dataset, "calibrate")
+    if ds is None:
         return 2
     schedule = OutageSchedule(args.outage_length, args.outage_every, args.outage_first)
     cal = calibrate_dataset(ds, schedule, progress=not args.no_progress, gn_iterations=args.iterations)

@@ -372,31 +372,44 @@ def write_plots(result: ReplayResult, out_dir: str | Path) -> list[Path]:
 
 
 # ---------------------------------------------------------------------- command
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``v2xpos replay``."""
-    parser.add_argument("dataset", help="dataset.toml (or a dataset directory, e.g. a comma2k19 segment)")
+def add_schedule_arguments(parser: argparse.ArgumentParser) -> None:
+    """The outage-schedule options shared by ``v2xpos replay`` and ``v2xpos calibrate``."""
     parser.add_argument("--outage-length", type=float, default=15.0, help="outage length [s] (default 15)")
     parser.add_argument("--outage-every", type=float, default=45.0, help="outage period [s] (default 45)")
     parser.add_argument("--outage-first", type=float, default=40.0,
                         help="start of the first outage after the first GNSS epoch [s] (default 40)")
+
+
+def schedule_from_args(args: argparse.Namespace) -> OutageSchedule:
+    """OutageSchedule from the options of ``add_schedule_arguments``."""
+    return OutageSchedule(args.outage_length, args.outage_every, args.outage_first)
+
+
+def load_for_command(path: str, command: str) -> Dataset | None:
+    """Load a dataset for a command; on a bad file print why (naming it) and return None."""
+    from v2xpos.datasets import load_dataset
+    try:
+        return load_dataset(path)
+    except (OSError, ValueError) as e:
+        print(f"v2xpos {command}: cannot load {path}: {e}", file=sys.stderr)
+        return None
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``v2xpos replay``."""
+    parser.add_argument("dataset", help="dataset.toml (or a dataset directory, e.g. a comma2k19 segment)")
+    add_schedule_arguments(parser)
     parser.add_argument("--json", help="write the summary JSON here")
     parser.add_argument("--plots", help="write PNG plots into this directory")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def _load(path: str) -> Dataset:
-    from v2xpos.datasets import load_dataset
-    return load_dataset(path)
-
-
 def run(args: argparse.Namespace) -> int:
     """``v2xpos replay``: print the summary, optionally write the JSON and plots; 2 if unloadable."""
-    try:
-        ds = _load(args.dataset)
-    except (OSError, ValueError) as e:
-        print(f"v2xpos replay: cannot load {args.dataset}: {e}", file=sys.stderr)
+    ds = load_for_command(args.dataset, "replay")
+    if ds is None:
         return 2
-    sched = OutageSchedule(args.outage_length, args.outage_every, args.outage_first)
+    sched = schedule_from_args(args)
     res = replay(ds, sched, progress=not args.no_progress)
     keys = ("dataset", "imu_samples", "gnss_epochs", "malformed_lines", "outage_count", "outage_h_rms_m",
             "outage_h_max_m", "outage_v_rms_m", "aided_h_rms_m", "aided_h_rms_steady_m", "wall_s",
@@ -429,8 +442,9 @@ def run_bench(args: argparse.Namespace) -> int:
     """``v2xpos bench replay``: throughput per stage and end to end [IMU samples/s]."""
     from .ekf import propagate_covariance
     from .mechanization import MEM_SIZE, strapdown_batch
+    from v2xpos.datasets import load_dataset
     t0 = time.perf_counter()
-    ds = _load(args.dataset)
+    ds = load_dataset(args.dataset)
     t_load = time.perf_counter() - t0
     n = len(ds.imu)
     print(f"dataset {ds.name}: {n} IMU samples, {len(ds.gnss)} GNSS epochs, load {t_load:.2f} s")
