@@ -18,29 +18,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from v2xpos import geo
+from v2xpos.ins.replay import OutageSchedule
 from v2xpos.types import Dataset, FixStatus
 
 from .residuals import ResidualLog, ResidualRecorder
 
 RECORDED_KINDS = ("gnss_pos", "gnss_vel", "nhc")
-
-
-@dataclass
-class OutageSchedule:
-    """GNSS outages of ``length_s`` every ``every_s`` starting ``first_s`` after the first epoch."""
-    length_s: float = 15.0
-    every_s: float = 45.0
-    first_s: float = 40.0
-
-    def windows(self, t_first_s: float, t_last_s: float) -> list[tuple[float, float]]:
-        if self.length_s <= 0 or self.every_s <= 0:
-            return []
-        out = []
-        start = t_first_s + self.first_s
-        while start + self.length_s <= t_last_s:
-            out.append((start, start + self.length_s))
-            start += self.every_s
-        return out
 
 
 @dataclass
@@ -75,7 +58,7 @@ def replay(ds: Dataset, schedule: OutageSchedule | None = None, config: dict | N
     wall0 = time.perf_counter()
     order = np.argsort(gnss.t_s, kind="stable")
     tg = gnss.t_s[order]
-    windows = (schedule.windows(float(tg[0]), float(tg[-1])) if schedule is not None and len(tg) else [])
+    windows = (schedule.intervals(float(tg[0]), float(tg[-1])) if schedule is not None and len(tg) else [])
     pending_end = [w[1] for w in windows]
     outage_err, aided_err = [], []
     i_imu = 0
