@@ -8,7 +8,6 @@
 """
 from __future__ import annotations
 
-import math
 
 from v2xpos.link import Publisher
 from v2xpos.wire import RelativeResult, encode_relative
@@ -45,12 +44,8 @@ class CanSink:
         self.out.send_result(result)
 
     def write_scene(self, scene_result, t_gps_s: float, seq: int) -> None:
-        r = scene_result
-        if len(r.lane_index):
-            self.out.send_lanes(r.lane_index, r.lane_lateral_m, r.lane_lateral_speed_mps)
-        if len(r.object_index):
-            ttc = [None if not math.isfinite(t) else float(t) for t in r.object_ttc_s]
-            self.out.send_objects(r.object_index, r.object_distance_m, r.object_bearing_rad, ttc)
+        """LANE / OBJECT frames numbered as in docs/protocol.md §5 (``CanOutput.send_scene``)."""
+        self.out.send_scene(scene_result)
 
     def close(self) -> None:
         self.out.close()
