@@ -149,7 +149,7 @@ class MasterPipeline:
             self.tracks[vehicle_id].rejected[reason] += 1
 
     def _admit(self, payload: bytes, key: str | None, t_now_gps_s: float,
-               t_arrival_wall_s: float) -> StateMessage | None:
+               t_arrival_wall_s: float, signature_valid: bool | None = None) -> StateMessage | None:
         key_id = None
         key_fleet = None
         if key is not None:
@@ -186,7 +186,7 @@ class MasterPipeline:
             return None
         if self.authenticator is not None:
             t_arr_gps = t_now_gps_s - (self.clock_wall() - t_arrival_wall_s)
-            reason = self.authenticator.check(msg, t_now_gps_s, t_arr_gps)
+            reason = self.authenticator.check(msg, t_now_gps_s, t_arr_gps, signature_valid)
             if reason is not None:
                 self._reject(reason, vid)
                 return None
@@ -200,13 +200,15 @@ class MasterPipeline:
 
     # ------------------------------------------------------------------ main entry
     def handle(self, payload: bytes, key: str | None, master: Any, t_now_gps_s: float,
-               t_arrival_wall_s: float | None = None) -> RelativeResult | None:
+               t_arrival_wall_s: float | None = None, signature_valid: bool | None = None) -> RelativeResult | None:
         """Run one received payload through the pipeline; returns the result sent (None if rejected).
 
         master: the master's latest filter state (StateMessage or NavState, time t_m <= now).
+        signature_valid: ``MessageAuthenticator.verify_envelope(payload)`` when a receive thread
+        already ran it (None: verified here when the message gets that far).
         """
         t_arr = self.clock_wall() if t_arrival_wall_s is None else t_arrival_wall_s
-        msg = self._admit(payload, key, t_now_gps_s, t_arr)
+        msg = self._admit(payload, key, t_now_gps_s, t_arr, signature_valid)
         if msg is None:
             return None
         return self.handle_message(msg, master, t_now_gps_s, t_arr)

@@ -121,9 +121,10 @@ class MasterService:
         self.pipeline.warm_up()
         self.recorder = None
         if cfg.mcap:
-            from v2xpos.output.recorder import McapRecorder, RecordingPipeline
+            from v2xpos.output.recorder import RecordingPipeline
+            from v2xpos.output.recorder_process import RecorderProcess
             Path(cfg.mcap).parent.mkdir(parents=True, exist_ok=True)
-            self.recorder = McapRecorder(cfg.mcap, max_bytes=int(cfg.mcap_max_mb * 2 ** 20))
+            self.recorder = RecorderProcess(cfg.mcap, max_bytes=int(cfg.mcap_max_mb * 2 ** 20))
             self.pipeline = RecordingPipeline(self.pipeline, self.recorder)
         self.status_pub = self.link.publisher(status_key(cfg.fleet, cfg.master_id), express=False)
         self.imu_grades: dict = {}
@@ -242,7 +243,11 @@ class MasterService:
             except (NotImplementedError, RuntimeError):  # not the main thread (tests)
                 pass
         if self.cfg.dispatch == "inline":
-            sub = _InlineDispatch(self)
+            verifier = None
+            if len(self.trust) > 0:
+                from v2xpos.verify_worker import VerifierProcess
+                verifier = VerifierProcess(self.trust.to_json())
+            sub = _InlineDispatch(self, verifier)
             sub.subscribe(self.link, STATE_KEY_ALL(self.cfg.fleet))
         else:
             sub = self.link.subscribe_async(STATE_KEY_ALL(self.cfg.fleet), loop)
@@ -282,6 +287,8 @@ class MasterService:
                 except Exception:
                     self.grading_proc.kill()
             self.link.close()
+            if isinstance(sub, _InlineDispatch) and sub.verifier is not None:
+                sub.verifier.close()
         return final
 
     def _write_outputs(self, final: dict) -> None:
@@ -321,10 +328,16 @@ class _InlineDispatch:
     per-sample zenoh-python callback thread hand-over, no asyncio hop; ``MasterService.lock``
     serialises it with the loop's tick and status tasks. Every sample of a batch is stamped with
     the batch's wake-up time as its arrival, so the reported pipeline time includes any wait
-    behind earlier samples of the same batch (not the time queued before the wake-up)."""
+    behind earlier samples of the same batch (not the time queued before the wake-up).
 
-    def __init__(self, svc: MasterService):
+    With a trust list (signed slaves) the Ed25519 verification of each envelope, about half of a
+    message's cost, runs in a worker process (``v2xpos.verify_worker``): the thread sends batch k
+    to the worker, then handles batch k-1 with its verdicts while the worker verifies batch k; when
+    nothing else is queued it waits for batch k's verdicts at once (no added latency at low rates)."""
+
+    def __init__(self, svc: MasterService, verifier=None):
         self.svc = svc
+        self.verifier = verifier
         self.received = 0
         self.batches = 0
         self.cpu_s = 0.0
@@ -338,38 +351,62 @@ class _InlineDispatch:
         threading.Thread(target=self._run, name="v2xpos-dispatch", daemon=True).start()
         return self._sub
 
-    def _run(self) -> None:
+    def _next_batch(self, block: bool) -> tuple[list, float] | None:
+        """([(payload, key), ...], wake-up wall time [s]) of everything queued (up to MAX_BATCH);
+        None when not ``block`` and nothing is queued. Raises EOFError when the session closed."""
         sub = self._sub
-        window_s = BATCH_WINDOW_MIN_S
-        t_rate0, n_rate = time.time(), 0
-        backlog = False
+        try:
+            first = sub.recv() if block else sub.try_recv()
+        except Exception:   # the session closed (zenoh raises its own error type)
+            raise EOFError from None
+        if first is None:
+            return None
+        t_arr = time.time()
+        if t_arr - self._t_rate0 >= RATE_WINDOW_S:
+            rate = self._n_rate / (t_arr - self._t_rate0)
+            self._window_s = min(BATCH_WINDOW_MAX_S, max(BATCH_WINDOW_MIN_S, rate * BATCH_WINDOW_PER_MSG_PER_S))
+            self._t_rate0, self._n_rate = t_arr, 0
+        if self._window_s > 0.0 and not self._backlog:
+            time.sleep(self._window_s)
+        batch = [first]
+        while len(batch) < MAX_BATCH:
+            try:
+                sample = sub.try_recv()
+            except Exception:
+                break
+            if sample is None:
+                break
+            batch.append(sample)
+        self._n_rate += len(batch)
+        self._backlog = len(batch) >= MAX_BATCH
+        return [(s.payload.to_bytes(), str(s.key_expr)) for s in batch], t_arr
+
+    def _run(self) -> None:
+        self._window_s = BATCH_WINDOW_MIN_S
+        self._t_rate0, self._n_rate = time.time(), 0
+        self._backlog = False
+        verifier = self.verifier
+        pending = None          # batch sent to the verifier, verdicts not read yet
         while True:
             try:
-                first = sub.recv()
-            except Exception:   # the session closed (zenoh raises its own error type)
-                return
-            t_arr = time.time()
-            if t_arr - t_rate0 >= RATE_WINDOW_S:
-                rate = n_rate / (t_arr - t_rate0)
-                window_s = min(BATCH_WINDOW_MAX_S, max(BATCH_WINDOW_MIN_S, rate * BATCH_WINDOW_PER_MSG_PER_S))
-                t_rate0, n_rate = t_arr, 0
-            if window_s > 0.0 and not backlog:
-                time.sleep(window_s)
-            batch = [first]
-            while len(batch) < MAX_BATCH:
-                try:
-                    sample = sub.try_recv()
-                except Exception:
-                    break
-                if sample is None:
-                    break
-                batch.append(sample)
-            n_rate += len(batch)
-            backlog = len(batch) >= MAX_BATCH
-            self.on_batch([(s.payload.to_bytes(), str(s.key_expr)) for s in batch], t_arr)
+                batch = self._next_batch(block=pending is None)
+            except EOFError:
+                batch = None
+                if pending is None:
+                    return
+            if verifier is None:
+                items, t_arr = batch
+                self.on_batch([(payload, key, None) for payload, key in items], t_arr)
+                continue
+            if batch is not None:
+                verifier.submit([payload for payload, _ in batch[0]])
+            if pending is not None:
+                items, t_arr = pending
+                self.on_batch([(payload, key, ok) for (payload, key), ok in zip(items, verifier.collect())], t_arr)
+            pending = batch
 
     def on_batch(self, items: list, t_arrival_wall_s: float) -> None:
-        """Run (payload, key) pairs through the pipeline under the service lock."""
+        """Run (payload, key, signature_valid) triples through the pipeline under the service lock."""
         svc = self.svc
         c0 = time.thread_time()
         with svc.lock:
@@ -378,16 +415,16 @@ class _InlineDispatch:
             if svc.closing:
                 return
             pipe = svc.pipeline
-            for payload, key in items:
+            for payload, key, signature_valid in items:
                 if svc.nav is None:
                     pipe.rejected[REJECT_MASTER_NOT_READY] += 1
                     continue
-                pipe.handle(payload, key, svc.nav, svc.gps_now(), t_arrival_wall_s)
+                pipe.handle(payload, key, svc.nav, svc.gps_now(), t_arrival_wall_s, signature_valid)
         self.cpu_s += time.thread_time() - c0
 
     def on_sample(self, payload: bytes, key: str, attachment: bytes | None, t_arrival_wall_s: float) -> None:
         """One sample (``Link.subscribe`` callback signature)."""
-        self.on_batch([(payload, key)], t_arrival_wall_s)
+        self.on_batch([(payload, key, None)], t_arrival_wall_s)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

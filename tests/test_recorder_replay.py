@@ -60,8 +60,10 @@ def _drive(pipe, signers, n_steps=400):
             pipe.tick(t + 0.003, t)
 
 
-@pytest.fixture
-def recorded_session(tmp_path):
+@pytest.fixture(params=["in_process", "child_process"])
+def recorded_session(tmp_path, request):
+    """The same session recorded by McapRecorder in the pipeline's process and by RecorderProcess
+    (the master's default: the writing happens in a child process)."""
     trust = sec.TrustList()
     signers = {}
     for vid in ("car1", "car2"):
@@ -71,7 +73,11 @@ def recorded_session(tmp_path):
                                          known_vehicles=("car1", "car2")),
                           authenticator=sec.MessageAuthenticator(trust))
     path = tmp_path / "rec" / "session.mcap"
-    recorder = rec.McapRecorder(path, max_bytes=60_000, chunk_size=8_000)
+    if request.param == "in_process":
+        recorder = rec.McapRecorder(path, max_bytes=60_000, chunk_size=8_000)
+    else:
+        from v2xpos.output.recorder_process import RecorderProcess
+        recorder = RecorderProcess(path, max_bytes=60_000, chunk_size=8_000)
     wrapped = rec.RecordingPipeline(pipe, recorder)
     _drive(wrapped, signers)
     recorder.close()
@@ -140,3 +146,19 @@ def test_recording_cut_short_is_read_up_to_the_damage(recorded_session, tmp_path
     assert 0 < n_rx < recorder.recorded[rec.TOPIC_RX]
     report = rs.replay_session(path)
     assert report.damaged and report.identical and report.matched == report.recorded_outputs > 0
+
+
+def test_recorder_process_failure_does_not_stop_the_master(tmp_path, capsys):
+    """The child dying is reported once; the calls keep returning and count what was dropped."""
+    from v2xpos.output.recorder_process import RecorderProcess
+    recorder = RecorderProcess(tmp_path / "s.mcap")
+    recorder.record_tick(T0, T0)
+    recorder.flush()
+    recorder.proc.kill()
+    recorder.proc.wait()
+    for k in range(2000):   # enough to fill the buffer and hit the closed pipe
+        recorder.record_received(b"x" * 100, "k", 1.7e9 + k, T0 + k, 0)
+    recorder.close()
+    assert recorder.failure
+    assert recorder.dropped > 0
+    assert "recorder" in capsys.readouterr().err

@@ -69,6 +69,33 @@ def test_signed_message_accepted_and_forgeries_rejected(fleet):
     assert auth.check(ok, T0 + 0.05) is None
 
 
+def test_envelope_verified_ahead_gives_the_same_verdicts(fleet):
+    """``verify_envelope`` (run on the master's receive thread) decides exactly what ``check``
+    would: a verdict passed on is used, not re-derived, and undecided cases fall back to check."""
+    trust, signers, _ = fleet
+    auth = sec.MessageAuthenticator(trust)
+    good = encode_state(_msg("car1", 1, T0), sign=signers["car1"])
+    env = unpack_envelope(good)
+    swapped = pack_envelope(unpack_envelope(encode_state(_msg("car1", 2, T0))).body, env.sig, env.key_id)
+    outsider = encode_state(_msg("car1", 3, T0), sign=sec.MessageSigner(sec.Ed25519PrivateKey.generate()))
+    impersonation = encode_state(_msg("car1", 4, T0), sign=signers["car2"])
+    unsigned = encode_state(_msg("car1", 5, T0))
+    assert auth.verify_envelope(good) is True
+    assert auth.verify_envelope(swapped) is False
+    assert auth.verify_envelope(impersonation) is True   # valid for car2's key; check sees the mismatch
+    for undecided in (outsider, unsigned, b"\x93\x01", b""):
+        assert auth.verify_envelope(undecided) is None
+    expected = {good: None, swapped: sec.REJECT_BAD_SIGNATURE, outsider: sec.REJECT_UNKNOWN_KEY,
+                impersonation: sec.REJECT_KEY_VEHICLE_MISMATCH, unsigned: sec.REJECT_UNSIGNED}
+    for payload, reason in expected.items():
+        msg = decode_state(payload)
+        assert auth.verify_signature(msg, auth.verify_envelope(payload)) == reason
+        assert auth.verify_signature(msg) == reason
+    # a negative verdict from the receive thread is final even for a body that would verify
+    assert auth.check(decode_state(good), T0 + 0.01, signature_valid=False) == sec.REJECT_BAD_SIGNATURE
+    assert auth.check(decode_state(good), T0 + 0.01, signature_valid=True) is None
+
+
 def test_replay_duplicate_reorder_restart_and_time_windows(fleet):
     trust, signers, _ = fleet
     auth = sec.MessageAuthenticator(trust, max_age_s=2.0, replay_window=64)
@@ -171,3 +198,30 @@ def test_clock_jump_and_drift_reported_but_delay_spikes_are_not():
     st = _feed(mon, "c", 1000, 0.01, lambda k, t: T0 + (t - T0) * (1 + 3e-3), jitter)
     assert st.skewed and st.jumps == 0
     assert 2400 < st.drift_ppm < 3600
+
+
+def test_verifier_process_matches_in_process_verdicts_and_survives_its_death(fleet, capsys):
+    """The master's verify worker answers batches in order with the verdicts verify_envelope
+    gives in process; once it is gone every verdict is undecided (the pipeline verifies itself)."""
+    from v2xpos.verify_worker import VerifierProcess
+    trust, signers, _ = fleet
+    auth = sec.MessageAuthenticator(trust)
+    good = encode_state(_msg("car1", 1, T0), sign=signers["car1"])
+    env = unpack_envelope(good)
+    swapped = pack_envelope(unpack_envelope(encode_state(_msg("car1", 2, T0))).body, env.sig, env.key_id)
+    batches = [[good, swapped], [b"", encode_state(_msg("car2", 3, T0), sign=signers["car2"])], [good] * 5]
+    worker = VerifierProcess(trust.to_json())
+    try:
+        for b in batches:
+            worker.submit(b)
+        for b in batches:
+            assert worker.collect() == [auth.verify_envelope(p) for p in b]
+        assert worker.alive
+        worker.proc.kill()
+        worker.proc.wait()
+        worker.submit([good] * 3)
+        assert worker.collect() == [None, None, None]
+        assert not worker.alive
+        assert "verify worker abandoned" in capsys.readouterr().err
+    finally:
+        worker.close()

@@ -44,6 +44,8 @@ from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
+from v2xpos.wire import WireError, unpack_envelope
+
 TRUST_FORMAT = "v2xpos-trust"
 TRUST_VERSION = 1
 PUB_PREFIX = "v2xpos-ed25519"
@@ -370,8 +372,29 @@ class MessageAuthenticator:
         self.stats.rejected[reason] += 1
         return reason
 
-    def verify_signature(self, msg) -> str | None:
-        """Signature checks only (no state change): None if valid, else the reason."""
+    def verify_envelope(self, payload: bytes) -> bool | None:
+        """Ed25519 check of a received envelope's body against the trust list's key ``key_id``,
+        without decoding the body or changing any state (thread-safe: the trust list is only
+        read; ``cryptography`` releases the GIL while verifying, so a receive thread can run it
+        beside the pipeline thread). True / False: the signature is / is not valid for that key;
+        None: not decided here (malformed envelope, unsigned, unknown key), ``check`` decides."""
+        try:
+            env = unpack_envelope(payload)
+        except WireError:
+            return None
+        entry = self.trust.get(env.key_id) if env.sig is not None else None
+        if entry is None:
+            return None
+        try:
+            entry.public_key.verify(env.sig, env.body)
+        except InvalidSignature:
+            return False
+        return True
+
+    def verify_signature(self, msg, signature_valid: bool | None = None) -> str | None:
+        """Signature checks only (no state change): None if valid, else the reason.
+        ``signature_valid``: the result of ``verify_envelope`` on the payload ``msg`` was decoded
+        from, when already known (the Ed25519 verification is then not repeated)."""
         if msg.sig is None or msg.signed_payload is None:
             return None if not self.require_signature else REJECT_UNSIGNED
         entry = self.trust.get(msg.key_id)
@@ -379,20 +402,25 @@ class MessageAuthenticator:
             return REJECT_UNKNOWN_KEY
         if entry.vehicle_id != msg.vehicle_id:
             return REJECT_KEY_VEHICLE_MISMATCH
-        try:
-            entry.public_key.verify(msg.sig, msg.signed_payload)
-        except InvalidSignature:
+        if signature_valid is None:
+            try:
+                entry.public_key.verify(msg.sig, msg.signed_payload)
+            except InvalidSignature:
+                return REJECT_BAD_SIGNATURE
+        elif not signature_valid:
             return REJECT_BAD_SIGNATURE
         return None
 
-    def check(self, msg, now_gps_s: float, t_arrival_gps_s: float | None = None) -> str | None:
+    def check(self, msg, now_gps_s: float, t_arrival_gps_s: float | None = None,
+              signature_valid: bool | None = None) -> str | None:
         """Admit (None) or reject (reason) ``msg`` at receiver GPS time ``now_gps_s``.
 
         ``t_arrival_gps_s``: when the message arrived (receiver GPS time) if it waited in a queue
         before this call; the clock-skew monitor uses it so that the receiver's own queueing is
-        not mistaken for sender clock skew (default: ``now_gps_s``).
+        not mistaken for sender clock skew (default: ``now_gps_s``). ``signature_valid``: see
+        ``verify_signature``.
         """
-        reason = self.verify_signature(msg)
+        reason = self.verify_signature(msg, signature_valid)
         if reason is not None:
             return self._reject(reason)
         t = float(msg.t_gps_s)

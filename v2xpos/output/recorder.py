@@ -94,6 +94,18 @@ def nav_from_dict(d: dict) -> NavState:
     return NavState(t_s=float(d["t_s"]), fix=FixStatus(int(d["fix"])), **kw)
 
 
+def result_fields(res: RelativeResult) -> tuple:
+    """Readable fields of an output for ``/v2xpos/out/relative`` (positions, range and TTC only
+    when the result has kinematics): target_id, status name, seq, source_seq, t_gps_s, latency_s,
+    rel_pos_body_m (3 floats or None), range_m, ttc_s."""
+    valid = res.has_kinematics
+    p = res.rel_pos_body_m
+    return (res.target_id, res.status.name.lower(), int(res.seq), int(res.source_seq), float(res.t_gps_s),
+            float(res.latency_s), (float(p[0]), float(p[1]), float(p[2])) if valid else None,
+            float(res.range_m) if valid else None,
+            float(res.ttc_s) if valid and res.ttc_s is not None else None)
+
+
 class McapRecorder:
     """Thread-safe MCAP writer with size-based rotation.
 
@@ -118,6 +130,7 @@ class McapRecorder:
         self._channels: dict[str, int] = {}
         self._last_nav: dict | None = None
         self._seq = 0
+        self._unchecked_bytes = 0
         self._closed = False
         self._open_next()
 
@@ -156,9 +169,14 @@ class McapRecorder:
                                  publish_time=log_time_ns, sequence=self._seq)
         if count:
             self.recorded[topic] += 1
-        if self._fh.tell() >= self.max_bytes:
-            self._finish()
-            self._open_next()
+        self._unchecked_bytes += len(data)
+        if self._unchecked_bytes >= self.chunk_size:
+            # the file grows only when a chunk is written, so its size is read (a syscall, which
+            # also hands the GIL to any waiting thread) once per chunk of data, not per message
+            self._unchecked_bytes = 0
+            if self._fh.tell() >= self.max_bytes:
+                self._finish()
+                self._open_next()
 
     def write_session(self, session: dict[str, Any]) -> None:
         """Session metadata (values JSON-encoded) written now and at the head of rotated files."""
@@ -166,11 +184,14 @@ class McapRecorder:
             self.session = {k: v if isinstance(v, str) else json.dumps(v) for k, v in session.items()}
             self._writer.add_metadata(SESSION_METADATA, dict(self.session))
 
-    def record_nav(self, nav: Any, index: int) -> None:
-        doc = nav_to_dict(nav, index)
+    def record_nav(self, nav: Any, index: int, log_time_ns: int | None = None) -> None:
+        self.record_nav_doc(nav_to_dict(nav, index), log_time_ns)
+
+    def record_nav_doc(self, doc: dict, log_time_ns: int | None = None) -> None:
+        """The master state as ``nav_to_dict`` made it."""
         with self._lock:
             self._last_nav = doc
-            self._add(TOPIC_NAV, doc, time.time_ns())
+            self._add(TOPIC_NAV, doc, time.time_ns() if log_time_ns is None else log_time_ns)
 
     def record_received(self, payload: bytes, key: str | None, t_arrival_wall_s: float,
                         t_now_gps_s: float, nav_index: int) -> None:
@@ -181,25 +202,28 @@ class McapRecorder:
         with self._lock:
             self._add_raw(TOPIC_RX, text.encode(), int(t_arrival_wall_s * 1e9))
 
-    def record_tick(self, t_now_gps_s: float, master_t_gps_s: float | None) -> None:
+    def record_tick(self, t_now_gps_s: float, master_t_gps_s: float | None, log_time_ns: int | None = None) -> None:
         doc = {"t_now_gps_s": float(t_now_gps_s),
                "master_t_gps_s": None if master_t_gps_s is None else float(master_t_gps_s)}
         with self._lock:
-            self._add(TOPIC_TICK, doc, time.time_ns())
+            self._add(TOPIC_TICK, doc, time.time_ns() if log_time_ns is None else log_time_ns)
 
-    def record_result(self, res: RelativeResult) -> None:
+    def record_result(self, res: RelativeResult, log_time_ns: int | None = None) -> None:
+        self.record_result_fields(encode_relative(res), *result_fields(res), log_time_ns=log_time_ns)
+
+    def record_result_fields(self, raw: bytes, target_id: str, status: str, seq: int, source_seq: int,
+                             t_gps_s: float, latency_s: float, rel_pos_body_m: Any, range_m: float | None,
+                             ttc_s: float | None, log_time_ns: int | None = None) -> None:
+        """One output: its wire bytes and the readable fields of ``result_fields``."""
         # hand-formatted JSON (hot path, one per output); non-finite numbers become null
-        valid = res.has_kinematics
-        pos = (f"[{_num(res.rel_pos_body_m[0])},{_num(res.rel_pos_body_m[1])},{_num(res.rel_pos_body_m[2])}]"
-               if valid else "null")
-        text = (f'{{"raw_b64":"{base64.b64encode(encode_relative(res)).decode()}",'
-                f'"target_id":{json.dumps(res.target_id)},"status":"{res.status.name.lower()}",'
-                f'"seq":{int(res.seq)},"source_seq":{int(res.source_seq)},"t_gps_s":{_num(res.t_gps_s)},'
-                f'"latency_s":{_num(res.latency_s)},"rel_pos_body_m":{pos},'
-                f'"range_m":{_num(res.range_m) if valid else "null"},'
-                f'"ttc_s":{_num(res.ttc_s) if valid else "null"}}}')
+        pos = "null" if rel_pos_body_m is None else f"[{_num(rel_pos_body_m[0])},{_num(rel_pos_body_m[1])},{_num(rel_pos_body_m[2])}]"
+        text = (f'{{"raw_b64":"{base64.b64encode(raw).decode()}",'
+                f'"target_id":{json.dumps(target_id)},"status":"{status}",'
+                f'"seq":{int(seq)},"source_seq":{int(source_seq)},"t_gps_s":{_num(t_gps_s)},'
+                f'"latency_s":{_num(latency_s)},"rel_pos_body_m":{pos},'
+                f'"range_m":{_num(range_m)},"ttc_s":{_num(ttc_s)}}}')
         with self._lock:
-            self._add_raw(TOPIC_RELATIVE, text.encode(), time.time_ns())
+            self._add_raw(TOPIC_RELATIVE, text.encode(), time.time_ns() if log_time_ns is None else log_time_ns)
 
     def close(self) -> None:
         with self._lock:
@@ -262,12 +286,12 @@ class RecordingPipeline:
             self.recorder.record_nav(master, self._nav_index)
 
     def handle(self, payload: bytes, key: str | None, master: Any, t_now_gps_s: float,
-               t_arrival_wall_s: float | None = None):
+               t_arrival_wall_s: float | None = None, signature_valid: bool | None = None):
         if t_arrival_wall_s is None:
             t_arrival_wall_s = self._pipeline.clock_wall()
         self._nav(master)
         self.recorder.record_received(payload, key, t_arrival_wall_s, t_now_gps_s, self._nav_index)
-        return self._pipeline.handle(payload, key, master, t_now_gps_s, t_arrival_wall_s)
+        return self._pipeline.handle(payload, key, master, t_now_gps_s, t_arrival_wall_s, signature_valid)
 
     def tick(self, t_now_gps_s: float, master_t_gps_s: float | None = None):
         self.recorder.record_tick(t_now_gps_s, master_t_gps_s)
