@@ -71,6 +71,19 @@ def test_counter_wrap_is_unwrapped(tmp_path):
     np.testing.assert_allclose(res.imu.gyro_rps[0], np.radians([0.1, 0.2, 0.3]))
 
 
+def test_counter_beyond_uint32_is_a_counted_line_issue(tmp_path):
+    """A counter no uint32 logger can print (fuzzing found one) is rejected with its line number,
+    not cast to a wrapped int64; the other lines are kept."""
+    lines = [f"0.000,0.000,1.000,0.100,0.200,0.300,{1000 + 10 * i}" for i in range(12)]
+    lines[4] = "0.000,0.000,1.000,0.100,0.200,0.300,99999999999999999999999"
+    path = tmp_path / "big.csv"
+    path.write_text("\r\n".join(lines) + "\r\n")
+    res = read_imu_csv(path)
+    assert res.issues.count == 1 and res.issues.examples[0][0] == 5
+    assert "out of range" in res.issues.examples[0][1]
+    assert len(res.imu.t_s) == 11 and np.all(np.diff(res.imu.counter_ms) > 0)
+
+
 def test_timetag_layout():
     tag, issues = read_timetag(_require(DATA / "drive_0708" / "imu_1934.csv.tag"))
     assert issues.count == 0 and tag.header.startswith("TIMETAG RTKLIB")

@@ -148,6 +148,12 @@ def read_imu_csv(path: str | Path, timetag: str | Path | TimeTag | None = None) 
     line_idx = np.asarray(good, dtype=np.int64)
     table = np.loadtxt([lines[i] for i in good], delimiter=",", dtype=float, ndmin=2) \
         if good else np.zeros((0, 7))
+    counter = table[:, 6]
+    in_range = np.isfinite(table).all(axis=1) & (counter >= 0) & (counter < COUNTER_MODULUS_MS)
+    for k in np.flatnonzero(~in_range):
+        issues.add(int(line_idx[k]) + 1, f"counter {counter[k]:.6g} ms or a value out of range "
+                                         f"(finite numbers, counter 0 .. {COUNTER_MODULUS_MS - 1})")
+    table, line_idx = table[in_range], line_idx[in_range]
     values = table[:, :6]
     counter_ms = table[:, 6].astype(np.int64)
 
