@@ -47,6 +47,9 @@ from v2xpos.link import Link, grades_key, status_key
 from v2xpos.wire import STATE_KEY_ALL, relative_key
 
 WARMUP_S = 1.0
+GRADING_NICE = 10
+"""CPU priority offset of the IMU grading worker: grading is background analysis (windows of
+seconds); it must not preempt the master's real-time pipeline on a shared core."""
 REJECT_MASTER_NOT_READY = "master_not_ready"
 
 
@@ -144,7 +147,7 @@ class MasterService:
         env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         self.grading_proc = subprocess.Popen(
             [sys.executable, "-m", "master.grading", "--endpoint", endpoint, "--fleet", cfg.fleet,
-             "--master-id", cfg.master_id], env=env, cwd=root)
+             "--master-id", cfg.master_id], env=env, cwd=root, preexec_fn=lambda: os.nice(GRADING_NICE))
 
     def _on_grades(self, payload: bytes, key: str, att, t_arr: float) -> None:
         try:

@@ -17,6 +17,7 @@ import numpy as np
 from master.pipeline import RECORD_FIELDS
 from sim.scenarios import Scenario
 from v2xpos import geo
+from v2xpos.types import FixStatus
 from v2xpos.wire import TargetStatus
 
 F = {name: i for i, name in enumerate(RECORD_FIELDS)}
@@ -46,6 +47,43 @@ def truth_relative(sc: Scenario, target_id: str, t_s: np.ndarray) -> dict:
     v_s_mn = np.einsum("nij,njk,nk->ni", Cm, np.transpose(Cs, (0, 2, 1)), s["v_ned_mps"])
     v_rel = np.einsum("nij,nj->ni", C_bn, v_s_mn - m["v_ned_mps"]) - np.cross(m["w_nb_b_rps"], r_b)
     return {"rel_pos_b_m": r_b, "rel_vel_b_mps": v_rel, "range_m": np.linalg.norm(r_b, axis=1)}
+
+
+def gnss_relative_error_rms(sc: Scenario, target_ids: list[str], t_from_s: float, t_to_s: float,
+                            window_s: float = 1.0) -> dict[str, float | None]:
+    """Per target, the RMS [m] of its GNSS position error minus the master's (each receiver's fix
+    minus its true antenna position, RTK-fixed epochs of both in [t_from_s, t_to_s)), averaged over
+    ``window_s``: the relative error the two filters start from. Averaging removes the white part
+    of the receiver noise, which filtering removes too; the time-correlated part (Gauss-Markov,
+    ``sim.sensors.GnssErrorModel``) stays, and no single-vehicle filter can take it out."""
+    from slave.source import simulated_gnss
+
+    def errors(actor_id: str) -> tuple[np.ndarray, np.ndarray]:
+        a = sc.actors[actor_id]
+        g = simulated_gnss(sc, a)
+        sel = (g.t_s >= t_from_s) & (g.t_s < t_to_s) & (np.asarray(g.fix) == int(FixStatus.FIXED))
+        tr = a.truth.sample(g.t_s[sel])
+        r_ant = tr["r_ned_m"] + np.einsum("nij,j->ni", tr["C_nb"], np.asarray(a.lever_arm_m, float))
+        return g.t_s[sel], geo.lla_to_ned(np.asarray(g.lla)[sel], a.truth.lla0) - r_ant
+
+    t_m, e_m = errors(sc.master_id)
+    out: dict[str, float | None] = {}
+    for target_id in target_ids:
+        t_s, e_s = errors(target_id)
+        out[target_id] = None
+        if len(t_m) < 2 or len(t_s) < 2:
+            continue
+        j = np.clip(np.searchsorted(t_s, t_m), 1, len(t_s) - 1)
+        gap = np.minimum(np.abs(t_s[j] - t_m), np.abs(t_s[j - 1] - t_m))
+        near = gap < 0.2   # the target has a fixed epoch next to the master's
+        d = (np.stack([np.interp(t_m, t_s, e_s[:, i]) for i in range(3)], axis=1) - e_m)[near]
+        k = max(1, int(round(window_s / float(np.median(np.diff(t_m))))))
+        if len(d) < k:
+            continue
+        kernel = np.ones(k) / k
+        smooth = np.stack([np.convolve(d[:, i], kernel, mode="valid") for i in range(3)], axis=1)
+        out[target_id] = float(np.sqrt(np.mean(np.sum(smooth ** 2, axis=1))))
+    return out
 
 
 def _rms(x: np.ndarray) -> float | None:

@@ -276,6 +276,12 @@ class DatasetSource:
 SOURCES = {"ins": InsSimSource, "truth_noise": TruthNoiseSource}
 
 
+def simulated_gnss(sc: Scenario, actor: Actor):
+    """The GNSS solutions (GnssData) the simulated source of ``actor`` feeds its filter: the same
+    seed and the same draws as ``make_source``'s ins source."""
+    return _SimSensors(sc, actor).gnss
+
+
 def make_source(kind: str, sc: Scenario, actor: Actor, dataset: str | None = None,
                 align_to_epoch: bool = True) -> NavSource:
     """Source by config name: ``ins`` (default, the real filter on simulated sensors),
