@@ -10,6 +10,7 @@
     status_hz = 2                     # status JSON on v2xpos/<fleet>/master/<id>/status
     tick_hz = 10                      # NO_DATA / TIMEOUT reports for silent targets
     dispatch = "inline"               # inline (pipeline on the zenoh thread) | asyncio (queue to the loop)
+    realtime_priority = 0             # 1-99: run the master SCHED_RR at this priority (0 = normal)
 
     [link]                            # the master embeds the router by default
     mode = "router"
@@ -73,6 +74,7 @@ class MasterConfig:
     duration_s: float | None = None
     status_hz: float = 2.0
     tick_hz: float = 10.0
+    realtime_priority: int = 0
     dispatch: str = "inline"
     link: LinkConfig = field(default_factory=lambda: LinkConfig(mode="router", listen=["tcp/127.0.0.1:7447"]))
     source: SourceConfig = field(default_factory=SourceConfig)
@@ -111,7 +113,10 @@ class MasterConfig:
         w = f"{path}: [service]"
         s = take(d, "service", dict, {}, path)
         check_keys(s, {"fleet", "master_id", "timeout_ms", "measurement_point_m", "known_vehicles",
-                       "duration_s", "status_hz", "tick_hz", "dispatch"}, w)
+                       "duration_s", "status_hz", "tick_hz", "dispatch", "realtime_priority"}, w)
+        rt = take(s, "realtime_priority", int, 0, w)
+        if not 0 <= rt <= 99:
+            raise ConfigError(f"{w}.realtime_priority: {rt} outside 0..99")
         dispatch = take(s, "dispatch", str, "inline", w)
         if dispatch not in ("inline", "asyncio"):
             raise ConfigError(f"{w}.dispatch: {dispatch!r} is not one of ['inline', 'asyncio']")
@@ -160,7 +165,7 @@ class MasterConfig:
             fleet=take(s, "fleet", str, "demo", w), master_id=take(s, "master_id", str, "ego", w),
             timeout_ms=timeout, measurement_point_m=tuple(float(x) for x in mp), known_vehicles=tuple(known),
             duration_s=take(s, "duration_s", float, None, w), status_hz=take(s, "status_hz", float, 2.0, w),
-            tick_hz=take(s, "tick_hz", float, 10.0, w), dispatch=dispatch,
+            tick_hz=take(s, "tick_hz", float, 10.0, w), dispatch=dispatch, realtime_priority=rt,
             link=link_from_table(take(d, "link", dict, {"mode": "router", "listen": ["tcp/127.0.0.1:7447"]}, path),
                                  f"{path}: [link]"),
             source=SourceConfig.from_table(take(d, "source", dict, {}, path), f"{path}: [source]"),

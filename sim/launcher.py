@@ -21,10 +21,15 @@ from pathlib import Path
 from sim.scenarios import Scenario
 
 
-SLAVE_NICE = 4
+SLAVE_NICE = 10
 """Slaves run at a lower CPU priority than the master: on one shared machine this stands in for
 the separate computers they would have, so the master (the system under test) is not preempted
 by simulated vehicles."""
+
+
+MASTER_REALTIME_PRIORITY = 10
+"""The demo asks for the master under SCHED_RR (``[service] realtime_priority``), as a test rig's
+master computer would run it; where that is not permitted it runs at normal priority."""
 
 
 def free_tcp_port() -> int:
@@ -100,7 +105,8 @@ def write_configs(sc: Scenario, plan: FleetPlan, duration_s: float, can: bool = 
     mp = [float(master.geometry.points_body_m[:, 0].max()), 0.0, 0.0]
     mcfg = {"service": {"fleet": plan.fleet, "master_id": sc.master_id, "timeout_ms": 200.0,
                         "measurement_point_m": mp, "known_vehicles": [a.actor_id for a in sc.slaves],
-                        "duration_s": float(duration_s), "status_hz": 2.0, "tick_hz": 10.0},
+                        "duration_s": float(duration_s), "status_hz": 2.0, "tick_hz": 10.0,
+                        "realtime_priority": MASTER_REALTIME_PRIORITY},
             "link": {"mode": "router", "listen": [endpoint]},
             "source": {**src, "actor": sc.master_id},
             "output": {"can": {"enabled": can, "interface": "virtual", "channel": f"v2xpos-{plan.router_port}"},

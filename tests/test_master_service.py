@@ -70,3 +70,32 @@ async def test_master_service_round_trip(dispatch):
     assert all(8.0 < r.range_m < 25.0 for r in from_msgs)       # t1 drives 7.5-15 m ahead
     assert statuses and statuses[-1]["targets"]["t1"]["accepted"] > 0
     assert svc.link.session.is_closed()
+
+
+def test_realtime_priority_applied_or_refused_with_a_message(capsys):
+    """SCHED_RR where permitted (threads created afterwards inherit it), else normal priority
+    with a message; 0 leaves the scheduling alone."""
+    import os
+    import threading
+
+    from master.service import apply_realtime_priority
+    assert apply_realtime_priority(0) is False
+    result = {}
+
+    def worker():
+        before = os.sched_getscheduler(0)
+        result["granted"] = apply_realtime_priority(5)
+        seen = {}
+        child = threading.Thread(target=lambda: seen.update(policy=os.sched_getscheduler(0)))
+        child.start()
+        child.join()
+        result["child"] = seen["policy"]
+        os.sched_setscheduler(0, before, os.sched_param(0))
+
+    t = threading.Thread(target=worker)   # only this thread's policy changes, and it is restored
+    t.start()
+    t.join()
+    if result["granted"]:
+        assert result["child"] == os.SCHED_RR
+    else:
+        assert "not granted" in capsys.readouterr().err

@@ -42,6 +42,7 @@ def test_bad_slave_config_names_file_and_key(tmp_path, text, where):
     ({"service": {"timeout_ms": -1}}, "[service].timeout_ms"),
     ({"service": {"measurement_point_m": [1, 2]}}, "[service].measurement_point_m"),
     ({"service": {"dispatch": "threads"}}, "[service].dispatch"),
+    ({"service": {"realtime_priority": 120}}, "[service].realtime_priority"),
     ({"output": {"udp": {"port": 70000}}}, "[output.udp].port"),
     ({"output": {"can": {"bitrate": 500000}}}, "[output.can]"),
     ({"security": {"replay_window": 0}}, "[security].replay_window"),
