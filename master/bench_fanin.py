@@ -54,6 +54,8 @@ def add_bench_arguments(parser: argparse.ArgumentParser) -> None:
                              " 0 = every result); UDP and zenoh carry every result")
     parser.add_argument("--dispatch", choices=["inline", "asyncio"], default="inline",
                         help="master dispatch mode (pipeline on the zenoh thread, or via the asyncio loop)")
+    parser.add_argument("--realtime-priority", type=int, default=0,
+                        help="master under SCHED_RR at this priority (0 = normal; with 10 the RT master starves the load generator: 24 slaves instead of 32)")
     # internal: the load generator process
     parser.add_argument("--generate", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--endpoint", default=None, help=argparse.SUPPRESS)
@@ -169,7 +171,7 @@ def run_bench(args: argparse.Namespace) -> int:
     npz = out / "master_results.npz"
     summary = out / "master_summary.json"
     mcfg = {"service": {"fleet": "bench", "master_id": "ego", "duration_s": total_s, "dispatch": args.dispatch,
-                        "measurement_point_m": [3.8, 0.0, 0.0]},
+                        "measurement_point_m": [3.8, 0.0, 0.0], "realtime_priority": args.realtime_priority},
             "link": {"mode": "router", "listen": [endpoint]},
             "source": {"type": "truth_noise", "scenario": "convoy", "actor": "ego", "params": scenario},
             "output": {"can": {"enabled": not args.no_can, "interface": "virtual", "channel": f"fanin-{port}",
