@@ -37,6 +37,8 @@ _U32 = struct.Struct("<I")
 FLUSH_BYTES = 64 * 1024
 FLUSH_INTERVAL_S = 0.05
 MAX_FRAME_BYTES = 64 * 2 ** 20
+CLOSE_TIMEOUT_S = 120.0
+"""How long ``close`` waits for the child to write what is queued and finish the file."""
 
 
 class RecorderProcess:
@@ -119,11 +121,12 @@ class RecorderProcess:
             self._flush_locked()
             self._closed = True
         try:
-            self.proc.stdin.close()
-        except OSError:
-            pass
-        out = self.proc.stdout.read()
-        self.proc.wait()
+            out, _ = self.proc.communicate(timeout=CLOSE_TIMEOUT_S)   # closes stdin: the child finishes
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            out, _ = self.proc.communicate()
+        except (OSError, ValueError):
+            out = b""
         try:
             doc = json.loads(out.decode().strip().splitlines()[-1])
             self.recorded = {k: int(v) for k, v in doc["recorded"].items()}
