@@ -276,11 +276,12 @@ def run(args: argparse.Namespace) -> int:
         def g(k, fmt=".3f"):
             return "-" if t.get(k) is None else format(t[k], fmt)
         print(f"  {t['id']:<4} {t['kind']:<10} samples={t['samples']:<5} valid={t['valid_fraction']:.2f} "
-              f"rel_pos_rms={g('rel_pos_err_rms_m')} m p99={g('rel_pos_err_p99_m')} m "
+              f"rel_pos_rms={g('rel_pos_err_rms_m')} m (GNSS floor {g('gnss_rel_err_rms_1s_m')}) p99={g('rel_pos_err_p99_m')} m "
               f"uncomp_rms={g('uncompensated_rel_pos_err_rms_m')} m vel_rms={g('rel_vel_err_rms_mps')} m/s "
               f"lat p50/p99={g('latency_ms_p50', '.1f')}/{g('latency_ms_p99', '.1f')} ms rejected={t['rejected']}")
-    print(f"  master pipeline p50/p99 = {report['master_pipeline_ms_p50']}/{report['master_pipeline_ms_p99']} ms; "
-          f"e2e p50/p99 = {report['e2e_ms_p50']}/{report['e2e_ms_p99']} ms; CAN frames {report['can_frames']}, "
+    ms = (lambda x: "-" if x is None else f"{x:.2f}")
+    print(f"  master pipeline p50/p99 = {ms(report['master_pipeline_ms_p50'])}/{ms(report['master_pipeline_ms_p99'])} ms; "
+          f"e2e p50/p99 = {ms(report['e2e_ms_p50'])}/{ms(report['e2e_ms_p99'])} ms; CAN frames {report['can_frames']}, "
           f"UDP datagrams {report['udp_datagrams']}")
     bad = {k: v for k, v in report["exit_codes"].items() if v != 0}
     if bad:
