@@ -317,8 +317,8 @@ class MasterService:
                 except Exception:
                     self.grading_proc.kill()
             self.link.close()
-            if isinstance(sub, _InlineDispatch) and sub.verifier is not None:
-                sub.verifier.close()
+            if isinstance(sub, _InlineDispatch):
+                sub.close_verifier()
         return final
 
     def _write_outputs(self, final: dict) -> None:
@@ -372,6 +372,7 @@ class _InlineDispatch:
         self.batches = 0
         self.cpu_s = 0.0
         self._sub = None
+        self._thread: threading.Thread | None = None
         self._window_s = BATCH_WINDOW_MIN_S      # batching wait, follows the received rate
         self._t_rate0, self._n_rate = time.time(), 0
         self._backlog = False                    # the last batch was full
@@ -381,8 +382,18 @@ class _InlineDispatch:
         link's session closes)."""
         import zenoh
         self._sub = link.session.declare_subscriber(key, zenoh.handlers.FifoChannel(FIFO_CAPACITY))
-        threading.Thread(target=self._run, name="v2xpos-dispatch", daemon=True).start()
+        self._thread = threading.Thread(target=self._run, name="v2xpos-dispatch", daemon=True)
+        self._thread.start()
         return self._sub
+
+    def close_verifier(self, timeout_s: float = 2.0) -> None:
+        """After the link closed: let the dispatch thread finish its last batch, then end the
+        verify worker (closing it under a thread still reading its verdicts would be reported
+        as a worker failure)."""
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+        if self.verifier is not None:
+            self.verifier.close()
 
     def _next_batch(self, block: bool) -> tuple[list, float] | None:
         """([(payload, key), ...], wake-up wall time [s]) of everything queued (up to MAX_BATCH);

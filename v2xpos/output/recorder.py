@@ -184,8 +184,8 @@ class McapRecorder:
             self.session = {k: v if isinstance(v, str) else json.dumps(v) for k, v in session.items()}
             self._writer.add_metadata(SESSION_METADATA, dict(self.session))
 
-    def record_nav(self, nav: Any, index: int, log_time_ns: int | None = None) -> None:
-        self.record_nav_doc(nav_to_dict(nav, index), log_time_ns)
+    def record_nav(self, nav: Any, index: int) -> None:
+        self.record_nav_doc(nav_to_dict(nav, index))
 
     def record_nav_doc(self, doc: dict, log_time_ns: int | None = None) -> None:
         """The master state as ``nav_to_dict`` made it."""
@@ -208,8 +208,8 @@ class McapRecorder:
         with self._lock:
             self._add(TOPIC_TICK, doc, time.time_ns() if log_time_ns is None else log_time_ns)
 
-    def record_result(self, res: RelativeResult, log_time_ns: int | None = None) -> None:
-        self.record_result_fields(encode_relative(res), *result_fields(res), log_time_ns=log_time_ns)
+    def record_result(self, res: RelativeResult) -> None:
+        self.record_result_fields(encode_relative(res), *result_fields(res))
 
     def record_result_fields(self, raw: bytes, target_id: str, status: str, seq: int, source_seq: int,
                              t_gps_s: float, latency_s: float, rel_pos_body_m: Any, range_m: float | None,
