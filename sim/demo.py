@@ -42,17 +42,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-spikes", action="store_true", help="no link delay spike")
     parser.add_argument("--no-live", action="store_true", help="do not show the live table")
     parser.add_argument("--port", type=int, default=0, help="router TCP port on 127.0.0.1 (0 = ask the OS)")
+    parser.add_argument("--rtk-vertical-factor", type=float, default=1.0,
+                        help="simulated RTK-fixed vertical noise / horizontal noise (1 cm); default 1.0")
 
 
 def run_demo(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 100.0, jitter_ms: float = 5.0,
              seed: int = 0, out: str | Path = "out/demo", source: str = "ins", pedestrian: bool = True,
              degradations: bool = True, spikes: bool = True, live: bool = True, port: int = 0,
-             plots: bool = True, log=sys.stderr) -> dict:
+             plots: bool = True, log=sys.stderr, rtk_vertical_factor: float = 1.0) -> dict:
     """Run the multi-process demo and return the report dict (also written to out/report.json)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     sc = build("convoy", vehicles=vehicles, duration_s=duration_s, latency_ms=latency_ms, jitter_ms=jitter_ms,
-               seed=seed, pedestrian=pedestrian, degradations=degradations, spikes=spikes)
+               seed=seed, pedestrian=pedestrian, degradations=degradations, spikes=spikes,
+               rtk_vertical_factor=rtk_vertical_factor)
     plan = FleetPlan(out_dir=out, router_port=port or free_tcp_port(), udp_port=free_udp_port(), source_type=source)
     write_configs(sc, plan, duration_s)
     for stale in (plan.results_npz, plan.summary_json):
@@ -91,6 +94,9 @@ def run_demo(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 10
             fleet.stop()
     report = make_report(sc, plan, duration_s, codes)
     report["latency_ms_injected"] = latency_ms
+    ego = sc.actors[sc.master_id]
+    report["rtk_fixed_sd_m"] = {"horizontal": ego.gnss_sd_fixed_m,
+                                "vertical": ego.gnss_sd_fixed_m * ego.gnss_vertical_factor}
     (out / "report.json").write_text(json.dumps(report, indent=1))
     if plots:
         make_plots(sc, plan, out)
@@ -270,7 +276,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     report = run_demo(args.vehicles, args.duration, args.latency_ms, args.jitter_ms, args.seed, args.out,
                       args.source, not args.no_pedestrian, not args.no_degradations, not args.no_spikes,
-                      not args.no_live, args.port)
+                      not args.no_live, args.port, rtk_vertical_factor=args.rtk_vertical_factor)
     print(f"\nreport: {Path(args.out) / 'report.json'}")
     for t in report["targets"]:
         def g(k, fmt=".3f"):

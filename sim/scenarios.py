@@ -61,6 +61,8 @@ class Actor:
     relative to the reference point (IMU), body frame [m]. seed: sensor noise seed.
     imu_units: IMU units on board (unit 1 feeds the filter; all are streamed for grading);
     imu_fault: (unit index >= 1, ``sim.imu_faults`` fault kind, start rel. epoch [s]) or None.
+    gnss_sd_fixed_m: RTK-fixed 1-sigma horizontal noise [m]; gnss_vertical_factor: vertical sd /
+    horizontal sd.
     """
     actor_id: str
     kind: str
@@ -72,6 +74,7 @@ class Actor:
     imu_grade: str = "tactical"
     lever_arm_m: np.ndarray = field(default_factory=lambda: np.array([0.5, 0.0, -1.4]))
     gnss_sd_fixed_m: float = 0.01
+    gnss_vertical_factor: float = 1.5
     seed: int = 0
     imu_units: int = 3
     imu_fault: tuple | None = None
@@ -139,14 +142,23 @@ def convoy(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 100.
            speed_mps: float = 20.0, headway_s: float = 1.5, seed: int = 0, cut_in: bool = True,
            pedestrian: bool = True, degradations: bool = True, spikes: bool = True,
            imu_grade: str = "tactical", epoch_gps_s: float = DEFAULT_EPOCH_GPS_S,
-           dt_s: float = 0.01, history_s: float = 20.0, imu_fault: str | None = "gyro_scale") -> Scenario:
-    """Build the convoy scenario (see module docstring). ``vehicles`` counts the master."""
+           dt_s: float = 0.01, history_s: float = 20.0, imu_fault: str | None = "gyro_scale",
+           rtk_vertical_factor: float = 1.0) -> Scenario:
+    """Build the convoy scenario (see module docstring). ``vehicles`` counts the master.
+
+    Every receiver's RTK-fixed noise is 1 cm per axis by default (``rtk_vertical_factor`` 1.0, the
+    V2V issue's stated condition and e.g. the u-blox ZED-F9P datasheet's 0.01 m + 1 ppm for both
+    horizontal and vertical); geodetic receivers are often specified 1.5-2x worse vertically.
+    """
+    if not math.isfinite(rtk_vertical_factor) or rtk_vertical_factor < 0:
+        raise ValueError(f"rtk_vertical_factor must be a finite number >= 0, got {rtk_vertical_factor!r}")
     if vehicles < 1:
         raise ValueError("vehicles must be >= 1 (the master)")
     params = dict(vehicles=vehicles, duration_s=duration_s, latency_ms=latency_ms, jitter_ms=jitter_ms,
                   speed_mps=speed_mps, headway_s=headway_s, seed=seed, cut_in=cut_in, pedestrian=pedestrian,
                   degradations=degradations, spikes=spikes, imu_grade=imu_grade, epoch_gps_s=epoch_gps_s,
-                  dt_s=dt_s, history_s=history_s, imu_fault=imu_fault)
+                  dt_s=dt_s, history_s=history_s, imu_fault=imu_fault,
+                  rtk_vertical_factor=rtk_vertical_factor)
     n_lane = vehicles - (1 if (cut_in and vehicles >= 2) else 0)
     pre_s = (n_lane - 1) * headway_s + 2.0 + history_s
     lap = _pattern()
@@ -209,6 +221,8 @@ def convoy(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 100.
         actors["p1"] = Actor("p1", "pedestrian", "slave", traj, Geometry(kind="circle", radius_m=0.3),
                              link=LinkImpairment(latency_ms, jitter_ms), imu_grade=imu_grade,
                              lever_arm_m=np.array([0.0, 0.0, -0.3]), seed=seed * 1000 + 99, imu_units=1)
+    for a in actors.values():
+        a.gnss_vertical_factor = rtk_vertical_factor
     lanes = _lane_lines(lead, lead_t0, total_s)
     sc = Scenario("convoy", epoch_gps_s, duration_s, actors, "ego", lla0, params, lanes)
     sc.objects_ned_m = _roadside_objects(actors["ego"].truth, epoch_gps_s, duration_s)

@@ -214,3 +214,29 @@ def urban_drive(duration_s: float = 120.0, dt_s: float = 0.01, speed_mps: float 
         t += d
     segs += [Segment(speed_mps / 3.0, accel_mps2=-3.0), Segment(5.0)]
     return generate(segs, dt_s=dt_s, **kw)
+
+
+def speed_change_drive(duration_s: float = 300.0, dt_s: float = 0.01, accel_mps2: float = 1.5,
+                       speed_range_mps: tuple[float, float] = (4.0, 19.0), seed: int | None = 0,
+                       **kw) -> Trajectory:
+    """A drive whose cruise speed keeps changing: 10 s static, then alternately a speed change at
+    +-``accel_mps2`` to a random speed in ``speed_range_mps`` and a straight or curve (yaw rate
+    0.05-0.2 rad/s) of 4-10 s; ends braking to a stop. The speed changes make a time offset
+    (position error v * tau) distinguishable from a forward lever arm (constant)."""
+    rng = np.random.default_rng(seed)
+    lo, hi = speed_range_mps
+    v = lo + 0.5 * (hi - lo) * 0.25
+    segs = [Segment(10.0), Segment(v / accel_mps2, accel_mps2=accel_mps2)]
+    t = sum(s.duration_s for s in segs)
+    while t < duration_s - 20.0:
+        target = float(rng.uniform(lo, hi))
+        d = abs(target - v) / accel_mps2
+        segs.append(Segment(d, accel_mps2=float(np.sign(target - v)) * accel_mps2))
+        v = target
+        kind = rng.choice(["straight", "left", "right"])
+        hold = float(rng.uniform(4.0, 10.0))
+        rate = 0.0 if kind == "straight" else float(rng.uniform(0.05, 0.2)) * (-1 if kind == "left" else 1)
+        segs.append(Segment(hold, yaw_rate_rps=rate))
+        t += d + hold
+    segs += [Segment(v / accel_mps2, accel_mps2=-accel_mps2), Segment(5.0)]
+    return generate(segs, dt_s=dt_s, **kw)

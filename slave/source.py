@@ -47,7 +47,8 @@ class _SimSensors:
                                 rng=rng)
         sd = GnssErrorModel().sd_h_m
         sd[FixStatus.FIXED] = actor.gnss_sd_fixed_m
-        gm = GnssErrorModel(rate_hz=GNSS_RATE_HZ, sd_h_m=sd, lever_arm_m=np.asarray(actor.lever_arm_m, float))
+        gm = GnssErrorModel(rate_hz=GNSS_RATE_HZ, sd_h_m=sd, vertical_factor=actor.gnss_vertical_factor,
+                            lever_arm_m=np.asarray(actor.lever_arm_m, float))
         self.gnss = simulate_gnss(actor.truth, gm, rng=rng, fix_schedule=sc.fix_schedule_abs(actor.actor_id))
         self.i_imu = 0
         self.i_gnss = 0
