@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -273,6 +274,10 @@ def make_plots(sc, plan: FleetPlan, out: Path) -> list[Path]:
 def run(args: argparse.Namespace) -> int:
     if args.vehicles < 2:
         print("v2xpos demo: --vehicles must be >= 2 (master + at least one slave)", file=sys.stderr)
+        return 2
+    if not (math.isfinite(args.rtk_vertical_factor) and args.rtk_vertical_factor >= 0):
+        print(f"v2xpos demo: --rtk-vertical-factor must be a finite number >= 0, got {args.rtk_vertical_factor}",
+              file=sys.stderr)
         return 2
     report = run_demo(args.vehicles, args.duration, args.latency_ms, args.jitter_ms, args.seed, args.out,
                       args.source, not args.no_pedestrian, not args.no_degradations, not args.no_spikes,

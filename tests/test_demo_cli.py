@@ -27,6 +27,24 @@ def test_demo_rejects_too_few_vehicles(capsys):
     assert "--vehicles must be >= 2" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("value", ["-1", "nan", "inf"])
+def test_demo_rejects_bad_rtk_vertical_factor(capsys, value):
+    assert cli.main(["demo", "--rtk-vertical-factor", value, "--out", "/nonexistent/never-written"]) == 2
+    assert "--rtk-vertical-factor must be a finite number >= 0" in capsys.readouterr().err
+
+
+def test_convoy_receivers_have_the_requested_vertical_noise():
+    from sim.scenarios import build
+    sc = build("convoy", vehicles=3, duration_s=5.0, rtk_vertical_factor=1.0)
+    assert {a.gnss_vertical_factor for a in sc.actors.values()} == {1.0}
+    import numpy as np
+    from slave.source import simulated_gnss
+    for factor in (1.0, 1.5):
+        s2 = build(**{**sc.params, "rtk_vertical_factor": factor})
+        g = simulated_gnss(s2, s2.actors["t2"])
+        assert np.allclose(g.sd_ned_m[:, 2], factor * g.sd_ned_m[:, 0])
+
+
 def test_service_commands_report_config_errors(tmp_path, capsys):
     bad = tmp_path / "bad.toml"
     bad.write_text("[service]\nrate_hz = -1\n")
