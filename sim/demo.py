@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -22,7 +21,7 @@ import numpy as np
 
 from sim import evaluate
 from sim.launcher import Fleet, FleetPlan, free_tcp_port, free_udp_port, release_when_ready, write_configs
-from sim.scenarios import build
+from sim.scenarios import build, check_rtk_vertical_factor
 
 STARTUP_LEAD_S = 1.5
 """Wall time between the last process signalling ready and the scenario epoch (the filters start
@@ -275,9 +274,10 @@ def run(args: argparse.Namespace) -> int:
     if args.vehicles < 2:
         print("v2xpos demo: --vehicles must be >= 2 (master + at least one slave)", file=sys.stderr)
         return 2
-    if not (math.isfinite(args.rtk_vertical_factor) and args.rtk_vertical_factor >= 0):
-        print(f"v2xpos demo: --rtk-vertical-factor must be a finite number >= 0, got {args.rtk_vertical_factor}",
-              file=sys.stderr)
+    try:
+        check_rtk_vertical_factor(args.rtk_vertical_factor)
+    except ValueError as exc:
+        print(f"v2xpos demo: --{str(exc).replace('_', '-')}", file=sys.stderr)
         return 2
     report = run_demo(args.vehicles, args.duration, args.latency_ms, args.jitter_ms, args.seed, args.out,
                       args.source, not args.no_pedestrian, not args.no_degradations, not args.no_spikes,

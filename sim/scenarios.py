@@ -74,7 +74,7 @@ class Actor:
     imu_grade: str = "tactical"
     lever_arm_m: np.ndarray = field(default_factory=lambda: np.array([0.5, 0.0, -1.4]))
     gnss_sd_fixed_m: float = 0.01
-    gnss_vertical_factor: float = 1.5
+    gnss_vertical_factor: float = 1.0
     seed: int = 0
     imu_units: int = 3
     imu_fault: tuple | None = None
@@ -138,6 +138,12 @@ def _right_unit_ned(yaw_rad: float) -> np.ndarray:
     return np.array([-math.sin(yaw_rad), math.cos(yaw_rad), 0.0])
 
 
+def check_rtk_vertical_factor(value: float) -> None:
+    """Raise ValueError unless ``value`` (simulated vertical / horizontal RTK noise) is finite, >= 0."""
+    if not (math.isfinite(value) and value >= 0):
+        raise ValueError(f"rtk_vertical_factor must be a finite number >= 0, got {value!r}")
+
+
 def convoy(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 100.0, jitter_ms: float = 5.0,
            speed_mps: float = 20.0, headway_s: float = 1.5, seed: int = 0, cut_in: bool = True,
            pedestrian: bool = True, degradations: bool = True, spikes: bool = True,
@@ -150,8 +156,7 @@ def convoy(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 100.
     V2V issue's stated condition and e.g. the u-blox ZED-F9P datasheet's 0.01 m + 1 ppm for both
     horizontal and vertical); geodetic receivers are often specified 1.5-2x worse vertically.
     """
-    if not math.isfinite(rtk_vertical_factor) or rtk_vertical_factor < 0:
-        raise ValueError(f"rtk_vertical_factor must be a finite number >= 0, got {rtk_vertical_factor!r}")
+    check_rtk_vertical_factor(rtk_vertical_factor)
     if vehicles < 1:
         raise ValueError("vehicles must be >= 1 (the master)")
     params = dict(vehicles=vehicles, duration_s=duration_s, latency_ms=latency_ms, jitter_ms=jitter_ms,

@@ -225,7 +225,7 @@ def speed_change_drive(duration_s: float = 300.0, dt_s: float = 0.01, accel_mps2
     (position error v * tau) distinguishable from a forward lever arm (constant)."""
     rng = np.random.default_rng(seed)
     lo, hi = speed_range_mps
-    v = lo + 0.5 * (hi - lo) * 0.25
+    v = lo + (hi - lo) / 8.0          # first cruise speed, just above the lowest
     segs = [Segment(10.0), Segment(v / accel_mps2, accel_mps2=accel_mps2)]
     t = sum(s.duration_s for s in segs)
     while t < duration_s - 20.0:

@@ -109,7 +109,6 @@ def test_sim_gnss_latency_found_when_imu_is_synchronised(sim_fit):
     assert abs(f.theta[P_GNSS_LATENCY] - 0.03) < 3 * f.sd[P_GNSS_LATENCY], info
 
 
-
 def test_sim_gnss_latency_separated_from_lever_arm_when_speed_changes():
     """30 ms GNSS latency, IMU timing declared (synchronised), on a drive whose cruise speed keeps
     changing (4-19 m/s): the latency moves the antenna along track by -v L, a forward lever arm by
@@ -128,6 +127,7 @@ def test_sim_gnss_latency_separated_from_lever_arm_when_speed_changes():
     lx = P_LEVER_ARM.start
     assert not f.significant[lx] and abs(f.theta[lx]) < 3 * f.sd[lx], info
     assert cal.after["outage_h_rms_m"] < cal.before["outage_h_rms_m"], (cal.before, cal.after)
+
 
 # ------------------------------------------------------------------ drive_0708 (real data)
 @pytest.fixture(scope="module")
