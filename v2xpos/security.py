@@ -191,6 +191,14 @@ class TrustEntry:
     public_key: Ed25519PublicKey
     added_utc: str = ""
 
+    def verifies(self, sig: bytes, body: bytes) -> bool:
+        """True if ``sig`` is this key's Ed25519 signature of ``body`` (RFC 8032)."""
+        try:
+            self.public_key.verify(sig, body)
+        except InvalidSignature:
+            return False
+        return True
+
     def as_dict(self) -> dict:
         return {"vehicle_id": self.vehicle_id, "key_id": self.key_id,
                 "public_key": base64.b64encode(raw_public_bytes(self.public_key)).decode(),
@@ -374,22 +382,16 @@ class MessageAuthenticator:
 
     def verify_envelope(self, payload: bytes) -> bool | None:
         """Ed25519 check of a received envelope's body against the trust list's key ``key_id``,
-        without decoding the body or changing any state (thread-safe: the trust list is only
-        read; ``cryptography`` releases the GIL while verifying, so a receive thread can run it
-        beside the pipeline thread). True / False: the signature is / is not valid for that key;
-        None: not decided here (malformed envelope, unsigned, unknown key), ``check`` decides."""
+        without decoding the body or changing any state (the trust list is only read; the master
+        runs it in ``v2xpos.verify_worker``). True / False: the signature is / is not valid for
+        that key; None: not decided here (malformed envelope, unsigned, unknown key), ``check``
+        decides."""
         try:
             env = unpack_envelope(payload)
         except WireError:
             return None
         entry = self.trust.get(env.key_id) if env.sig is not None else None
-        if entry is None:
-            return None
-        try:
-            entry.public_key.verify(env.sig, env.body)
-        except InvalidSignature:
-            return False
-        return True
+        return None if entry is None else entry.verifies(env.sig, env.body)
 
     def verify_signature(self, msg, signature_valid: bool | None = None) -> str | None:
         """Signature checks only (no state change): None if valid, else the reason.
@@ -403,13 +405,8 @@ class MessageAuthenticator:
         if entry.vehicle_id != msg.vehicle_id:
             return REJECT_KEY_VEHICLE_MISMATCH
         if signature_valid is None:
-            try:
-                entry.public_key.verify(msg.sig, msg.signed_payload)
-            except InvalidSignature:
-                return REJECT_BAD_SIGNATURE
-        elif not signature_valid:
-            return REJECT_BAD_SIGNATURE
-        return None
+            signature_valid = entry.verifies(msg.sig, msg.signed_payload)
+        return None if signature_valid else REJECT_BAD_SIGNATURE
 
     def check(self, msg, now_gps_s: float, t_arrival_gps_s: float | None = None,
               signature_valid: bool | None = None) -> str | None:
