@@ -2,7 +2,8 @@
 
 * ``CanSink`` -- ``v2xpos.output.can.CanOutput`` (DBC frames; python-can ``virtual`` or socketcan);
   scene results as LANE / OBJECT frames (``write_scene``);
-* ``UdpSink`` -- ``v2xpos.output.udp.UdpOutput``, one datagram per result (layout in docs/protocol.md)
+* ``UdpSink`` -- ``v2xpos.output.udp.UdpOutput``, one datagram per flush: the results of one message
+  or of one dispatch batch (layout in docs/protocol.md)
   and one datagram of lane / object records per scene update;
 * ``ZenohSink`` -- ``encode_relative`` republished on ``v2xpos/<fleet>/master/<id>/relative``.
 """
@@ -52,18 +53,31 @@ class CanSink:
 
 
 class UdpSink:
-    """One UDP datagram per result to a loopback address by default."""
+    """UDP datagrams to a loopback address by default: ``write`` queues a result, ``flush`` sends the
+    queued results as one datagram (the pipeline flushes after every message, or once per dispatch
+    batch); the header's sequence number is the last result's. Scene updates go out at once."""
 
     def __init__(self, host: str = "127.0.0.1", port: int = 47001, allow_remote: bool = False):
-        from v2xpos.output.udp import UdpOutput
+        from v2xpos.output.udp import MAX_DATAGRAM_BYTES, TARGET, UdpOutput
         self.out = UdpOutput(host=host, port=port, allow_remote=allow_remote)
+        self.max_targets = (MAX_DATAGRAM_BYTES - 64) // TARGET.size
+        self._queued: list[RelativeResult] = []
 
     @property
     def datagrams(self) -> int:
         return self.out.datagrams_sent
 
     def write(self, result: RelativeResult) -> None:
-        self.out.send([result], result.seq, result.t_gps_s)
+        self._queued.append(result)
+        if len(self._queued) >= self.max_targets:
+            self.flush()
+
+    def flush(self) -> None:
+        """Send the queued results (if any) as one datagram."""
+        q = self._queued
+        if q:
+            self.out.send(q, q[-1].seq, q[-1].t_gps_s)
+            q.clear()
 
     def write_scene(self, scene_result, t_gps_s: float, seq: int) -> None:
         """One datagram with no targets and the lane / object records."""
@@ -72,6 +86,7 @@ class UdpSink:
         self.out.send([], seq, t_gps_s, lanes, objects)
 
     def close(self) -> None:
+        self.flush()
         self.out.close()
 
 

@@ -135,7 +135,7 @@ class MasterService:
             self.udp = UdpSink(cfg.udp_host, cfg.udp_port)
             self.sinks.append(self.udp)
         if cfg.zenoh_enabled:
-            self.sinks.append(ZenohSink(self.link.publisher(relative_key(cfg.fleet, cfg.master_id))))
+            self.sinks.append(ZenohSink(self.link.publisher(relative_key(cfg.fleet, cfg.master_id), express=False)))
         from v2xpos.security import MessageAuthenticator
         auth = MessageAuthenticator(self.trust, require_signature=cfg.require_signature and bool(cfg.trust_list),
                                     max_age_s=cfg.max_age_s, future_tolerance_s=cfg.future_tolerance_s,
@@ -456,11 +456,12 @@ class _InlineDispatch:
             if svc.closing:
                 return
             pipe = svc.pipeline
-            for payload, key, signature_valid in items:
-                if svc.nav is None:
-                    pipe.rejected[REJECT_MASTER_NOT_READY] += 1
-                    continue
-                pipe.handle(payload, key, svc.nav, svc.gps_now(), t_arrival_wall_s, signature_valid)
+            with pipe.batch():
+                for payload, key, signature_valid in items:
+                    if svc.nav is None:
+                        pipe.rejected[REJECT_MASTER_NOT_READY] += 1
+                        continue
+                    pipe.handle(payload, key, svc.nav, svc.gps_now(), t_arrival_wall_s, signature_valid)
         self.cpu_s += time.thread_time() - c0
 
     def on_sample(self, payload: bytes, key: str, attachment: bytes | None, t_arrival_wall_s: float) -> None:

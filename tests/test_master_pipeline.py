@@ -158,13 +158,48 @@ def test_compensation_on_a_turning_target(scenario):
         assert r.status == TargetStatus.VALID
         tr = truth_relative(sc, "t1", np.array([t]))
         errs.append(np.linalg.norm(r.rel_pos_body_m - tr["rel_pos_b_m"][0]))
-        rows = pipe.records["t1"][-1]
+        rows = pipe.records_arrays()["t1"][-1]
         unc.append(np.linalg.norm(np.array(rows[13:16]) - tr["rel_pos_b_m"][0]))
         assert abs(r.range_m - tr["range_m"][0]) < 0.03
     errs, unc = np.array(errs), np.array(unc)
     turning = rates > 0.05
     assert np.sqrt(np.mean(errs ** 2)) < 0.02 and errs[turning].max() < 0.05
     assert np.sqrt(np.mean(unc ** 2)) > 10 * np.sqrt(np.mean(errs ** 2))
+
+
+def test_batch_sends_one_datagram_and_stamps_results_at_the_flush(scenario):
+    """Inside ``pipeline.batch()`` the UDP sink queues; the block's end sends one datagram with every
+    result in order, and the results count as written (pipeline time, record row) only then."""
+    sc = scenario
+    import socket
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.settimeout(1.0)
+    udp_sink = UdpSink("127.0.0.1", sock.getsockname()[1])
+    clock = [10.0]
+    pipe = make_pipeline(sc, [udp_sink])
+    pipe.clock_wall = lambda: clock[0]
+    t = sc.epoch_gps_s + 6.0
+    with pipe.batch():
+        results = [pipe.handle(payload(sc, vid, 1, t - 0.1), key(vid), truth_state(sc, "ego", t), t, 10.0)
+                   for vid in ("t1", "t2")]
+        assert udp_sink.datagrams == 0 and pipe.processed == 0 and not pipe.records
+        clock[0] = 10.004                              # the flush happens 4 ms after arrival
+    assert udp_sink.datagrams == 1 and pipe.processed == 2
+    dg = parse_datagram(sock.recv(65536))
+    assert [r.target_id for r in dg.targets] == ["t1", "t2"] and dg.seq == results[-1].seq
+    for got, r in zip(dg.targets, results):
+        assert got.status == r.status and np.allclose(got.rel_pos_body_m, r.rel_pos_body_m, atol=1e-9)
+    rows = pipe.records_arrays()
+    from master.pipeline import RECORD_FIELDS
+    i_pipe = RECORD_FIELDS.index("pipeline_ms")
+    assert rows["t1"].shape == (1, len(RECORD_FIELDS))
+    assert rows["t1"][0, i_pipe] == pytest.approx(4.0) and rows["t2"][0, i_pipe] == pytest.approx(4.0)
+    # outside a batch every result is flushed at once: one datagram each
+    pipe.handle(payload(sc, "t1", 2, t), key("t1"), truth_state(sc, "ego", t + 0.01), t + 0.01, 10.004)
+    assert udp_sink.datagrams == 2 and len(parse_datagram(sock.recv(65536)).targets) == 1
+    udp_sink.close()
+    sock.close()
 
 
 def test_can_and_udp_outputs_equal_the_results(scenario):

@@ -12,6 +12,8 @@ from math import log10
 
 import numpy as np
 
+_INF = float("inf")
+
 
 class LatencyHistogram:
     """Whole-run histogram + a short exact window of positive durations (any unit, e.g. ms)."""
@@ -20,13 +22,13 @@ class LatencyHistogram:
         self.lo, self.hi, self.bpd = lo, hi, bins_per_decade
         self._log_lo = log10(lo)
         self.n_bins = int(round((log10(hi) - self._log_lo) * bins_per_decade))
-        self.counts = np.zeros(self.n_bins + 2, dtype=np.int64)   # [0] underflow, [-1] overflow
+        self._counts = [0] * (self.n_bins + 2)     # a list: one increment per sample is cheap
         self.recent: deque = deque(maxlen=recent)
         self.count = 0
 
     def append(self, x: float) -> None:
         """Add one sample (non-finite samples are ignored)."""
-        if not x == x or x in (float("inf"), float("-inf")):
+        if not (x == x and x != _INF and x != -_INF):
             return
         if x < self.lo:
             k = 0
@@ -34,9 +36,14 @@ class LatencyHistogram:
             k = self.n_bins + 1
         else:
             k = min(1 + int((log10(x) - self._log_lo) * self.bpd), self.n_bins)
-        self.counts[k] += 1
+        self._counts[k] += 1
         self.recent.append(x)
         self.count += 1
+
+    @property
+    def counts(self) -> np.ndarray:
+        """Samples per bin: [0] underflow, [1..n_bins] the log bins, [-1] overflow."""
+        return np.asarray(self._counts, dtype=np.int64)
 
     def __len__(self) -> int:
         return self.count

@@ -95,17 +95,24 @@ def _nan(x: float | None) -> float:
     return math.nan if x is None else float(x)
 
 
+def _vec(a: Any) -> list:
+    return a.tolist() if type(a) is np.ndarray else [float(x) for x in a]
+
+
+_NAN3 = [math.nan] * 3
+_NAN9 = [math.nan] * 9
+
+
 def _pack_target(r: RelativeResult) -> bytes:
-    valid = r.status == TargetStatus.VALID
     flags = (FLAG_DEGRADED if r.degraded else 0) | (FLAG_PEDESTRIAN if r.target_kind == "pedestrian" else 0)
-    nan3 = (math.nan,) * 3
-    p = tuple(r.rel_pos_body_m) if valid else nan3
-    ps = tuple(r.rel_pos_sd_m) if valid else nan3
-    v = tuple(r.rel_vel_body_mps) if valid else nan3
-    a = tuple(r.rel_acc_body_mps2) if valid else nan3
-    att = tuple(r.rel_rpy_rad) if valid else nan3
-    scal = (r.range_m, r.range_sd_m, r.bearing_rad, r.elevation_rad, r.longitudinal_m, r.lateral_m,
-            r.gap_m, r.closing_speed_mps, _nan(r.ttc_s)) if valid else (math.nan,) * 9
+    if r.status == TargetStatus.VALID:
+        p, ps, v = _vec(r.rel_pos_body_m), _vec(r.rel_pos_sd_m), _vec(r.rel_vel_body_mps)
+        a, att = _vec(r.rel_acc_body_mps2), _vec(r.rel_rpy_rad)
+        scal = (r.range_m, r.range_sd_m, r.bearing_rad, r.elevation_rad, r.longitudinal_m, r.lateral_m,
+                r.gap_m, r.closing_speed_mps, _nan(r.ttc_s))
+    else:
+        p = ps = v = a = att = _NAN3
+        scal = _NAN9
     return TARGET.pack(r.target_id.encode()[:32], int(r.status), int(r.fix_side), flags, 0,
                        int(r.source_seq) & 0xFFFFFFFFFFFFFFFF, _nan(r.latency_s), *p, *ps, *v, *a, *att, *scal)
 
