@@ -126,7 +126,27 @@ def test_sim_gnss_latency_separated_from_lever_arm_when_speed_changes():
     assert abs(f.theta[P_TIME_OFFSET]) < 0.001, info
     lx = P_LEVER_ARM.start
     assert not f.significant[lx] and abs(f.theta[lx]) < 3 * f.sd[lx], info
-    assert cal.after["outage_h_rms_m"] < cal.before["outage_h_rms_m"], (cal.before, cal.after)
+    # the correction does as well as the true one; on this drive `v2xpos replay`'s default filter,
+    # with its own online timing state, happens to do better on the uncorrected data (0.74 m against
+    # 0.80 m with the true 30 ms removed: the first outage comes before that state has settled)
+    from v2xpos.diagnose.inject import correct
+    truth = C.metrics_replay(correct(ds, EffectSet(gnss_latency_s=0.03)), OutageSchedule(15.0, 45.0, 40.0), False)
+    assert cal.after["outage_h_rms_m"] < truth["outage_h_rms_m"] + 0.02, (cal.before, cal.after, truth)
+    assert not f.significant[[P_LEVER_ARM.start + 2, P_TIME_OFFSET, P_CLOCK_DRIFT]].any(), info
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_sim_clean_drive_reports_no_effect(seed):
+    """A simulated drive with no effect in it: nothing is reported significant. The joint fit alone
+    puts the IMU offset and the forward lever arm far out along their common ridge (l_x - v tau ~ 0,
+    each ~7 sd: seed 3 -17 ms / -0.19 m, seed 4 +17 ms / +0.18 m); the backward elimination in
+    ``Estimator.confirm`` lets each take over the other's part and drops both."""
+    ds, _ = simulated_recording(300.0, seed=seed, effects=EffectSet(), imu_grade="tactical", gnss_rate_hz=10.0)
+    est = C.Estimator(ds)
+    theta = est.gauss_newton(est.coarse(), iterations=2)
+    f, prob, _ = est.refine(ds, theta, iterations=0)
+    f = est.confirm(ds, f, prob)
+    assert not f.significant.any(), [r for r in f.table() if r["significant"]]
 
 
 # ------------------------------------------------------------------ drive_0708 (real data)

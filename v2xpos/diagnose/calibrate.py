@@ -26,7 +26,7 @@ from v2xpos.types import Dataset
 
 from . import identify, structure
 from .identify import Fit, LinearProblem
-from .inject import (N_PARAMS, P_ACCEL_SCALE, P_CLOCK_DRIFT, P_GNSS_LATENCY, P_GYRO_SCALE, P_LEVER_ARM,
+from .inject import (N_PARAMS, PARAM_NAMES, P_ACCEL_SCALE, P_CLOCK_DRIFT, P_GNSS_LATENCY, P_GYRO_SCALE, P_LEVER_ARM,
                      P_MISALIGN, P_TIME_OFFSET, EffectSet, correct)
 from .residuals import ResidualLog
 from .runner import OutageSchedule, ReplayOutcome, replay
@@ -393,25 +393,49 @@ class Estimator:
             self.J = J_saved
 
     def confirm(self, ds: Dataset, f: Fit, prob: LinearProblem) -> Fit:
-        """Real error reduction: for every effect beyond 3 sd, replay with that effect removed; it
-        stays significant only if the residual cost of BOTH halves of the recording is lower with it."""
-        cand = np.flatnonzero(prob.active & (np.abs(f.theta) > 3.0 * f.sd))
+        """Real error reduction, by backward elimination with replays: the candidates are the
+        effects beyond 3 sd; in the current model (all active parameters minus those dropped,
+        estimated together by ``identify.refit``) each candidate is removed in turn, the others
+        re-estimated without it, and the recording replayed. A candidate stays only if the
+        residual cost of BOTH halves of the recording is higher without it; otherwise the one that
+        costs least to remove is dropped and the rest are tested again in the model without it.
+        The refit lets correlated parameters take over what they can: an IMU time offset and a
+        forward lever arm that only trade along ``l_x - v tau`` (docs/calibration.md) each look
+        necessary while the other is held at its joint estimate, but not when it may move.
+        The significant effects' values become those of the final model (``f.theta``); their sd
+        stay those of the joint fit."""
+        cand = [int(i) for i in np.flatnonzero(prob.active & (np.abs(f.theta) > 3.0 * f.sd))]
         t_mid = float(np.median(prob.t_s))
-        sig = np.zeros(N_PARAMS, bool)
-        gain = np.zeros(N_PARAMS)
-        rows_with, _ = self.rows(ds, f.theta, "with all effects")
-        r_with = _align(self.base_rows, rows_with)
         first = self.base_rows.t_s < t_mid
-        for i in cand:
-            th = f.theta.copy()
-            th[i] = 0.0
-            rows, _ = self.rows(ds, th, f"without {i}")
-            r_wo = _align(self.base_rows, rows)
-            ok = np.isfinite(r_wo) & np.isfinite(r_with)
-            c_with = np.array([np.sum(r_with[ok & h] ** 2) for h in (first, ~first)])
-            c_wo = np.array([np.sum(r_wo[ok & h] ** 2) for h in (first, ~first)])
-            gain[i] = float(np.sum(c_wo - c_with))
-            sig[i] = bool(np.all(c_wo > c_with))
+        gain = np.zeros(N_PARAMS)
+        model = prob.active.copy()
+
+        def half_costs(theta: np.ndarray, label: str) -> np.ndarray:
+            rows, _ = self.rows(ds, theta, label)
+            r = _align(self.base_rows, rows)
+            r = np.where(np.isfinite(r), r, self.base_rows.r)
+            return np.array([np.sum(r[h] ** 2) for h in (first, ~first)])
+
+        while cand:
+            theta_m = identify.refit(prob, model)
+            c_with = half_costs(theta_m, "model")
+            worst, worst_gain = None, np.inf
+            for i in cand:
+                without = model.copy()
+                without[i] = False
+                d = half_costs(identify.refit(prob, without), f"without {PARAM_NAMES[i]}") - c_with
+                gain[i] = float(d.sum())
+                if not np.all(d > 0) and gain[i] < worst_gain:
+                    worst, worst_gain = i, gain[i]
+            if worst is None:
+                break
+            model[worst] = False
+            cand.remove(worst)
+        sig = np.zeros(N_PARAMS, bool)
+        sig[cand] = True
+        if cand:
+            final = identify.refit(prob, model)
+            f.theta = np.where(sig, final, f.theta)
         f.cv_gain = gain
         f.significant = sig
         return f

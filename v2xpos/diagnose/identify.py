@@ -81,6 +81,12 @@ def _solve(prob: LinearProblem, active: np.ndarray) -> tuple[np.ndarray, np.ndar
     return theta, Hinv
 
 
+def refit(prob: LinearProblem, active: np.ndarray) -> np.ndarray:
+    """MAP estimate of the linearised problem with only ``active`` parameters free (the others at
+    zero): e.g. an effect removed and the parameters correlated with it re-estimated."""
+    return _solve(prob, active & prob.active)[0]
+
+
 def predicted_residual(prob: LinearProblem, theta: np.ndarray) -> np.ndarray:
     return prob.r + prob.J @ (theta - prob.theta0)
 
