@@ -386,6 +386,15 @@ class Estimator:
                 theta, r_prev = new, r_new
             prob = self.problem(rows, theta)
             f = identify.fit(prob, systematic_sd=self.systematic_sd())
+            if iterations > 0:
+                # the secant-updated J serves the estimate; its columns need not be good derivatives
+                # (the update lands mostly in the columns with large raw steps), so each sd is the
+                # larger of the one it gives and the one from the finite-difference Jacobian
+                J_secant, self.J = self.J, J_saved
+                f_fd = identify.fit(self.problem(rows, theta), systematic_sd=self.systematic_sd())
+                self.J = J_secant
+                f.sd = np.maximum(f.sd, f_fd.sd)
+                f.sd_stat = np.maximum(f.sd_stat, f_fd.sd_stat)
             f = identify.decide(prob, f)
             return f, prob, out
         finally:
