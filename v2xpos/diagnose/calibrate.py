@@ -285,13 +285,17 @@ class Estimator:
             lag, sd = self.velocity_lag
             self.config["use_gnss_velocity"] = not (abs(lag) > 3.0 * sd)
 
-    def true_cost(self, ds: Dataset, theta: np.ndarray, label: str) -> tuple[float, RowSet]:
-        """Residual cost of a replay at theta over the rows shared with the linearisation point;
-        rows missing in the replay count with their linearisation value."""
+    def replayed_residuals(self, ds: Dataset, theta: np.ndarray, label: str) -> np.ndarray:
+        """Residuals of a replay at theta on the rows of the linearisation point; rows missing in
+        the replay keep their linearisation value."""
         rows, _ = self.rows(ds, theta, label)
         r = _align(self.base_rows, rows)
-        r = np.where(np.isfinite(r), r, self.base_rows.r)
-        return float(r @ r), rows
+        return np.where(np.isfinite(r), r, self.base_rows.r)
+
+    def true_cost(self, ds: Dataset, theta: np.ndarray, label: str) -> float:
+        """Residual cost of a replay at theta (``replayed_residuals``)."""
+        r = self.replayed_residuals(ds, theta, label)
+        return float(r @ r)
 
     def rows(self, ds: Dataset, theta: np.ndarray, label: str) -> tuple[RowSet, ReplayOutcome]:
         out = self._replay(ds, theta, label)
@@ -350,7 +354,7 @@ class Estimator:
             c0 = float(np.nansum(_align(self.base_rows, rows0) ** 2))
             step = identify.fit(self.problem(rows0, theta), systematic_sd=self.systematic_sd()).theta - theta
             for _ in range(4):
-                c1, _rows = self.true_cost(self.ds, theta + step, f"GN {k + 1} trial")
+                c1 = self.true_cost(self.ds, theta + step, f"GN {k + 1} trial")
                 if c1 < c0:
                     theta = theta + step
                     break
@@ -420,19 +424,20 @@ class Estimator:
         model = prob.active.copy()
 
         def half_costs(theta: np.ndarray, label: str) -> np.ndarray:
-            rows, _ = self.rows(ds, theta, label)
-            r = _align(self.base_rows, rows)
-            r = np.where(np.isfinite(r), r, self.base_rows.r)
+            r = self.replayed_residuals(ds, theta, label)
             return np.array([np.sum(r[h] ** 2) for h in (first, ~first)])
 
+        theta_m = identify.refit(prob, model)
+        c_with = half_costs(theta_m, "model") if cand else None
         while cand:
-            theta_m = identify.refit(prob, model)
-            c_with = half_costs(theta_m, "model")
-            worst, worst_gain = None, np.inf
+            worst, worst_gain, tried = None, np.inf, {}
             for i in cand:
                 without = model.copy()
                 without[i] = False
-                d = half_costs(identify.refit(prob, without), f"without {PARAM_NAMES[i]}") - c_with
+                th = identify.refit(prob, without)
+                c = half_costs(th, f"without {PARAM_NAMES[i]}")
+                tried[i] = (th, c)
+                d = c - c_with
                 gain[i] = float(d.sum())
                 if not np.all(d > 0) and gain[i] < worst_gain:
                     worst, worst_gain = i, gain[i]
@@ -440,11 +445,10 @@ class Estimator:
                 break
             model[worst] = False
             cand.remove(worst)
+            theta_m, c_with = tried[worst]       # the model without it was just replayed
         sig = np.zeros(N_PARAMS, bool)
         sig[cand] = True
-        if cand:
-            final = identify.refit(prob, model)
-            f.theta = np.where(sig, final, f.theta)
+        f.theta = np.where(sig, theta_m, f.theta)
         f.cv_gain = gain
         f.significant = sig
         return f
