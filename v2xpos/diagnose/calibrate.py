@@ -101,12 +101,14 @@ def _roll_rows(log: ResidualLog, t0_s: float, roll_sd_rad: float) -> tuple[list,
 
 
 def residual_rows(log: ResidualLog, applied: EffectSet, weights: dict | None, t0_s: float,
-                  roll_sd_rad: float, ref_times: tuple[float, float]) -> tuple[RowSet, dict]:
+                  roll_sd_rad: float, ref_times: tuple[float, float],
+                  constraints_in_gnss_time: bool = False) -> tuple[RowSet, dict]:
     """Rows from GNSS position/velocity and NHC innovations (each component divided by the
     baseline innovation sd in ``weights``, or by its own sd when weights is None) plus the block
     mean vehicle roll. Keys are times relative to the first GNSS tag / first IMU stamp of the
     replayed recording (``ref_times``), with the applied clock drift removed, so that the same
-    epoch keeps its key when stamps or tags are shifted."""
+    epoch keeps its key when stamps or tags are shifted; constraint rows applied at GNSS-defined
+    times (``runner.replay(exact_epochs=True)``) are keyed like GNSS rows."""
     keys, vals, ts = [], [], []
     new_w = {}
     drift = applied.imu_clock_drift_ppm
@@ -115,7 +117,7 @@ def residual_rows(log: ResidualLog, applied: EffectSet, weights: dict | None, t0
         if kind not in log:
             continue
         s = log[kind]
-        if kind.startswith("gnss"):
+        if kind.startswith("gnss") or constraints_in_gnss_time:
             t_rel = s.t_s - gnss0
         else:
             t_rel = (s.t_s - imu0) / (1.0 + 1e-6 * drift)
@@ -211,6 +213,12 @@ two replays makes the innovation sequence jump and spoils the finite differences
 receiver's velocities when they lag the positions: an RTK engine's velocity may be a smoothed,
 lagged state (``kinematic.velocity_lag`` compares the course from velocities and from positions
 against the gyro); a lag would bias the time offset, and positions are the outage reference."""
+EXACT_EPOCHS = True
+"""Fit replays bring the state exactly to each GNSS epoch and apply the vehicle constraints mid-way
+between epochs (``runner.replay``): with the constraints at chunk ends and the GNSS update
+extrapolated from the last sample, the replayed cost jumped by 50-140 whenever a stamp shift moved
+a GNSS epoch past an IMU sample (a simulated drive, 2026-11-23), as much as a 2 ms offset costs."""
+
 CALIBRATION_OUTAGES = OutageSchedule(length_s=5.0, every_s=15.0, first_s=20.0)
 """Short GNSS gaps in the fit replays: the first innovation after each gap is a 5 s dead-reckoning
 prediction error, so the likelihood also weighs the multi-step prediction that outages need
@@ -250,11 +258,12 @@ class Estimator:
         self.schedule: OutageSchedule | None = CALIBRATION_OUTAGES
         self.velocity_lag: tuple | None = None
         self.config = dict(CALIBRATION_REPLAY_CONFIG)
+        self.exact_epochs = EXACT_EPOCHS
 
     def _replay(self, ds: Dataset, theta: np.ndarray, label: str) -> ReplayOutcome:
         self.replays += 1
         return replay(correct(ds, EffectSet.from_vector(theta)), self.schedule, config=self.config,
-                      progress=self.progress, label=label)
+                      progress=self.progress, label=label, exact_epochs=self.exact_epochs)
 
     def coarse(self) -> np.ndarray:
         """Starting point from the filter's own augmented effect states (lever arm, IMU time offset,
@@ -300,7 +309,7 @@ class Estimator:
     def rows(self, ds: Dataset, theta: np.ndarray, label: str) -> tuple[RowSet, ReplayOutcome]:
         out = self._replay(ds, theta, label)
         rows, _ = residual_rows(out.log, EffectSet.from_vector(theta), self.weights, self.t0_s, self.roll_sd,
-                                _ref_times(ds, theta))
+                                _ref_times(ds, theta), self.exact_epochs)
         return rows, out
 
     def linearize(self, theta0: np.ndarray, keep_weights: bool = False) -> RowSet:
@@ -309,11 +318,12 @@ class Estimator:
         if not keep_weights or self.weights is None:
             self.roll_sd = _roll_block_sd(out.log, self.t0_s)
             self.base_rows, self.weights = residual_rows(out.log, EffectSet.from_vector(theta0), None,
-                                                         self.t0_s, self.roll_sd, _ref_times(self.ds, theta0))
+                                                         self.t0_s, self.roll_sd, _ref_times(self.ds, theta0),
+                                                         self.exact_epochs)
             rows0 = self.base_rows
         else:
             rows0, _ = residual_rows(out.log, EffectSet.from_vector(theta0), self.weights, self.t0_s, self.roll_sd,
-                                     _ref_times(self.ds, theta0))
+                                     _ref_times(self.ds, theta0), self.exact_epochs)
         r0 = _align(self.base_rows, rows0)
         self.theta_lin = theta0.copy()
         J = np.zeros((len(self.base_rows.r), N_PARAMS))
@@ -405,50 +415,66 @@ class Estimator:
             self.J_refined = self.J
             self.J = J_saved
 
-    def confirm(self, ds: Dataset, f: Fit, prob: LinearProblem) -> Fit:
+    def confirm(self, ds: Dataset, f: Fit, prob: LinearProblem, n_sigma: float = 3.0) -> Fit:
         """Real error reduction, by backward elimination with replays: the candidates are the
         effects beyond 3 sd; in the current model (all active parameters minus those dropped,
         estimated together by ``identify.refit``) each candidate is removed in turn, the others
-        re-estimated without it, and the recording replayed. A candidate stays only if the
-        residual cost of BOTH halves of the recording is higher without it; otherwise the one that
-        costs least to remove is dropped and the rest are tested again in the model without it.
+        re-estimated without it, and the recording replayed. A candidate stays only if the replayed
+        cost rises in BOTH halves of the recording and in total by more than ``n_sigma^2 kappa``,
+        where ``kappa = (sd / sd_white)^2`` is the variance factor of the robust sd over the
+        white-residual one: in the linear model the cost rise is ``(value / sd_white)^2``, so this
+        is the 3-sd test again, with the replay in place of the linearisation (a likelihood-ratio
+        test with the same non-whiteness allowance), and if it is still beyond 3 sd in the current
+        model. Otherwise the candidate with the smallest ``rise / kappa`` is dropped and the rest
+        are tested again in the model without it.
         The refit lets correlated parameters take over what they can: an IMU time offset and a
         forward lever arm that only trade along ``l_x - v tau`` (docs/calibration.md) each look
         necessary while the other is held at its joint estimate, but not when it may move.
-        The significant effects' values become those of the final model (``f.theta``); their sd
-        stay those of the joint fit."""
-        cand = [int(i) for i in np.flatnonzero(prob.active & (np.abs(f.theta) > 3.0 * f.sd))]
+        The significant effects' values and sd become those of the final model; the others keep
+        the joint fit's."""
+        cand = [int(i) for i in np.flatnonzero(prob.active & (np.abs(f.theta) > n_sigma * f.sd))]
         t_mid = float(np.median(prob.t_s))
         first = self.base_rows.t_s < t_mid
         gain = np.zeros(N_PARAMS)
         model = prob.active.copy()
+        sys_sd = self.systematic_sd()
 
         def half_costs(theta: np.ndarray, label: str) -> np.ndarray:
             r = self.replayed_residuals(ds, theta, label)
             return np.array([np.sum(r[h] ** 2) for h in (first, ~first)])
 
-        theta_m = identify.refit(prob, model)
-        c_with = half_costs(theta_m, "model") if cand else None
+        self.confirm_log = []
+        fm = identify.fit(prob, systematic_sd=sys_sd, active=model)
+        c_with = half_costs(fm.theta, "model") if cand else None
         while cand:
-            worst, worst_gain, tried = None, np.inf, {}
+            sd_w = identify.naive_sd(prob, model)
+            kappa = np.where(sd_w > 0, (fm.sd_stat / np.where(sd_w > 0, sd_w, 1.0)) ** 2, 1.0)
+            kappa = np.maximum(kappa, 1.0)
+            worst, worst_z2, tried = None, np.inf, {}
             for i in cand:
                 without = model.copy()
                 without[i] = False
                 th = identify.refit(prob, without)
                 c = half_costs(th, f"without {PARAM_NAMES[i]}")
-                tried[i] = (th, c)
+                tried[i] = c
                 d = c - c_with
                 gain[i] = float(d.sum())
-                if not np.all(d > 0) and gain[i] < worst_gain:
-                    worst, worst_gain = i, gain[i]
+                z2 = gain[i] / kappa[i]
+                keep = np.all(d > 0) and z2 > n_sigma ** 2 and abs(fm.theta[i]) > n_sigma * fm.sd[i]
+                self.confirm_log.append((PARAM_NAMES[i], d.tolist(), float(kappa[i]), float(fm.theta[i] / fm.sd[i])))
+                if not keep and z2 < worst_z2:
+                    worst, worst_z2 = i, z2
             if worst is None:
                 break
             model[worst] = False
             cand.remove(worst)
-            theta_m, c_with = tried[worst]       # the model without it was just replayed
+            fm = identify.fit(prob, systematic_sd=sys_sd, active=model)
+            c_with = tried[worst]                # the model without it was just replayed
         sig = np.zeros(N_PARAMS, bool)
         sig[cand] = True
-        f.theta = np.where(sig, theta_m, f.theta)
+        f.theta = np.where(sig, fm.theta, f.theta)
+        f.sd = np.where(sig, fm.sd, f.sd)
+        f.sd_stat = np.where(sig, fm.sd_stat, f.sd_stat)
         f.cv_gain = gain
         f.significant = sig
         return f

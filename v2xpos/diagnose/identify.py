@@ -87,6 +87,15 @@ def refit(prob: LinearProblem, active: np.ndarray) -> np.ndarray:
     return _solve(prob, active & prob.active)[0]
 
 
+def naive_sd(prob: LinearProblem, active: np.ndarray | None = None) -> np.ndarray:
+    """sd from (J^T J + P0^-1)^-1 scaled by the reduced chi-square (white residuals assumed)."""
+    active = prob.active if active is None else active & prob.active
+    theta, Hinv = _solve(prob, active)
+    res = predicted_residual(prob, theta)
+    chi2 = float(res @ res) / max(len(res) - int(active.sum()), 1)
+    return np.sqrt(np.diag(Hinv) * max(chi2, 1.0))
+
+
 def predicted_residual(prob: LinearProblem, theta: np.ndarray) -> np.ndarray:
     return prob.r + prob.J @ (theta - prob.theta0)
 

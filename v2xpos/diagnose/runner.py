@@ -39,17 +39,56 @@ def _h_error_m(lla_est: np.ndarray, lla_ref: np.ndarray) -> float:
     return float(np.hypot(d[0], d[1]))
 
 
+def constraint_times(t_gnss_s: np.ndarray, rate_hz: float) -> np.ndarray:
+    """Vehicle-constraint times kept away from the GNSS epochs: each interval between consecutive
+    epochs gets ``m = max(1, round(interval x rate))`` points at fractions (j + 1/2)/m."""
+    tg = np.unique(np.asarray(t_gnss_s, float))
+    if len(tg) < 2:
+        return np.zeros(0)
+    dt = np.diff(tg)
+    m = np.maximum(1, np.round(dt * rate_hz)).astype(int)
+    start = np.repeat(tg[:-1], m)
+    step = np.repeat(dt / m, m)
+    j = np.arange(int(m.sum())) - np.repeat(np.cumsum(m) - m, m)
+    return start + (j + 0.5) * step
+
+
+def with_samples_at(t_s: np.ndarray, acc: np.ndarray, gyro: np.ndarray, t_new_s: np.ndarray,
+                    min_sep_s: float = 1e-7) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """IMU samples with linearly interpolated ones inserted at ``t_new_s`` (inside the recording,
+    not within ``min_sep_s`` of a real sample). The trapezoid increments over a split interval equal
+    those of the whole interval, so the strapdown is unchanged while the state exists at t_new_s."""
+    t_new_s = np.unique(t_new_s[(t_new_s > t_s[0]) & (t_new_s < t_s[-1])])
+    i = np.searchsorted(t_s, t_new_s)
+    keep = (t_new_s - t_s[i - 1] > min_sep_s) & (t_s[i] - t_new_s > min_sep_s)
+    t_new_s, i = t_new_s[keep], i[keep]
+    w = ((t_new_s - t_s[i - 1]) / (t_s[i] - t_s[i - 1]))[:, None]
+    a_new = (1.0 - w) * acc[i - 1] + w * acc[i]
+    g_new = (1.0 - w) * gyro[i - 1] + w * gyro[i]
+    t = np.concatenate([t_s, t_new_s])
+    o = np.argsort(t, kind="stable")
+    return t[o], np.concatenate([acc, a_new])[o], np.concatenate([gyro, g_new])[o]
+
+
 def replay(ds: Dataset, schedule: OutageSchedule | None = None, config: dict | None = None,
-           progress: bool = False, record: bool = True, label: str = "replay") -> ReplayOutcome:
+           progress: bool = False, record: bool = True, label: str = "replay",
+           exact_epochs: bool = False) -> ReplayOutcome:
     """Run the filter over ``ds``; ``schedule=None`` uses every GNSS epoch.
 
     config: InsConfig overrides (the dataset's platform, mounting and lever arm are the defaults).
+    exact_epochs: the filter state is brought exactly to every GNSS epoch (an interpolated IMU
+    sample is inserted there, so no extrapolation over the gap to the last sample), and the
+    vehicle constraints are applied mid-way between GNSS epochs (``constraint_times``) instead of
+    at chunk ends. Then a shift of the IMU stamps changes the replay continuously: no update moves
+    to another sample, and no constraint swaps order with a GNSS update (calibration fit replays).
     """
     from v2xpos.ins import InsConfig, InsFilter
     kw = dict(platform=ds.platform if ds.platform in ("car", "pedestrian") else "generic",
               imu_to_body=np.asarray(ds.imu_to_body, float), lever_arm_m=np.asarray(ds.lever_arm_m, float),
               lever_arm_sd_m=float(ds.lever_arm_sd_m), effects=())
     kw.update(config or {})
+    if exact_epochs:
+        kw["constraints_on_request"] = True
     filt = InsFilter(InsConfig(**kw))
     rec = ResidualRecorder(kinds=RECORDED_KINDS)
     if record:
@@ -58,20 +97,33 @@ def replay(ds: Dataset, schedule: OutageSchedule | None = None, config: dict | N
     wall0 = time.perf_counter()
     order = np.argsort(gnss.t_s, kind="stable")
     tg = gnss.t_s[order]
+    imu_t, imu_a, imu_w = imu.t_s, imu.acc_mps2, imu.gyro_rps
+    t_constr = np.zeros(0)
+    if exact_epochs and len(imu_t) > 1:
+        t_constr = constraint_times(tg, filt.cfg.constraint_rate_hz)
+        imu_t, imu_a, imu_w = with_samples_at(imu_t, imu_a, imu_w, np.concatenate([tg, t_constr]))
+    i_constr = 0
     windows = (schedule.intervals(float(tg[0]), float(tg[-1])) if schedule is not None and len(tg) else [])
     pending_end = [w[1] for w in windows]
     outage_err, aided_err = [], []
     i_imu = 0
-    n_imu = len(imu)
+    n_imu = len(imu_t)
     it = order
     if progress:
         from tqdm import tqdm
         it = tqdm(order, desc=label, unit="epoch", leave=False)
     for k in it:
         t = float(gnss.t_s[k])
-        j = int(np.searchsorted(imu.t_s, t, side="right"))
+        while i_constr < len(t_constr) and t_constr[i_constr] < t:
+            j = int(np.searchsorted(imu_t, t_constr[i_constr], side="right"))
+            if j > i_imu:
+                filt.process_imu_batch(imu_t[i_imu:j], imu_a[i_imu:j], imu_w[i_imu:j])
+                i_imu = j
+            filt.apply_vehicle_constraints()
+            i_constr += 1
+        j = int(np.searchsorted(imu_t, t, side="right"))
         if j > i_imu:
-            filt.process_imu_batch(imu.t_s[i_imu:j], imu.acc_mps2[i_imu:j], imu.gyro_rps[i_imu:j])
+            filt.process_imu_batch(imu_t[i_imu:j], imu_a[i_imu:j], imu_w[i_imu:j])
             i_imu = j
         in_outage = any(a <= t < b for a, b in windows)
         if in_outage:
@@ -95,7 +147,7 @@ def replay(ds: Dataset, schedule: OutageSchedule | None = None, config: dict | N
         vsd = None if gnss.vel_sd_ned_mps is None else gnss.vel_sd_ned_mps[k]
         filt.update_gnss(t, gnss.lla[k], gnss.sd_ned_m[k], int(gnss.fix[k]), vel_ned_mps=vel, vel_sd_ned_mps=vsd)
     if i_imu < n_imu:
-        filt.process_imu_batch(imu.t_s[i_imu:], imu.acc_mps2[i_imu:], imu.gyro_rps[i_imu:])
+        filt.process_imu_batch(imu_t[i_imu:], imu_a[i_imu:], imu_w[i_imu:])
     log = rec.finish()
     oe = np.asarray(outage_err)
     ae = np.asarray(aided_err)

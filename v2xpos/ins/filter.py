@@ -80,6 +80,7 @@ class InsConfig:
     gnss_reset_distance_m: float = 30.0           # a forced fix further than this resets position instead
     # vehicle constraints and stops
     constraint_rate_hz: float = 10.0
+    constraints_on_request: bool = False          # NHC/ZUPT only via apply_vehicle_constraints() (calibration replays)
     nhc_sd_mps: tuple = (0.1, 0.5)                # lateral, vertical (body pitch varies with load/braking)
     nhc_sd_per_yaw_rate_m: float = 1.0            # adds |yaw rate| x 1 m to the lateral sd (IMU off the rear axle)
     nhc_min_speed_mps: float = 0.5
@@ -440,12 +441,10 @@ class InsFilter:
             self.counts["static_calibrations"] += 1
             if self.cfg.apply_static_calibration:
                 self._update_static_calibration(est)
-        if self.t_stamp_s - self._last_constraint_t >= 1.0 / self.cfg.constraint_rate_hz - 1e-6:
+        if (not self.cfg.constraints_on_request
+                and self.t_stamp_s - self._last_constraint_t >= 1.0 / self.cfg.constraint_rate_hz - 1e-6):
             self._last_constraint_t = self.t_stamp_s
-            if self.static:
-                self._update_zupt()
-            elif self.cfg.platform == "car" and speed > self.cfg.nhc_min_speed_mps and self.heading_known:
-                self._update_nhc()
+            self._vehicle_constraints(speed)
         self._chunks_since_ortho += 1
         if self._chunks_since_ortho >= 100:
             self._chunks_since_ortho = 0
@@ -710,6 +709,22 @@ class InsFilter:
         Hphi = -RCt @ skew(v)
         Hmis = -skew(v_b)
         return RCt @ v, Hv, Hphi, Hmis
+
+    def _vehicle_constraints(self, speed_mps: float) -> None:
+        if self.static:
+            self._update_zupt()
+        elif self.cfg.platform == "car" and speed_mps > self.cfg.nhc_min_speed_mps and self.heading_known:
+            self._update_nhc()
+
+    def apply_vehicle_constraints(self) -> None:
+        """ZUPT/ZARU when static, else the car's NHC, at the time of the last sample; with
+        ``constraints_on_request`` the caller chooses these times (e.g. mid-way between GNSS epochs,
+        so that a shift of the IMU stamps never reorders a constraint and a GNSS update)."""
+        if not self.initialized:
+            return
+        self._flush_covariance()
+        self._last_w_b = self.mem[MEM_W:MEM_W + 3].copy()
+        self._vehicle_constraints(math.sqrt(float(self.nav[3:6] @ self.nav[3:6])))
 
     def _update_nhc(self) -> None:
         c = self.cfg
