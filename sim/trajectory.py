@@ -240,3 +240,30 @@ def speed_change_drive(duration_s: float = 300.0, dt_s: float = 0.01, accel_mps2
         t += d + hold
     segs += [Segment(v / accel_mps2, accel_mps2=-accel_mps2), Segment(5.0)]
     return generate(segs, dt_s=dt_s, **kw)
+
+
+def figure_eight_drive(duration_s: float = 300.0, dt_s: float = 0.01,
+                       speeds_mps: tuple = (6.0, 12.0, 9.0, 15.0, 7.5, 13.5), max_lat_acc_mps2: float = 4.0,
+                       accel_mps2: float = 1.5, **kw) -> Trajectory:
+    """A calibration drive: 10 s static, then figure-eights (a left and a right circle) at speeds
+    that change between eights (straight at +-``accel_mps2``); each circle's radius is the larger
+    of 20 m and ``v^2 / max_lat_acc_mps2``. Turning at several speeds separates the effects that
+    a lateral-velocity residual shows as ``v w tau`` (time offset) from those it shows as ``w l``
+    (forward lever arm), which a drive at one speed confounds."""
+    v = 0.0
+    segs = [Segment(10.0)]
+    t = 10.0
+    k = 0
+    while t < duration_s - 20.0:
+        target = float(speeds_mps[k % len(speeds_mps)])
+        k += 1
+        d = max(abs(target - v) / accel_mps2, 2.0)
+        segs.append(Segment(d, accel_mps2=(target - v) / d))
+        v = target
+        radius = max(20.0, v * v / max_lat_acc_mps2)
+        w = v / radius
+        circle = 2.0 * np.pi / w
+        segs += [Segment(circle, yaw_rate_rps=-w), Segment(circle, yaw_rate_rps=w)]
+        t += d + 2.0 * circle
+    segs += [Segment(v / accel_mps2, accel_mps2=-accel_mps2), Segment(5.0)]
+    return generate(segs, dt_s=dt_s, **kw)

@@ -2,7 +2,7 @@
 import numpy as np
 
 from sim.sensors import GnssErrorModel, ImuErrorModel, simulate_gnss, simulate_imu
-from sim.trajectory import Segment, generate, static, urban_drive
+from sim.trajectory import Segment, figure_eight_drive, generate, static, urban_drive
 from v2xpos import geo
 from v2xpos.rotation import exp_so3
 
@@ -83,3 +83,15 @@ def test_gnss_latency_tags_epochs_late():
     north_m = geo.lla_to_ned(gn.lla, tr.lla0)[:, 0]
     # the position is the truth 50 ms before the tag: 0.5 m behind where the vehicle is at the tag time
     assert np.allclose(north_m - tr.sample(gn.t_s)["r_ned_m"][:, 0], -0.5, atol=1e-3)
+
+
+def test_figure_eight_drive_turns_both_ways_at_several_speeds_within_the_lateral_limit():
+    tr = figure_eight_drive(300.0, max_lat_acc_mps2=4.0)
+    yaw_rate = tr.w_nb_b_rps[:, 2]
+    lat_acc = np.abs(tr.speed_mps * yaw_rate)
+    assert lat_acc.max() < 4.0 * 1.05
+    turning = np.abs(yaw_rate) > 0.1
+    speeds = np.round(tr.speed_mps[turning])
+    assert len(np.unique(speeds)) >= 5                      # turns at several speeds
+    assert (yaw_rate > 0.1).sum() > 1000 and (yaw_rate < -0.1).sum() > 1000
+    assert tr.speed_mps[0] == 0.0 and tr.speed_mps[-1] < 0.1   # static start (alignment), ends stopped

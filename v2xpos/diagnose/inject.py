@@ -238,8 +238,10 @@ def simulated_recording(duration_s: float = 180.0, seed: int = 0, effects: Effec
         traj = trajectory.urban_drive(duration_s=duration_s, dt_s=0.01, speed_mps=12.0, seed=seed)
     elif drive == "speed_changes":
         traj = trajectory.speed_change_drive(duration_s=duration_s, dt_s=0.01, seed=seed)
+    elif drive == "figure_eights":
+        traj = trajectory.figure_eight_drive(duration_s=duration_s, dt_s=0.01)
     else:
-        raise ValueError(f"unknown drive {drive!r}; known: urban, speed_changes")
+        raise ValueError(f"unknown drive {drive!r}; known: urban, speed_changes, figure_eights")
     model = sensors.ImuErrorModel.preset(imu_grade, rng=rng)
     # sim: imu = (1 + s_imu) exp(-m_imu) B^T body; here: B imu = (1 + s) R^T body, R ~ exp(m)
     model.misalignment_rad = B.T @ np.asarray(e.imu_misalignment_rad, float)
