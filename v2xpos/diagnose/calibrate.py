@@ -259,6 +259,7 @@ class Estimator:
         self.velocity_lag: tuple | None = None
         self.config = dict(CALIBRATION_REPLAY_CONFIG)
         self.exact_epochs = EXACT_EPOCHS
+        self.confirm_log: list = []      # (effect, half-cost rises, kappa, z in the model) per test
 
     def _replay(self, ds: Dataset, theta: np.ndarray, label: str) -> ReplayOutcome:
         self.replays += 1
