@@ -448,9 +448,8 @@ class Estimator:
         fm = identify.fit(prob, systematic_sd=sys_sd, active=model)
         c_with = half_costs(fm.theta, "model") if cand else None
         while cand:
-            sd_w = identify.naive_sd(prob, model)
-            kappa = np.where(sd_w > 0, (fm.sd_stat / np.where(sd_w > 0, sd_w, 1.0)) ** 2, 1.0)
-            kappa = np.maximum(kappa, 1.0)
+            sd_w = fm.sd_white
+            kappa = np.maximum(np.where(sd_w > 0, (fm.sd_stat / np.where(sd_w > 0, sd_w, 1.0)) ** 2, 1.0), 1.0)
             worst, worst_z2, tried = None, np.inf, {}
             for i in cand:
                 without = model.copy()

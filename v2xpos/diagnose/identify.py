@@ -45,7 +45,8 @@ class LinearProblem:
 @dataclass
 class Fit:
     """MAP estimate and its uncertainty. sd_stat is the sd from the data alone (for comparing two
-    estimates on the same recording); sd adds the systematic terms in ``systematic_sd``."""
+    estimates on the same recording); sd adds the systematic terms in ``systematic_sd``; sd_white
+    is the sd the residuals would give if they were white (``(J^T J + P0^-1)^-1`` x chi2_red)."""
     theta: np.ndarray
     cov: np.ndarray
     sd: np.ndarray
@@ -56,6 +57,7 @@ class Fit:
     reduced_chi2: float
     significant: np.ndarray = field(default_factory=lambda: np.zeros(N_PARAMS, bool))
     cv_gain: np.ndarray = field(default_factory=lambda: np.zeros(N_PARAMS))
+    sd_white: np.ndarray = field(default_factory=lambda: np.zeros(N_PARAMS))
 
     def table(self) -> list[dict]:
         return [{"name": PARAM_NAMES[i], "value": float(self.theta[i]), "sd": float(self.sd[i]),
@@ -85,15 +87,6 @@ def refit(prob: LinearProblem, active: np.ndarray) -> np.ndarray:
     """MAP estimate of the linearised problem with only ``active`` parameters free (the others at
     zero): e.g. an effect removed and the parameters correlated with it re-estimated."""
     return _solve(prob, active & prob.active)[0]
-
-
-def naive_sd(prob: LinearProblem, active: np.ndarray | None = None) -> np.ndarray:
-    """sd from (J^T J + P0^-1)^-1 scaled by the reduced chi-square (white residuals assumed)."""
-    active = prob.active if active is None else active & prob.active
-    theta, Hinv = _solve(prob, active)
-    res = predicted_residual(prob, theta)
-    chi2 = float(res @ res) / max(len(res) - int(active.sum()), 1)
-    return np.sqrt(np.diag(Hinv) * max(chi2, 1.0))
 
 
 def predicted_residual(prob: LinearProblem, theta: np.ndarray) -> np.ndarray:
@@ -140,10 +133,11 @@ def fit(prob: LinearProblem, block_s: float = 10.0, systematic_sd: np.ndarray | 
     var_stat = np.where(active, var_stat, prob.prior_sd ** 2)
     sd_stat = np.sqrt(var_stat)
     sd = np.sqrt(var_stat + sys ** 2)
-    scale = np.where(np.sqrt(np.diag(cov_naive)) > 0, sd_stat / np.maximum(np.sqrt(np.diag(cov_naive)), 1e-300), 1.0)
+    sd_white = np.sqrt(np.diag(cov_naive))
+    scale = np.where(sd_white > 0, sd_stat / np.maximum(sd_white, 1e-300), 1.0)
     cov = cov_naive * np.outer(scale, scale)
     return Fit(theta=theta, cov=cov, sd=sd, sd_stat=sd_stat, cost_before=cost(prob, np.zeros(N_PARAMS)),
-               cost_after=float(res @ res), n_rows=m, reduced_chi2=chi2)
+               cost_after=float(res @ res), n_rows=m, reduced_chi2=chi2, sd_white=sd_white)
 
 
 def halves(prob: LinearProblem, t_split_s: float | None = None) -> tuple[LinearProblem, LinearProblem]:
