@@ -145,9 +145,7 @@ def test_exact_epoch_replays_make_the_cost_continuous_in_the_imu_offset():
     est = C.Estimator(ds)
     assert est.exact_epochs
     th0 = np.zeros(inject.N_PARAMS)
-    out = est._replay(ds, th0, "base")
-    est.base_rows, est.weights = C.residual_rows(out.log, EffectSet(), None, est.t0_s, est.roll_sd,
-                                                 C._ref_times(ds, th0), est.exact_epochs)
+    est.set_baseline(th0)
     cost = {}
     for d_ms in (-3.0, -0.1, 0.0, 0.1, 3.0):
         th = th0.copy()

@@ -313,18 +313,22 @@ class Estimator:
                                 _ref_times(ds, theta), self.exact_epochs)
         return rows, out
 
+    def set_baseline(self, theta0: np.ndarray) -> RowSet:
+        """Replay ``self.ds`` at theta0 and make its rows the reference of every later replay: the
+        row keys, the per-kind weights (variance components) and the roll block sd."""
+        out = self._replay(self.ds, theta0, "linearisation point")
+        self.roll_sd = _roll_block_sd(out.log, self.t0_s)
+        self.base_rows, self.weights = residual_rows(out.log, EffectSet.from_vector(theta0), None,
+                                                     self.t0_s, self.roll_sd, _ref_times(self.ds, theta0),
+                                                     self.exact_epochs)
+        return self.base_rows
+
     def linearize(self, theta0: np.ndarray, keep_weights: bool = False) -> RowSet:
         """Rows at theta0 and the finite-difference Jacobian there (one replay per parameter)."""
-        out = self._replay(self.ds, theta0, "linearisation point")
         if not keep_weights or self.weights is None:
-            self.roll_sd = _roll_block_sd(out.log, self.t0_s)
-            self.base_rows, self.weights = residual_rows(out.log, EffectSet.from_vector(theta0), None,
-                                                         self.t0_s, self.roll_sd, _ref_times(self.ds, theta0),
-                                                         self.exact_epochs)
-            rows0 = self.base_rows
+            rows0 = self.set_baseline(theta0)
         else:
-            rows0, _ = residual_rows(out.log, EffectSet.from_vector(theta0), self.weights, self.t0_s, self.roll_sd,
-                                     _ref_times(self.ds, theta0), self.exact_epochs)
+            rows0, _ = self.rows(self.ds, theta0, "linearisation point")
         r0 = _align(self.base_rows, rows0)
         self.theta_lin = theta0.copy()
         J = np.zeros((len(self.base_rows.r), N_PARAMS))
