@@ -108,6 +108,9 @@ class Dataset:
     malformed_lines: int = 0
     source: Path | None = None
     notes: dict = field(default_factory=dict)
+    calibration: object | None = None
+    """``v2xpos.datasets.calibration.CalibrationTable`` from the descriptor's ``[calibration]``
+    table (estimated effects to apply), or None."""
 
 
 @dataclass

@@ -176,9 +176,13 @@ def _load_toml(toml_path: Path, read_raw: bool) -> Dataset:
             shown = "; ".join(f"line {e['line']}: {e['reason']}" for e in entry["examples"])
             log.warning("%s: %d malformed record(s) skipped (%s)", entry["source"], entry["count"],
                         shown)
+    calibration = None
+    if "calibration" in desc:
+        from v2xpos.datasets.calibration import parse_calibration
+        calibration = parse_calibration(desc["calibration"], f"{toml_path}: [calibration]")
     return Dataset(name=name, platform=platform, imu=imu_res.imu, gnss=gnss,
                    imu_to_body=imu_to_body, lever_arm_m=lever, lever_arm_sd_m=lever_sd,
-                   malformed_lines=malformed, source=toml_path, notes=notes)
+                   malformed_lines=malformed, source=toml_path, notes=notes, calibration=calibration)
 
 
 def _fix_counts(gnss: GnssData) -> dict[str, int]:
