@@ -100,6 +100,16 @@ class TargetStatus(IntEnum):
     TIMEOUT = 2       # latency above the timeout: no relative output from that message
     NO_DATA = 3       # no message from the target yet / target silent
     FUTURE = 4        # slave time of validity ahead of the master beyond tolerance
+    # statuses below carry the computed kinematics (has_kinematics) but say why they are not VALID
+    ATTITUDE_UNCERTAIN = 5   # a vehicle's heading/attitude is not determined (e.g. pending at a standstill start)
+    SIGMA_EXCEEDED = 6       # predicted relative sigma beyond the configured limit
+    CLOCK_UNSYNCED = 7       # a service's clock is off GNSS time beyond the configured bound
+    INCONSISTENT = 8         # a filter's own consistency checks (NIS, whiteness) show an undeclared effect
+
+
+KINEMATIC_STATUSES = frozenset({TargetStatus.VALID, TargetStatus.ATTITUDE_UNCERTAIN, TargetStatus.SIGMA_EXCEEDED,
+                                TargetStatus.CLOCK_UNSYNCED, TargetStatus.INCONSISTENT})
+"""Statuses whose results carry computed kinematics (only VALID may be used as a reference)."""
 
 
 class FixSide(IntFlag):
@@ -259,6 +269,9 @@ class RelativeResult:
     ttc_s: float | None = None
     t_sent_wall_s: float | None = None
     schema: int = SCHEMA_VERSION
+    master_fix: FixStatus = FixStatus.NONE
+    target_fix: FixStatus = FixStatus.NONE
+    rel_yaw_sd_rad: float = math.nan
 
     @property
     def bearing_deg(self) -> float:
@@ -267,8 +280,9 @@ class RelativeResult:
 
     @property
     def has_kinematics(self) -> bool:
-        """True when the kinematic fields are meaningful (status VALID)."""
-        return self.status == TargetStatus.VALID
+        """True when the kinematic fields are computed (VALID, or a status in KINEMATIC_STATUSES that
+        says why they are not to be trusted)."""
+        return self.status in KINEMATIC_STATUSES
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, RelativeResult):
