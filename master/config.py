@@ -6,7 +6,8 @@
     timeout_ms = 200                  # staleness limit
     measurement_point_m = [3.8, 0, 0] # master body frame (front bumper)
     known_vehicles = []               # accepted target ids; empty = any
-    duration_s = 40                   # stop at scenario epoch + duration (omit: until SIGTERM)
+    duration_s = 40                   # stop this long after the session clock starts (omit: until the
+                                      # source ends, or SIGTERM/SIGINT)
     status_hz = 2                     # status JSON on v2xpos/<fleet>/master/<id>/status
     tick_hz = 10                      # NO_DATA / TIMEOUT reports for silent targets
     dispatch = "inline"               # inline (pipeline on the zenoh thread) | asyncio (queue to the loop)
@@ -16,11 +17,10 @@
     mode = "router"
     listen = ["tcp/127.0.0.1:7447"]
 
-    [source]                          # as for a slave (slave.config.SourceConfig)
-    type = "ins"
-    scenario = "convoy"
-    [source.params]
-    vehicles = 4
+    [source]                          # the master's own vehicle, as for a slave (slave.config.SourceConfig)
+    type = "recording"
+    dataset = "../shared/data/convoy_dev/A/dataset.toml"
+    wait_for = ["B"]                  # recording: start the session clock when these slaves are ready
 
     [output.can]
     enabled = true
@@ -39,6 +39,7 @@
     rate_hz = 10                      # scene evaluations per second
 
     [record]
+    results_csv = "out/results.csv"   # every result as a CSV row (master.results_csv.COLUMNS), streamed
     results_npz = "out/master_results.npz"   # per-result rows for the report (optional)
     summary_json = "out/master_summary.json"
     evaluate_uncompensated = false
@@ -60,7 +61,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from slave.config import ConfigError, SourceConfig, check_keys, link_from_table, load_toml, take
+from v2xpos.config import ConfigError, SourceConfig, check_keys, link_from_table, load_toml, take
 from v2xpos.link import LinkConfig
 
 
@@ -89,6 +90,7 @@ class MasterConfig:
     geojson: str | None = None
     scene_hz: float = 10.0
     results_npz: str | None = None
+    results_csv: str | None = None
     summary_json: str | None = None
     evaluate_uncompensated: bool = False
     trust_list: str | None = None
@@ -151,7 +153,7 @@ class MasterConfig:
             raise ConfigError(f"{path}: [scene].rate_hz: {scene_hz} outside (0, 100]")
         rec = take(d, "record", dict, {}, path)
         wr = f"{path}: [record]"
-        check_keys(rec, {"results_npz", "summary_json", "evaluate_uncompensated", "mcap", "mcap_max_mb"}, wr)
+        check_keys(rec, {"results_npz", "results_csv", "summary_json", "evaluate_uncompensated", "mcap", "mcap_max_mb"}, wr)
         sec = take(d, "security", dict, {}, path)
         ws = f"{path}: [security]"
         check_keys(sec, {"trust_list", "require_signature", "max_age_s", "future_tolerance_s", "replay_window"}, ws)
@@ -174,7 +176,8 @@ class MasterConfig:
             udp_enabled=take(udp_t, "enabled", bool, False, wu), udp_host=take(udp_t, "host", str, "127.0.0.1", wu),
             udp_port=port, zenoh_enabled=take(zen_t, "enabled", bool, True, wz),
             geojson=take(sc, "geojson", str, None, f"{path}: [scene]"), scene_hz=scene_hz,
-            results_npz=take(rec, "results_npz", str, None, wr), summary_json=take(rec, "summary_json", str, None, wr),
+            results_npz=take(rec, "results_npz", str, None, wr),
+            results_csv=take(rec, "results_csv", str, None, wr), summary_json=take(rec, "summary_json", str, None, wr),
             evaluate_uncompensated=take(rec, "evaluate_uncompensated", bool, False, wr),
             mcap=take(rec, "mcap", str, None, wr), mcap_max_mb=mcap_mb,
             grading=take(gr, "enabled", bool, False, f"{path}: [grading]"),

@@ -146,6 +146,7 @@ class MasterPipeline:
         self._known = set(config.known_vehicles)
         self._batching = False
         self._unflushed: list[tuple] = []     # (result, message, arrival wall time, uncompensated)
+        self.master_time_ok = True            # the master's clock within its bound of GNSS time
         for vid in self._known:
             self.tracks[vid] = TargetTrack(vid)
 
@@ -238,6 +239,10 @@ class MasterPipeline:
             res = evaluate_target(master, msg, self._mpoint, timeout_s=math.inf,
                                   future_tolerance_s=math.inf)
             res.latency_s = age_s
+            if res.status == TargetStatus.VALID:
+                res.status = self._validity(master, msg)
+        res.master_fix = master.fix
+        res.target_fix = msg.fix
         unc = None
         if cfg.evaluate_uncompensated and res.status == TargetStatus.VALID:
             # the unpredicted message through the compiled transform (prediction over 0 s: the
@@ -245,6 +250,16 @@ class MasterPipeline:
             from v2xpos.relative_jit import evaluate_compiled
             unc = evaluate_compiled(master, msg, 0.0, self._mpoint, 0.0, 0.0, res.t_gps_s).rel_pos_body_m
         return self._emit(res, msg, t_arrival_wall_s, unc)
+
+    def _validity(self, master: Any, msg: StateMessage) -> TargetStatus:
+        """A computed result is VALID only when both vehicles' attitude is determined (a heading
+        pending at a standstill start turns every bearing into a guess) and both clocks are on GNSS
+        time; otherwise the status says which (the kinematics stay in the result)."""
+        if not (getattr(master, "attitude_ok", True) and msg.attitude_ok):
+            return TargetStatus.ATTITUDE_UNCERTAIN
+        if not (self.master_time_ok and msg.time_ok):
+            return TargetStatus.CLOCK_UNSYNCED
+        return TargetStatus.VALID
 
     def _emit(self, res: RelativeResult, msg: StateMessage | None, t_arr: float,
               unc: np.ndarray | None = None) -> RelativeResult:

@@ -5,8 +5,10 @@ UDP and zenoh outputs.
 Threads: the zenoh callback threads (messages, with ``dispatch = "inline"``) and one asyncio loop
 with these tasks; shared state is guarded by ``MasterService.lock``:
 
-* ``nav``: every 10 ms advance the own source to the current scenario GPS time
-  (``epoch + wall - start``) and keep the latest NavState (time t_m);
+* ``nav``: every 10 ms advance the own source (``[source]``: a recording, live devices, or the
+  simulator's plugin, built by ``v2xpos.sources.make_source``) to the session time of its clock
+  (``source.make_clock``: a recording's own GPS time, GPS time from the host clock, or a
+  scenario clock) and keep the latest NavState (time t_m);
 * ``consume`` (``dispatch = "asyncio"``): await the next sample, then drain the queue, running the
   pipeline on each; with ``dispatch = "inline"`` (default) the pipeline runs on the zenoh callback
   thread instead, under a lock shared with ``tick`` and ``status``;
@@ -18,8 +20,12 @@ with these tasks; shared state is guarded by ``MasterService.lock``:
   unit gets ``degraded`` results; ``imu_grades`` appear in the status;
 * ``status``: ``status_hz`` JSON summary on ``v2xpos/<fleet>/master/<id>/status`` for monitors.
 
-On exit (epoch + duration or SIGTERM/SIGINT) it writes the summary JSON and the per-result rows
-(npz, ``master.pipeline.RECORD_FIELDS``) when configured, closes outputs, then the zenoh session.
+Start-up phases: build the source, warm it up (in a thread), open the zenoh link (the master
+embeds the router), start the session clock (a recording master waits for the slaves named in
+``wait_for`` and then leads the session clock), run. SIGTERM/SIGINT end any phase within about
+half a second. On exit (clock start + ``duration_s``, the end of the source, or a signal) it
+writes the summary JSON, the per-result rows (npz, ``master.pipeline.RECORD_FIELDS``) and closes
+``results.csv`` when configured, closes outputs, then the zenoh session.
 """
 from __future__ import annotations
 
@@ -40,17 +46,17 @@ import numpy as np
 from master.config import MasterConfig
 from master.outputs import CanSink, UdpSink, ZenohSink
 from master.pipeline import RECORD_FIELDS, MasterPipeline, PipelineConfig
-from sim.scenarios import build
-from slave.config import ConfigError
-from slave.source import make_source
-from v2xpos.link import Link, grades_key, status_key
+from v2xpos.config import ConfigError, config_dir
+from v2xpos.link import Link, LinkUnavailable, grades_key, status_key
+from v2xpos.sources import SourceContext, SourceError, make_source
 from v2xpos.wire import STATE_KEY_ALL, relative_key
 
-WARMUP_S = 1.0
 GRADING_NICE = 10
 """CPU priority offset of the IMU grading worker: grading is background analysis (windows of
 seconds); it must not preempt the master's real-time pipeline on a shared core."""
 REJECT_MASTER_NOT_READY = "master_not_ready"
+NAV_TICK_S = 0.01
+"""The own source is advanced every 10 ms of session time."""
 
 
 def apply_realtime_priority(priority: int) -> bool:
@@ -80,27 +86,16 @@ def _background_priority() -> None:
 class MasterService:
     """Composition of source, link, pipeline and sinks (constructed from a MasterConfig)."""
 
-    def __init__(self, cfg: MasterConfig, start_unix_s: float | None = None, start_file: str | None = None):
+    def __init__(self, cfg: MasterConfig):
         self.cfg = cfg
-        self.start_file = start_file
-        start = float(cfg.source.start_unix_s if start_unix_s is None else start_unix_s)
-        self.start = start if start > 0 else time.time() + WARMUP_S
-        self.sc = build(cfg.source.scenario, **cfg.source.params)
-        actor_id = cfg.source.actor or cfg.master_id
-        if actor_id not in self.sc.actors:
-            raise ConfigError(f"{cfg.path}: [source].actor {actor_id!r} not in scenario actors {sorted(self.sc.actors)}")
-        self.actor = self.sc.actors[actor_id]
-        try:
-            self.source = make_source(cfg.source.type, self.sc, self.actor, cfg.source.dataset,
-                                      cfg.source.align_to_epoch)
-        except (OSError, ValueError) as exc:
-            raise ConfigError(f"{cfg.path}: [source]: {exc}") from None
+        self.ctx = SourceContext(vehicle_id=cfg.master_id, fleet=cfg.fleet, role="master",
+                                 config_dir=config_dir(cfg.path), stop=self._stopping)
+        self.source = None
         from v2xpos.security import TrustList, load_trust_list
         try:
             self.trust = load_trust_list(cfg.trust_list) if cfg.trust_list else TrustList()
         except (OSError, ValueError) as exc:
             raise ConfigError(f"{cfg.path}: [security].trust_list: {exc}") from None
-        self.epoch = self.sc.epoch_gps_s
         self.scene = None
         if cfg.geojson:
             from v2xpos.scene import Scene, SceneError
@@ -108,7 +103,9 @@ class MasterService:
                 self.scene = Scene.load(cfg.geojson)
             except (SceneError, OSError) as exc:
                 raise ConfigError(f"{cfg.path}: [scene].geojson: {exc}") from None
-        self.end_gps = self.epoch + cfg.duration_s if cfg.duration_s is not None else math.inf
+        self.clock = None
+        self.t_start_gps_s = math.nan
+        self.end_gps = math.inf
         self.nav = None
         self.nav_steps = 0
         self.nav_ms: list[float] = []
@@ -117,17 +114,27 @@ class MasterService:
         self.sinks: list = []
         self.pipeline: MasterPipeline | None = None
         self.grading_proc = None
+        self.recorder = None
         self.lock = threading.Lock()
         self.closing = False
         self._next_scene_t = -math.inf
         self.realtime = False
+        self.phase = "init"
+        self._closed = False
+
+    def _stopping(self) -> bool:
+        return self.stop_event is not None and self.stop_event.is_set()
 
     def gps_now(self) -> float:
-        return self.epoch + (time.time() - self.start)
+        return self.clock.now_gps_s()
 
     def _open(self) -> None:
         cfg = self.cfg
-        self.link = Link(cfg.link)
+        try:
+            self.link = Link(cfg.link)
+        except LinkUnavailable as exc:
+            raise ConfigError(f"{cfg.path}: [link]: {exc}") from None
+        self.ctx.link = self.link
         if cfg.can_enabled:
             self.can = CanSink(channel=cfg.can_channel, interface=cfg.can_interface, rate_hz=cfg.can_rate_hz or None)
             self.sinks.append(self.can)
@@ -145,9 +152,11 @@ class MasterService:
                               measurement_point_m=cfg.measurement_point_m, known_vehicles=cfg.known_vehicles,
                               evaluate_uncompensated=cfg.evaluate_uncompensated,
                               record=cfg.results_npz is not None)
+        if cfg.results_csv:
+            from v2xpos.output.results_csv import ResultsCsvWriter
+            self.sinks.append(ResultsCsvWriter(cfg.results_csv))
         self.pipeline = MasterPipeline(pcfg, self.sinks, authenticator=auth)
         self.pipeline.warm_up()
-        self.recorder = None
         if cfg.mcap:
             from v2xpos.output.recorder import RecordingPipeline
             from v2xpos.output.recorder_process import RecorderProcess
@@ -190,23 +199,26 @@ class MasterService:
                     self.pipeline.degraded_vehicles.discard(vid)
 
     async def _nav_task(self) -> None:
+        clock = self.clock
         while not self.stop_event.is_set():
             t = self.gps_now()
-            if t >= self.epoch - WARMUP_S:
-                t0 = time.perf_counter()
-                states = self.source.advance(t)
-                if states:
-                    self.nav = states[-1]
-                    self.nav_steps += len(states)
-                    self.nav_ms.append((time.perf_counter() - t0) * 1e3 / len(states))
-                    if self.scene is not None and self.nav.t_s >= self._next_scene_t:
-                        self._next_scene_t = self.nav.t_s + 1.0 / self.cfg.scene_hz
-                        with self.lock:
-                            self.pipeline.process_scene(self.scene, self.nav)
-            if t > self.end_gps:
+            if t > self.end_gps or self.source.finished(t):
                 self.stop_event.set()
                 return
-            await asyncio.sleep(max(0.0, 0.01 - (self.gps_now() % 0.01)))
+            t0 = time.perf_counter()
+            states = self.source.advance(t)
+            if states:
+                with self.lock:
+                    self.nav = states[-1]
+                    self.pipeline.master_time_ok = clock.synchronised()
+                self.nav_steps += len(states)
+                self.nav_ms.append((time.perf_counter() - t0) * 1e3 / len(states))
+                if self.scene is not None and self.nav.t_s >= self._next_scene_t:
+                    self._next_scene_t = self.nav.t_s + 1.0 / self.cfg.scene_hz
+                    with self.lock:
+                        self.pipeline.process_scene(self.scene, self.nav)
+            t_next = (math.floor(self.gps_now() / NAV_TICK_S) + 1) * NAV_TICK_S
+            await asyncio.sleep(min(max(0.0, clock.wall_of(t_next) - time.time()), 0.25))
 
     async def _consume_task(self, sub) -> None:
         pipe = self.pipeline
@@ -229,7 +241,10 @@ class MasterService:
     def status(self, window: int | None = 2000) -> dict:
         """Summary for monitors; percentiles over the last ``window`` messages (None = all)."""
         s = self.pipeline.summary(window)
-        s.update({"master_id": self.cfg.master_id, "t_gps_s": self.gps_now(), "t_rel_s": self.gps_now() - self.epoch,
+        t_now = self.gps_now()
+        s.update({"master_id": self.cfg.master_id, "t_gps_s": t_now, "t_rel_s": t_now - self.t_start_gps_s,
+                  "phase": self.phase, "clock": self.clock.status(), "time_synchronised": self.clock.synchronised(),
+                  "source_status": self.source.status(),
                   "master_fix": None if self.nav is None else int(self.nav.fix), "nav_steps": self.nav_steps,
                   "nav_ms_p50": float(np.percentile(self.nav_ms, 50)) if self.nav_ms else None,
                   "can_frames": self.can.frames if self.cfg.can_enabled else 0,
@@ -248,29 +263,69 @@ class MasterService:
                 st = self.status()
             self.status_pub.put(json.dumps(st).encode())
 
+    async def _in_thread(self, fn, *args):
+        """Run a blocking start-up step on a daemon thread so that a signal can end the wait (the
+        thread is abandoned then; a daemon thread does not hold the process at exit)."""
+        loop = asyncio.get_running_loop()
+        fut = loop.create_future()
+
+        def work() -> None:
+            try:
+                res = fn(*args)
+            except BaseException as exc:  # noqa: BLE001 -- handed to the awaiting task
+                loop.call_soon_threadsafe(lambda: fut.done() or fut.set_exception(exc))
+            else:
+                loop.call_soon_threadsafe(lambda: fut.done() or fut.set_result(res))
+
+        threading.Thread(target=work, name="v2xpos-master-startup", daemon=True).start()
+        stop = asyncio.ensure_future(self.stop_event.wait())
+        done, _ = await asyncio.wait({fut, stop}, return_when=asyncio.FIRST_COMPLETED)
+        if fut in done:
+            stop.cancel()
+            return fut.result()
+        return None
+
     async def run(self) -> dict:
         self.stop_event = asyncio.Event()
-        self.realtime = apply_realtime_priority(self.cfg.realtime_priority)
-        if self.cfg.grading:
-            self._start_grading()
-        self.source.warm_up()
-        history = self.source.advance(self.epoch - WARMUP_S - 0.5)   # driving history before the run
-        if history:
-            self.nav = history[-1]
-        self._open()
-        if self.start_file is not None:
-            from sim.launcher import signal_ready_and_wait
-            got = await asyncio.to_thread(signal_ready_and_wait, self.start_file, self.cfg.master_id)
-            if got is None:
-                self.link.close()
-                raise ConfigError(f"no start stamp in {self.start_file} (timeout)")
-            self.start = got
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGTERM, signal.SIGINT):
             try:
                 loop.add_signal_handler(sig, self.stop_event.set)
             except (NotImplementedError, RuntimeError):  # not the main thread (tests)
                 pass
+        self.realtime = apply_realtime_priority(self.cfg.realtime_priority)
+        if self.cfg.grading:
+            self._start_grading()
+        self.phase = "source"
+        try:
+            self.source = await self._in_thread(make_source, self.cfg.source.table, f"{self.cfg.path}: [source]",
+                                                self.ctx)
+        except SourceError as exc:
+            self._close()
+            raise ConfigError(str(exc)) from None
+        if self._stopping():
+            return self._early_exit()
+        self.phase = "warm_up"
+        await self._in_thread(self.source.warm_up)
+        if self._stopping():
+            return self._early_exit()
+        self.phase = "link"
+        self._open()
+        self.clock = self.source.make_clock(self.ctx)
+        self.phase = "clock"
+        try:
+            started = await self._in_thread(self.clock.start, self._stopping)
+        except TimeoutError as exc:
+            raise ConfigError(f"{self.cfg.path}: [source]: {exc}") from None
+        if not started:
+            return self._early_exit()
+        self.phase = "run"
+        self.t_start_gps_s = self.clock.now_gps_s()
+        if self.cfg.duration_s is not None:
+            self.end_gps = self.t_start_gps_s + self.cfg.duration_s
+        primed = self.source.prime(self.t_start_gps_s)
+        if primed is not None:
+            self.nav = primed
         if self.cfg.dispatch == "inline":
             verifier = None
             if len(self.trust) > 0:
@@ -306,20 +361,39 @@ class MasterService:
             final["dispatch"] = self.cfg.dispatch
             final["realtime_priority"] = self.cfg.realtime_priority if self.realtime else 0
             self._write_outputs(final)
-            for s in self.sinks:
-                s.close()
-            if self.recorder is not None:
-                self.recorder.close()
-            if self.grading_proc is not None:
-                self.grading_proc.terminate()
-                try:
-                    self.grading_proc.wait(timeout=5)
-                except Exception:
-                    self.grading_proc.kill()
-            self.link.close()
+            self._close()
             if isinstance(sub, _InlineDispatch):
                 sub.close_verifier()
         return final
+
+    def _early_exit(self) -> dict:
+        """Stopped before the session started: close what is open, report the phase."""
+        self._close()
+        return {"phase": self.phase, "stopped_early": True, "processed": 0, "rejected": {},
+                "pipeline_ms_p99": None, "e2e_ms_p99": None, "can_frames": 0, "udp_datagrams": 0}
+
+    def _close(self) -> None:
+        """Close outputs, recorder, grading worker, clock, source and link (once)."""
+        if self._closed:
+            return
+        self._closed = True
+        for s in self.sinks:
+            s.close()
+        if self.recorder is not None:
+            self.recorder.close()
+        if self.grading_proc is not None:
+            self.grading_proc.terminate()
+            try:
+                self.grading_proc.wait(timeout=5)
+            except Exception:
+                self.grading_proc.kill()
+            self.grading_proc = None
+        if self.clock is not None:
+            self.clock.close()
+        if self.source is not None:
+            self.source.close()
+        if self.link is not None:
+            self.link.close()
 
     def _write_outputs(self, final: dict) -> None:
         cfg = self.cfg
@@ -471,20 +545,27 @@ class _InlineDispatch:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", required=True, help="master TOML file (see configs/master.toml)")
-    parser.add_argument("--start", type=float, default=None,
-                        help="wall time (Unix s) of the scenario epoch, shared by all processes")
-    parser.add_argument("--start-file", default=None,
-                        help="start handshake: signal <file>.ready.<id>, then read the start stamp from <file>")
+
+
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
 
 
 def run(args: argparse.Namespace) -> int:
+    signal.signal(signal.SIGTERM, _interrupt)   # until the service installs its own handlers
     try:
         cfg = MasterConfig.load(args.config)
-        svc = MasterService(cfg, args.start, args.start_file)
+        svc = MasterService(cfg)
+        final = asyncio.run(svc.run())
     except ConfigError as exc:
         print(f"v2xpos master: {exc}", file=sys.stderr)
         return 2
-    final = asyncio.run(svc.run())
+    except KeyboardInterrupt:
+        print("v2xpos master: stopped before the service started", file=sys.stderr)
+        return 130
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)   # asked again while finishing: finish anyway
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
     print(json.dumps({k: final[k] for k in ("processed", "rejected", "pipeline_ms_p99", "e2e_ms_p99",
                                              "can_frames", "udp_datagrams")}), flush=True)
     return 0

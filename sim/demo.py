@@ -56,12 +56,13 @@ def run_demo(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 10
     sc = build("convoy", vehicles=vehicles, duration_s=duration_s, latency_ms=latency_ms, jitter_ms=jitter_ms,
                seed=seed, pedestrian=pedestrian, degradations=degradations, spikes=spikes,
                rtk_vertical_factor=rtk_vertical_factor)
-    plan = FleetPlan(out_dir=out, router_port=port or free_tcp_port(), udp_port=free_udp_port(), source_type=source)
+    start_file = out / "start_stamp"
+    plan = FleetPlan(out_dir=out, router_port=port or free_tcp_port(), udp_port=free_udp_port(), source_type=source,
+                     start_file=start_file)
     write_configs(sc, plan, duration_s)
     for stale in (plan.results_npz, plan.summary_json):
         if stale is not None and stale.exists():
             stale.unlink()
-    start_file = out / "start_stamp"
     for old in out.glob("start_stamp*"):
         old.unlink()
     fleet = Fleet(plan, sc.master_id, start_file)

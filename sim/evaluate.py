@@ -56,7 +56,7 @@ def gnss_relative_error_rms(sc: Scenario, target_ids: list[str], t_from_s: float
     ``window_s``: the relative error the two filters start from. Averaging removes the white part
     of the receiver noise, which filtering removes too; the time-correlated part (Gauss-Markov,
     ``sim.sensors.GnssErrorModel``) stays, and no single-vehicle filter can take it out."""
-    from slave.source import simulated_gnss
+    from sim.source import simulated_gnss
 
     def errors(actor_id: str) -> tuple[np.ndarray, np.ndarray]:
         a = sc.actors[actor_id]

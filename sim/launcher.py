@@ -1,24 +1,25 @@
-"""Start the V2V services as separate OS processes on loopback: config files, ports, process handles.
+"""Start the simulated V2V demo as separate OS processes on loopback.
 
-``write_configs`` turns a scenario into one master TOML and one TOML per slave (all sharing the
-scenario parameters, so every process rebuilds the same truth); ``Fleet`` starts them with
-``python -m v2xpos.cli ...`` and a start handshake (each process prepares -- sensor simulation,
-filter JIT warm-up, zenoh session -- signals ready, then waits for the common start stamp, the
-wall time of the scenario epoch, in ``--start-file``), and stops them (SIGTERM, then SIGKILL after a grace period) -- only the processes it started.
+``write_configs`` turns a scenario into one master TOML and one TOML per slave, each with a
+``[source] type = "sim"`` table (the simulator's plugin, ``sim.source``; every process rebuilds
+the same truth from the shared scenario parameters) and the start handshake file; ``Fleet``
+starts them with ``python -m v2xpos.cli master|slave --config FILE`` (each process prepares --
+sensor simulation, filter JIT warm-up, zenoh session --, signals ready, then waits for the common
+start stamp, the wall time of the scenario epoch, in the handshake file: ``sim.source.ScenarioClock``),
+and stops them (SIGTERM, then SIGKILL after a grace period) -- only the processes it started.
+The generic parts (ports, TOML writer, process handles) are ``v2xpos.launch``.
 """
 from __future__ import annotations
 
-import math
 import os
-import signal
-import socket
-import subprocess
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from sim.scenarios import Scenario
+from v2xpos.launch import ServiceProcesses, free_tcp_port, free_udp_port, to_toml  # noqa: F401 (re-exported)
+
+SIM_FACTORY = "sim.source:from_config"
 
 
 SLAVE_NICE = 10
@@ -32,48 +33,6 @@ MASTER_REALTIME_PRIORITY = 10
 master computer would run it; where that is not permitted it runs at normal priority."""
 
 
-def free_tcp_port() -> int:
-    """A TCP port on 127.0.0.1 that is free now (asked from the OS)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _toml_value(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float)):
-        if isinstance(v, float) and not math.isfinite(v):
-            raise ValueError(f"cannot write non-finite number {v} to TOML")
-        return repr(v)
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise TypeError(f"cannot write {type(v).__name__} to TOML")
-
-
-def to_toml(d: dict, prefix: str = "") -> str:
-    """Minimal TOML writer for nested dicts of scalars/lists (what the service configs use)."""
-    scalars = [(k, v) for k, v in d.items() if not isinstance(v, dict) and v is not None]
-    tables = [(k, v) for k, v in d.items() if isinstance(v, dict)]
-    out = []
-    if prefix and scalars:
-        out.append(f"[{prefix}]")
-    out += [f"{k} = {_toml_value(v)}" for k, v in scalars]
-    for k, v in tables:
-        sub = to_toml(v, f"{prefix}.{k}" if prefix else k)
-        if sub:
-            out.append(sub)
-    return "\n".join(out) + ("\n" if out else "")
-
-
 @dataclass
 class FleetPlan:
     """Where everything goes for one run."""
@@ -83,6 +42,7 @@ class FleetPlan:
     source_type: str = "ins"
     fleet: str = "demo"
     configs: dict[str, Path] = field(default_factory=dict)
+    start_file: Path | None = None
     results_npz: Path | None = None
     summary_json: Path | None = None
     geojson: Path | None = None
@@ -96,7 +56,8 @@ def write_configs(sc: Scenario, plan: FleetPlan, duration_s: float, can: bool = 
     cdir = plan.out_dir / "configs"
     cdir.mkdir(parents=True, exist_ok=True)
     endpoint = f"tcp/127.0.0.1:{plan.router_port}"
-    src = {"type": plan.source_type, "scenario": sc.name, "params": dict(sc.params)}
+    src = {"type": "sim", "factory": SIM_FACTORY, "model": plan.source_type, "scenario": sc.name,
+           "start_file": str(plan.start_file) if plan.start_file else None, "params": dict(sc.params)}
     plan.geojson = cdir / "scene.geojson"
     plan.geojson.write_text(json.dumps(scene_geojson(sc)))
     plan.results_npz = plan.out_dir / "master_results.npz"
@@ -123,74 +84,43 @@ def write_configs(sc: Scenario, plan: FleetPlan, duration_s: float, can: bool = 
         scfg = {"service": {"fleet": plan.fleet, "vehicle_id": a.actor_id, "rate_hz": 100.0,
                             "duration_s": float(duration_s), "publish_imu": publish_imu},
                 "link": {"mode": "client", "connect": [endpoint], "connect_timeout_ms": 60000},
-                "source": {**src, "actor": a.actor_id}}
+                "source": {**src, "actor": a.actor_id},
+                "impairment": {"latency_ms": float(a.link.latency_ms), "jitter_ms": float(a.link.jitter_ms),
+                               "spikes": [[sc.epoch_gps_s + t0, sc.epoch_gps_s + t1, float(extra)]
+                                          for t0, t1, extra in a.link.spikes],
+                               "seed": int(a.seed + 12345)}}
         path = cdir / f"slave_{a.actor_id}.toml"
         path.write_text(to_toml(scfg))
         plan.configs[a.actor_id] = path
     return plan
 
 
-class Fleet:
-    """Processes of one run (master first, then slaves); logs in out_dir/logs."""
+class Fleet(ServiceProcesses):
+    """Processes of one run (master first, then slaves, slaves at a lower priority); logs in
+    out_dir/logs."""
 
-    def __init__(self, plan: FleetPlan, master_id: str, start_file: Path):
+    def __init__(self, plan: FleetPlan, master_id: str, start_file: Path | None = None):
+        super().__init__(plan.out_dir / "logs")
         self.plan = plan
         self.master_id = master_id
-        self.start_file = Path(start_file)
-        self.procs: dict[str, subprocess.Popen] = {}
-        self._logs: list = []
+        self.start_file = Path(start_file) if start_file is not None else plan.start_file
 
     def start(self) -> None:
-        logdir = self.plan.out_dir / "logs"
-        logdir.mkdir(parents=True, exist_ok=True)
-        env = dict(os.environ)
-        env.setdefault("PYTHONUNBUFFERED", "1")
-        root = str(Path(__file__).resolve().parents[1])
-        env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         order = [self.master_id] + [k for k in self.plan.configs if k != self.master_id]
         for vid in order:
             cmd = "master" if vid == self.master_id else "slave"
-            log = open(logdir / f"{vid}.log", "w")
-            self._logs.append(log)
-            nice = 0 if vid == self.master_id else SLAVE_NICE
-            self.procs[vid] = subprocess.Popen(
-                [sys.executable, "-m", "v2xpos.cli", cmd, "--config", str(self.plan.configs[vid]),
-                 "--start-file", str(self.start_file)], stdout=log, stderr=subprocess.STDOUT, env=env, cwd=root,
-                preexec_fn=(lambda n=nice: os.nice(n)) if nice else None)
-
-    def running(self) -> list[str]:
-        return [k for k, p in self.procs.items() if p.poll() is None]
-
-    def wait(self, deadline_unix_s: float) -> dict[str, int | None]:
-        while self.running() and time.time() < deadline_unix_s:
-            time.sleep(0.1)
-        return self.stop()
-
-    def stop(self, grace_s: float = 5.0) -> dict[str, int | None]:
-        """SIGTERM every process still running, SIGKILL after grace_s; returns exit codes."""
-        for p in self.procs.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        t_end = time.time() + grace_s
-        for p in self.procs.values():
-            try:
-                p.wait(timeout=max(0.1, t_end - time.time()))
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
-        for log in self._logs:
-            log.close()
-        return {k: p.returncode for k, p in self.procs.items()}
+            super().start(vid, cmd, self.plan.configs[vid], nice=0 if vid == self.master_id else SLAVE_NICE)
 
 
 def signal_ready_and_wait(start_file: str | Path, ready_id: str, timeout_s: float = 120.0,
                           stop=None) -> float | None:
     """Start handshake of a service process: create ``<start_file>.ready.<ready_id>``, then wait for
-    ``start_file`` to hold the start stamp (Unix s) and return it (None on timeout or stop)."""
+    ``start_file`` to hold the start stamp (Unix s) and return it (None on timeout or when the
+    callable ``stop()`` returns True)."""
     start_file = Path(start_file)
     Path(f"{start_file}.ready.{ready_id}").write_text(str(os.getpid()))
     t_end = time.time() + timeout_s
-    while time.time() < t_end and not (stop is not None and stop.flag):
+    while time.time() < t_end and not (stop is not None and stop()):
         try:
             text = start_file.read_text().strip()
             if text:

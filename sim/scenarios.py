@@ -14,9 +14,10 @@ Time: GPS time of the scenario is ``epoch_gps_s + (wall time - start stamp)`` in
 truth covers [epoch - history_s - 2 s, epoch + duration + 10 s]: the vehicles have been driving
 (and their filters converging) for ``history_s`` before the run starts.
 
-Link model of a slave (applied by the slave before publishing): message k is sent at
-``max(send_{k-1}, t_k + delay_k)`` with ``delay_k = latency + N(0, jitter) (clipped to +-3 sigma,
->= 0) + spike`` -- a FIFO link: jitter changes spacing, never the order.
+Link model of a slave (applied by the slave before publishing, ``v2xpos.link.LinkImpairment``):
+message k is sent at ``max(send_{k-1}, t_k + delay_k)`` with ``delay_k = latency + N(0, jitter)
+(clipped to +-3 sigma, >= 0) + spike`` -- a FIFO link: jitter changes spacing, never the order.
+An actor's spikes are relative to the scenario epoch; the launcher writes them in GPS seconds.
 """
 from __future__ import annotations
 
@@ -27,29 +28,12 @@ import numpy as np
 
 from sim.trajectory import Segment, Trajectory, generate
 from v2xpos.types import FixStatus
+from v2xpos.link import LinkImpairment
 from v2xpos.wire import Geometry
 
 LANE_WIDTH_M = 3.5
 DEFAULT_EPOCH_GPS_S = 1.4e9
 PEDESTRIAN_SPEED_MPS = 1.4
-
-
-@dataclass
-class LinkImpairment:
-    """Injected link delay of one slave: base ``latency_ms``, Gaussian ``jitter_ms`` (1-sigma) and
-    delay ``spikes`` as (t_start_rel_s, t_end_rel_s, extra_ms) relative to the scenario epoch."""
-    latency_ms: float = 0.0
-    jitter_ms: float = 0.0
-    spikes: list[tuple[float, float, float]] = field(default_factory=list)
-
-    def delays_s(self, t_rel_s: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """Delay [s] of messages valid at t_rel_s (relative to epoch), before FIFO ordering."""
-        t_rel_s = np.asarray(t_rel_s, float)
-        j = np.clip(rng.normal(0.0, 1.0, len(t_rel_s)), -3.0, 3.0) * self.jitter_ms
-        d = np.maximum(0.0, self.latency_ms + j)
-        for t0, t1, extra in self.spikes:
-            d = d + np.where((t_rel_s >= t0) & (t_rel_s < t1), extra, 0.0)
-        return d / 1000.0
 
 
 @dataclass

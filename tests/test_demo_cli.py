@@ -38,7 +38,7 @@ def test_convoy_receivers_have_the_requested_vertical_noise():
     sc = build("convoy", vehicles=3, duration_s=5.0, rtk_vertical_factor=1.0)
     assert {a.gnss_vertical_factor for a in sc.actors.values()} == {1.0}
     import numpy as np
-    from slave.source import simulated_gnss
+    from sim.source import simulated_gnss
     for factor in (1.0, 1.5):
         s2 = build(**{**sc.params, "rtk_vertical_factor": factor})
         g = simulated_gnss(s2, s2.actors["t2"])
@@ -56,7 +56,7 @@ def test_service_commands_report_config_errors(tmp_path, capsys):
 
 
 def test_bench_fanin_arguments():
-    a = parse("master.bench_fanin", ["--slaves", "8,16"], "add_bench_arguments")
+    a = parse("bench.fanin", ["--slaves", "8,16"], "add_bench_arguments")
     assert a.slaves == "8,16" and a.rate_hz == 100.0 and a.p99_limit_ms == 10.0 and a.can_rate_hz == 25.0
     with pytest.raises(SystemExit):
-        parse("master.bench_fanin", ["--dispatch", "threads"], "add_bench_arguments")
+        parse("bench.fanin", ["--dispatch", "threads"], "add_bench_arguments")

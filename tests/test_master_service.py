@@ -19,8 +19,9 @@ from v2xpos.wire import StateMessage, TargetStatus, decode_relative, encode_stat
 
 def state_at(svc: MasterService, vid: str, seq: int, t: float) -> bytes:
     from tests.test_master_pipeline import truth_state
-    msg = StateMessage.from_nav_state(truth_state(svc.sc, vid, t), "svc", vid, seq,
-                                      geometry=svc.sc.actors[vid].geometry, t_sent_wall_s=time.time())
+    sc = svc.source.sc
+    msg = StateMessage.from_nav_state(truth_state(sc, vid, t), "svc", vid, seq,
+                                      geometry=sc.actors[vid].geometry, t_sent_wall_s=time.time())
     return encode_state(msg)
 
 
@@ -31,10 +32,11 @@ async def test_master_service_round_trip(dispatch):
         "service": {"fleet": "svc", "master_id": "ego", "dispatch": dispatch, "status_hz": 5.0,
                     "measurement_point_m": [3.8, 0.0, 0.0]},
         "link": {"mode": "router", "listen": [loopback_endpoint(port)]},
-        "source": {"type": "truth_noise", "params": {"vehicles": 2, "duration_s": 30.0, "pedestrian": False,
-                                                       "history_s": 0.0}},
+        "source": {"type": "sim", "factory": "sim.source:from_config", "model": "truth_noise",
+                   "start_unix_s": time.time() + 1.0,
+                   "params": {"vehicles": 2, "duration_s": 30.0, "pedestrian": False, "history_s": 0.0}},
         "output": {"zenoh": {"enabled": True}}}, "test.toml")
-    svc = MasterService(cfg, start_unix_s=time.time() + 1.0)
+    svc = MasterService(cfg)
     task = asyncio.create_task(svc.run())
     client = None
     try:

@@ -16,9 +16,14 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_shipped_configs_load():
     m = MasterConfig.load(ROOT / "configs" / "master.toml")
     assert m.link.mode == "router" and m.link.listen == ["tcp/127.0.0.1:7447"] and m.timeout_ms == 200
+    assert m.source.type == "recording" and m.source.table["wait_for"] == ["B"]
     assert MasterConfig.load(ROOT / "configs" / "master_mesh.toml").link.mode == "peer"
+    assert MasterConfig.load(ROOT / "configs" / "master_sim.toml").source.type == "sim"
     s = SlaveConfig.load(ROOT / "configs" / "slave_t1.toml")
-    assert s.vehicle_id == "t1" and s.rate_hz == 100 and s.latency_ms == 100 and s.link.mode == "client"
+    assert s.vehicle_id == "B" and s.rate_hz == 100 and s.source.type == "recording" and s.link.mode == "client"
+    assert not s.impairment.active
+    p1 = SlaveConfig.load(ROOT / "configs" / "slave_p1.toml")
+    assert p1.source.table["factory"] == "sim.source:from_config"
 
 
 @pytest.mark.parametrize("text, where", [
@@ -27,7 +32,10 @@ def test_shipped_configs_load():
     ("[service]\nvehicle = 't1'\n", "unknown key"),
     ("[link]\nmode = 'broker'\n", "[link]"),
     ("[source]\ntype = 'magic'\n", "[source].type"),
-    ("[impairment]\nlatency_ms = [1]\n", "[impairment].latency_ms"),
+    ("[source]\ntype = 'recording'\n[impairment]\nlatency_ms = [1]\n", "[impairment].latency_ms"),
+    ("[source]\ntype = 'recording'\n[impairment]\nspikes = [[1, 2]]\n", "[impairment].spikes[0]"),
+    ("[source]\ntype = 'recording'\n[servise]\n", "did you mean 'service'"),
+    ("[source]\n", "[source].type: required"),
     ("[service\n", "not valid TOML"),
 ])
 def test_bad_slave_config_names_file_and_key(tmp_path, text, where):

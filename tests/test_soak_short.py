@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from master.bench_soak import run_soak
+from bench.soak import run_soak
 from master.replay_session import replay_session
 
 pytestmark = pytest.mark.slow

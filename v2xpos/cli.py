@@ -19,12 +19,13 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "slave": ("slave.service", "run a slave (target) service"),
     "keys": ("v2xpos.security", "generate vehicle signing keys and manage the master's trust list"),
     "replay-session": ("master.replay_session", "re-run the master pipeline from an MCAP recording"),
+    "convoy": ("v2xpos.commands.convoy", "run master and slaves on recorded drives as processes; write results.csv"),
 }
 
 BENCHES: dict[str, tuple[str, str]] = {
     "replay": ("v2xpos.ins.replay", "EKF replay throughput [IMU samples/s]"),
-    "fanin": ("master.bench_fanin", "slaves at 100 Hz one master core sustains with e2e p99 <= 10 ms"),
-    "soak": ("master.bench_soak", "long run: sent / received / recorded / lost, memory growth"),
+    "fanin": ("bench.fanin", "slaves at 100 Hz one master core sustains with e2e p99 <= 10 ms"),
+    "soak": ("bench.soak", "long run: sent / received / recorded / lost, memory growth"),
     "trust": ("v2xpos.security_bench", "forged / replayed messages, fuzzing, fault scenarios"),
     "fuzz": ("v2xpos.fuzz", "fuzz the message decoder and dataset readers"),
 }

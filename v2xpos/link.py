@@ -32,10 +32,12 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
+import numpy as np
 import zenoh
 
 from v2xpos.wire import STATE_KEY_ALL, imu_key, relative_key, state_key  # noqa: F401  (re-exported)
@@ -128,14 +130,60 @@ class LinkConfig:
         return c
 
 
+class LinkUnavailable(RuntimeError):
+    """The zenoh session could not be opened (message names the endpoints and the cause)."""
+
+
+def _describe_endpoints(config: LinkConfig) -> str:
+    parts = []
+    if config.listen:
+        parts.append("listen " + ", ".join(config.listen))
+    if config.connect:
+        parts.append("connect " + ", ".join(config.connect))
+    return "; ".join(parts) or "no endpoints"
+
+
 class Link:
     """One zenoh session plus the publishers and subscribers declared through it."""
 
     def __init__(self, config: LinkConfig):
         self.config = config
-        self.session = zenoh.open(config.to_zenoh())
+        try:
+            self.session = zenoh.open(config.to_zenoh())
+        except Exception as exc:   # zenoh.ZError: address in use, no router reachable, bad locator
+            raise LinkUnavailable(f"zenoh {config.mode} ({_describe_endpoints(config)}): {exc}") from None
         self._entities: list[Any] = []
         self._closed = False
+
+    @classmethod
+    def open_when_available(cls, config: LinkConfig, stop: Callable[[], bool] = lambda: False,
+                            say: Callable[[str], None] = print, attempt_ms: int = 500) -> "Link | None":
+        """Open the session; a client whose router is not up yet says so once and retries every
+        ``attempt_ms`` until it connects or ``stop()`` (None then). Each attempt blocks at most
+        ``attempt_ms`` inside ``zenoh.open`` (which does not return to Python for signals), so a
+        SIGINT/SIGTERM handler that sets the stop flag is honoured within about that time.
+        A router or peer opens at once (peers connect in the background); their errors (address in
+        use) raise ``LinkUnavailable`` at once."""
+        if config.mode != "client":
+            return cls(config)
+        budget_ms = config.connect_timeout_ms
+        t_end = math.inf if budget_ms is None or budget_ms < 0 else time.monotonic() + budget_ms / 1e3
+        attempt = LinkConfig(**{**config.__dict__, "connect_timeout_ms": int(attempt_ms)})
+        said = False
+        while not stop():
+            try:
+                link = cls(attempt)
+                link.config = config
+                if said:
+                    say(f"connected to {', '.join(config.connect)}")
+                return link
+            except LinkUnavailable as exc:
+                if time.monotonic() >= t_end:
+                    raise LinkUnavailable(f"{exc} (gave up after {budget_ms} ms)") from None
+                if not said:
+                    say(f"waiting for the zenoh router at {', '.join(config.connect) or '?'} (retrying; Ctrl-C stops)")
+                    said = True
+        return None
 
     def publisher(self, key: str, block: bool = True, express: bool = True) -> "Publisher":
         """Publisher on ``key``; ``block`` selects CongestionControl.BLOCK (nothing dropped on a
@@ -244,6 +292,32 @@ class AsyncSubscriber:
                 out.append(self.queue.get_nowait())
             except asyncio.QueueEmpty:
                 return out
+
+
+@dataclass
+class LinkImpairment:
+    """Injected link delay of a slave, for tests and trials of the master's latency handling
+    (never set on a vehicle): base ``latency_ms``, Gaussian ``jitter_ms`` (1-sigma, clipped to
+    +-3 sigma, delay >= 0) and delay ``spikes`` as (t_start_gps_s, t_end_gps_s, extra_ms) in GPS
+    seconds of the messages' time of validity; ``seed`` of the jitter draws. The slave sends message k at
+    ``max(send_{k-1}, t_k + delay_k)``: a FIFO link, jitter changes spacing, never the order."""
+    latency_ms: float = 0.0
+    jitter_ms: float = 0.0
+    spikes: list[tuple[float, float, float]] = field(default_factory=list)
+    seed: int = 0
+
+    @property
+    def active(self) -> bool:
+        return self.latency_ms > 0 or self.jitter_ms > 0 or bool(self.spikes)
+
+    def delays_s(self, t_s: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Delay [s] of messages valid at ``t_s`` (same time axis as the spikes), before FIFO ordering."""
+        t_s = np.asarray(t_s, float)
+        j = np.clip(rng.normal(0.0, 1.0, len(t_s)), -3.0, 3.0) * self.jitter_ms
+        d = np.maximum(0.0, self.latency_ms + j)
+        for t0, t1, extra in self.spikes:
+            d = d + np.where((t_s >= t0) & (t_s < t1), extra, 0.0)
+        return d / 1000.0
 
 
 def run_router(listen: list[str], connect: list[str] | None = None) -> int:

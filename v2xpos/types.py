@@ -131,6 +131,8 @@ class NavState:
     vel_sd_mps: np.ndarray = field(default_factory=lambda: np.zeros(3))
     att_sd_rad: np.ndarray = field(default_factory=lambda: np.zeros(3))
     fix: FixStatus = FixStatus.NONE
+    attitude_ok: bool = True
+    """False while the filter's attitude is not determined (heading pending at a standstill start)."""
 
 
 @dataclass

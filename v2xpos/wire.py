@@ -57,6 +57,10 @@ MAX_GEOMETRY_M = 100.0
 MAX_T_GPS_S = 1.0e11
 MAX_UINT64 = 2 ** 64 - 1
 
+STATE_FLAG_ATTITUDE_UNDETERMINED = 1
+"""State flag bit: the sender's attitude (heading) is not determined yet (e.g. pending at a stop)."""
+STATE_FLAG_TIME_UNSYNCED = 2
+"""State flag bit: the sender's clock is off GNSS time beyond its bound."""
 KINDS = ("vehicle", "pedestrian")
 GEOMETRY_KINDS = ("points", "polygon", "circle")
 _ID_RE = re.compile(r"[A-Za-z0-9_.\-]+")
@@ -181,6 +185,8 @@ class StateMessage:
     sig: bytes | None = None
     key_id: str | None = None
     signed_payload: bytes | None = field(default=None, compare=False, repr=False)
+    attitude_ok: bool = True
+    time_ok: bool = True
 
     @property
     def lla(self) -> np.ndarray:
@@ -196,7 +202,8 @@ class StateMessage:
         if not isinstance(other, StateMessage):
             return NotImplemented
         scalars = ("fleet", "vehicle_id", "seq", "t_gps_s", "fix", "lat_rad", "lon_rad", "height_m",
-                   "geometry", "kind", "schema", "t_sent_wall_s", "imu_quality", "sig", "key_id")
+                   "geometry", "kind", "schema", "t_sent_wall_s", "imu_quality", "sig", "key_id",
+                   "attitude_ok", "time_ok")
         arrays = ("v_ned_mps", "acc_body_mps2", "rate_body_rps", "rpy_rad", "pos_sd_m",
                   "vel_sd_mps", "att_sd_rad")
         return (all(getattr(self, k) == getattr(other, k) for k in scalars)
@@ -205,8 +212,9 @@ class StateMessage:
     @classmethod
     def from_nav_state(cls, nav: NavState, fleet: str, vehicle_id: str, seq: int,
                        geometry: Geometry | None = None, kind: str = "vehicle",
-                       t_sent_wall_s: float | None = None) -> "StateMessage":
-        """Wrap a NavState for publishing."""
+                       t_sent_wall_s: float | None = None, time_ok: bool = True) -> "StateMessage":
+        """Wrap a NavState for publishing; ``time_ok``: the sender's clock is within its bound of GNSS
+        time (``SessionClock.synchronised``)."""
         return cls(fleet=fleet, vehicle_id=vehicle_id, seq=int(seq), t_gps_s=float(nav.t_s),
                    fix=FixStatus(nav.fix), lat_rad=float(nav.lla[0]), lon_rad=float(nav.lla[1]),
                    height_m=float(nav.lla[2]), v_ned_mps=_vec(nav.v_ned_mps),
@@ -214,7 +222,8 @@ class StateMessage:
                    rpy_rad=_vec(nav.rpy_rad), pos_sd_m=_vec(nav.pos_sd_m),
                    vel_sd_mps=_vec(nav.vel_sd_mps), att_sd_rad=_vec(nav.att_sd_rad),
                    geometry=geometry if geometry is not None else Geometry(), kind=kind,
-                   t_sent_wall_s=t_sent_wall_s)
+                   t_sent_wall_s=t_sent_wall_s, attitude_ok=bool(getattr(nav, "attitude_ok", True)),
+                   time_ok=bool(time_ok))
 
     def to_nav_state(self) -> NavState:
         """The kinematic content as a NavState."""
@@ -222,7 +231,7 @@ class StateMessage:
                         acc_body_mps2=self.acc_body_mps2.copy(), rate_body_rps=self.rate_body_rps.copy(),
                         rpy_rad=self.rpy_rad.copy(), pos_sd_m=self.pos_sd_m.copy(),
                         vel_sd_mps=self.vel_sd_mps.copy(), att_sd_rad=self.att_sd_rad.copy(),
-                        fix=FixStatus(self.fix))
+                        fix=FixStatus(self.fix), attitude_ok=self.attitude_ok)
 
 
 _NAN3 = (math.nan, math.nan, math.nan)
@@ -345,6 +354,9 @@ def encode_state_body(msg: StateMessage) -> bytes:
         body["tw"] = float(msg.t_sent_wall_s)
     if msg.imu_quality is not None:
         body["iq"] = msg.imu_quality
+    flags = (0 if msg.attitude_ok else STATE_FLAG_ATTITUDE_UNDETERMINED) | (0 if msg.time_ok else STATE_FLAG_TIME_UNSYNCED)
+    if flags:
+        body["fl"] = flags
     return msgpack.packb(body, use_bin_type=True)
 
 
@@ -599,12 +611,14 @@ def decode_state_body(body: bytes) -> StateMessage:
                      _vec3_list(m, "sa", MAX_SD, True)), dtype=float)
     geometry = _geometry(m)
     t_sent = _opt_num(m, "tw", 0.0, MAX_T_GPS_S)
+    flags = _uint(m, "fl", 255) if "fl" in m else 0
     msg = StateMessage.__new__(StateMessage)
     msg.__dict__.update(
         fleet=fleet, vehicle_id=vehicle_id, seq=seq, t_gps_s=t_gps_s, fix=fix, lat_rad=lat, lon_rad=lon,
         height_m=h, v_ned_mps=vecs[0], acc_body_mps2=vecs[1], rate_body_rps=vecs[2], rpy_rad=vecs[3],
         pos_sd_m=vecs[4], vel_sd_mps=vecs[5], att_sd_rad=vecs[6], geometry=geometry, kind=kind,
-        schema=m["ver"], t_sent_wall_s=t_sent, imu_quality=iq, sig=None, key_id=None, signed_payload=None)
+        schema=m["ver"], t_sent_wall_s=t_sent, imu_quality=iq, sig=None, key_id=None, signed_payload=None,
+        attitude_ok=not flags & STATE_FLAG_ATTITUDE_UNDETERMINED, time_ok=not flags & STATE_FLAG_TIME_UNSYNCED)
     return msg
 
 

@@ -850,7 +850,8 @@ class InsFilter:
         return NavState(t_s=float(self.t_s), lla=self.nav[:3].copy(), v_ned_mps=self.nav[3:6].copy(),
                         acc_body_mps2=C_nv.T @ a_n, rate_body_rps=Rm @ w_nb_b,
                         rpy_rad=euler_from_dcm(C_nv), pos_sd_m=sd[POS:POS + 3].copy(),
-                        vel_sd_mps=sd[VEL:VEL + 3].copy(), att_sd_rad=sd[ATT:ATT + 3].copy(), fix=fix)
+                        vel_sd_mps=sd[VEL:VEL + 3].copy(), att_sd_rad=sd[ATT:ATT + 3].copy(), fix=fix,
+                        attitude_ok=bool(self.heading_known))
 
     def antenna_lla(self) -> np.ndarray:
         """Current antenna position (lat, lon rad; h m) from the IMU point and the lever arm."""

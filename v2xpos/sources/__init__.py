@@ -2,7 +2,9 @@
 
 ``make_source(table, where, ctx)`` builds the source a ``[source]`` table names by its ``type``:
 the library's own types (``recording``, ``device``) or any registered under the entry-point group
-``v2xpos.sources`` (the simulator registers ``sim``). A factory is a callable
+``v2xpos.sources`` (the simulator registers ``sim``), or the one a ``factory = "module:function"`` key
+names (a plugin that is not installed as a package, e.g. the simulator run from a checkout; the key
+stays in the table so that the factory can accept it). A factory is a callable
 ``factory(table: dict, where: str, ctx: SourceContext) -> VehicleSource`` that validates its table
 and raises ``SourceError`` naming ``where`` and the key.
 """
@@ -12,7 +14,7 @@ import importlib
 from importlib import metadata
 from typing import Callable
 
-from .base import SessionClock, SourceContext, SourceError, VehicleSource
+from .base import SessionClock, SourceContext, SourceError, Stopped, VehicleSource, run_until_stopped
 
 ENTRY_POINT_GROUP = "v2xpos.sources"
 BUILTIN: dict[str, str] = {
@@ -46,7 +48,12 @@ def make_source(table: dict, where: str, ctx: SourceContext) -> VehicleSource:
     kind = table.get("type")
     if kind is None:
         raise SourceError(f"{where}.type: missing; one of {sorted(kinds)}")
-    if kind not in kinds:
+    factory_ref = table.get("factory")
+    if factory_ref is not None:
+        if not isinstance(factory_ref, str) or ":" not in factory_ref:
+            raise SourceError(f"{where}.factory: expected 'module:function', got {factory_ref!r}")
+        kinds = {**kinds, kind: factory_ref}
+    elif kind not in kinds:
         from v2xpos.datasets.calibration import did_you_mean
         raise SourceError(f"{where}.type: {kind!r} is not one of {sorted(kinds)}{did_you_mean(str(kind), kinds)}")
     try:
@@ -57,5 +64,6 @@ def make_source(table: dict, where: str, ctx: SourceContext) -> VehicleSource:
     return factory(rest, where, ctx)
 
 
-__all__ = ["SessionClock", "SourceContext", "SourceError", "VehicleSource", "make_source", "source_types",
+__all__ = ["SessionClock", "SourceContext", "SourceError", "Stopped", "VehicleSource", "make_source",
+           "run_until_stopped", "source_types",
            "ENTRY_POINT_GROUP"]

@@ -15,6 +15,7 @@ produced, oldest first; a service calls it with ``clock.now_gps_s()``.
 """
 from __future__ import annotations
 
+import threading
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
@@ -133,3 +134,32 @@ class VehicleSource(ABC):
 
     def close(self) -> None:
         """Stop reader threads, close ports."""
+
+
+class Stopped(Exception):
+    """A blocking start-up step was abandoned because the service was asked to stop."""
+
+
+def run_until_stopped(fn: Callable[..., Any], stop: Callable[[], bool], *args: Any, poll_s: float = 0.05) -> Any:
+    """Run a blocking step (loading a recording, JIT warm-up, waiting for a clock) on a daemon thread
+    and return its result, or raise :class:`Stopped` within ``poll_s`` of ``stop()`` turning true
+    (the thread is abandoned: a daemon thread does not hold the process at exit). Exceptions of
+    ``fn`` are re-raised in the caller."""
+    box: dict = {}
+    done = threading.Event()
+
+    def work() -> None:
+        try:
+            box["result"] = fn(*args)
+        except BaseException as exc:  # noqa: BLE001 -- re-raised in the caller
+            box["error"] = exc
+        finally:
+            done.set()
+
+    threading.Thread(target=work, name=f"v2xpos-{getattr(fn, '__name__', 'step')}", daemon=True).start()
+    while not done.wait(poll_s):
+        if stop():
+            raise Stopped
+    if "error" in box:
+        raise box["error"]
+    return box.get("result")

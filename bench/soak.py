@@ -62,8 +62,9 @@ def _run_master(cfg_path: Path, start_file: Path, record: Path | None, stats_pat
     doc = json.loads(cfg_path.read_text())
     if record is not None:
         doc.setdefault("record", {}).update({"mcap": str(record), "mcap_max_mb": 64})
+    doc["source"]["start_file"] = str(start_file)   # start stamp from the handshake (sim.source.ScenarioClock)
     cfg = MasterConfig.from_dict(doc, str(cfg_path))
-    svc = MasterService(cfg, None, str(start_file))  # start stamp from the handshake
+    svc = MasterService(cfg)
     samples: list[tuple[float, int]] = []
     stop = threading.Event()
 
@@ -75,10 +76,12 @@ def _run_master(cfg_path: Path, start_file: Path, record: Path | None, stats_pat
         import tracemalloc
         tracemalloc.start()
 
+    t_run0 = time.time()
+
     def sample() -> None:
         while not stop.wait(0.5):
             samples.append((time.time(), rss_bytes()))
-            if trace and len(snaps) < 2 and time.time() > svc.start + (5.0 if not snaps else 15.0):
+            if trace and len(snaps) < 2 and svc.phase == "run" and time.time() > t_run0 + (5.0 if not snaps else 15.0):
                 snaps.append(tracemalloc.take_snapshot())
             pipe = svc.pipeline
             if pipe is not None:
@@ -214,7 +217,7 @@ def run_soak(slaves: int = 32, rate: float = 100.0, duration: float = 60.0, out_
     cfg = {"service": {"fleet": SOAK_FLEET, "master_id": "ego", "duration_s": duration + 600.0, "status_hz": 1.0,
                        "tick_hz": 2.0},
            "link": {"mode": "router", "listen": [endpoint], "extra_json5": extra},
-           "source": {"type": "truth_noise", "scenario": "convoy",
+           "source": {"type": "sim", "factory": "sim.source:from_config", "model": "truth_noise", "scenario": "convoy",
                       "params": {"vehicles": 2, "duration_s": duration + 20.0}},
            "output": {"zenoh": {"enabled": True}},
            "security": {"trust_list": str(out / "trust.json")} if signed else {}}
@@ -222,7 +225,7 @@ def run_soak(slaves: int = 32, rate: float = 100.0, duration: float = 60.0, out_
     start_file = out / "start"
     for old in out.glob("start*"):
         old.unlink()
-    py = [sys.executable, "-m", "master.bench_soak"]
+    py = [sys.executable, "-m", "bench.soak"]
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     repo = Path(__file__).resolve().parents[1]
     master = subprocess.Popen(py + ["--role", "master", "--config", str(out / "master.json"), "--start-file",
@@ -346,8 +349,8 @@ def run_bench(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Internal entry for the soak's child processes (``python -m master.bench_soak --role ...``)."""
-    p = argparse.ArgumentParser(prog="python -m master.bench_soak")
+    """Internal entry for the soak's child processes (``python -m bench.soak --role ...``)."""
+    p = argparse.ArgumentParser(prog="python -m bench.soak")
     p.add_argument("--role", choices=("master", "slaves"), required=True)
     p.add_argument("--config")
     p.add_argument("--start-file", required=True)

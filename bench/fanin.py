@@ -173,7 +173,8 @@ def run_bench(args: argparse.Namespace) -> int:
     mcfg = {"service": {"fleet": "bench", "master_id": "ego", "duration_s": total_s, "dispatch": args.dispatch,
                         "measurement_point_m": [3.8, 0.0, 0.0], "realtime_priority": args.realtime_priority},
             "link": {"mode": "router", "listen": [endpoint]},
-            "source": {"type": "truth_noise", "scenario": "convoy", "actor": "ego", "params": scenario},
+            "source": {"type": "sim", "factory": "sim.source:from_config", "model": "truth_noise", "scenario": "convoy",
+                       "actor": "ego", "start_file": str(out / "start_stamp"), "params": scenario},
             "output": {"can": {"enabled": not args.no_can, "interface": "virtual", "channel": f"fanin-{port}",
                                "rate_hz": args.can_rate_hz},
                        "udp": {"enabled": True, "host": "127.0.0.1", "port": free_udp_port()},
@@ -188,8 +189,8 @@ def run_bench(args: argparse.Namespace) -> int:
     env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     logm = open(out / "master.log", "w")
     logg = open(out / "generator.log", "w")
-    master = subprocess.Popen([sys.executable, "-m", "v2xpos.cli", "master", "--config", str(out / "master.toml"),
-                               "--start-file", str(start_file)], stdout=logm, stderr=subprocess.STDOUT, env=env, cwd=root)
+    master = subprocess.Popen([sys.executable, "-m", "v2xpos.cli", "master", "--config", str(out / "master.toml")],
+                              stdout=logm, stderr=subprocess.STDOUT, env=env, cwd=root)
     gen = subprocess.Popen([sys.executable, "-m", "v2xpos.cli", "bench", "fanin", "--generate", "--endpoint", endpoint,
                             "--start-file", str(start_file), "--plan", str(out / "plan.json")],
                            stdout=logg, stderr=subprocess.STDOUT, env=env, cwd=root)

@@ -1,15 +1,31 @@
-"""State sources of a slave (and of the master's own vehicle), advanced in real time.
+"""The simulator as a vehicle source (``[source] type = "sim"``): one actor of a scenario, on the
+scenario's clock. The services reach it only through ``v2xpos.sources.make_source`` (the config
+names ``factory = "sim.source:from_config"``, or the ``v2xpos.sources`` entry point ``sim``); no
+module of the library or the services imports ``sim``.
 
-A source turns sensor data into navigation states: ``advance(t_gps_s)`` consumes every sample with
-time of validity <= t_gps_s and returns the NavStates produced (one per IMU epoch), in order.
+``[source]`` table::
+
+    type = "sim"
+    factory = "sim.source:from_config"
+    scenario = "convoy"          # sim.scenarios builder
+    actor = "t1"                 # default: the service's vehicle id
+    model = "ins"                # ins: simulated sensors through the INS filter | truth_noise
+    start_file = "out/demo/start_stamp"   # start handshake with the launcher (optional)
+    start_unix_s = 0             # or a fixed wall time of the scenario epoch (0: now + 1 s)
+    [source.params]              # scenario parameters, identical in every process
+    vehicles = 4
+
+Models, advanced by ``advance(t_gps_s)`` (every sample with time of validity <= t_gps_s; one
+NavState per IMU epoch, in order):
 
 * ``InsSimSource``: the actor's simulated IMU (100 Hz, error model ``sim.sensors.ImuErrorModel``
   preset) and RTK GNSS (10 Hz, 1 cm fixed, the scenario's fix schedule, antenna lever arm) run
   through the navigation filter ``v2xpos.ins.InsFilter`` -- the product path.
-* ``DatasetSource``: a recorded drive (``v2xpos.datasets``) through the same filter, paced at real
-  time (its GPS times shifted onto the scenario epoch when asked).
 * ``TruthNoiseSource``: truth plus first-order Gauss-Markov position noise scaled by the fix
   status. No filter: a load generator / fallback for link tests only.
+
+Clock (``ScenarioClock``): ``t_gps = epoch + (wall - start stamp)``; the start stamp comes from the
+launcher's handshake file (every process of a run shares it) or the config.
 
 Initialisation of the filter (a vehicle that was aligned before the run starts): position from
 truth + N(0, 1 cm), velocity + N(0, 2 cm/s), roll/pitch + N(0, 0.1 deg), yaw + N(0, 0.3 deg),
@@ -18,24 +34,22 @@ drawn from the actor's seed, at the first IMU epoch of the run.
 from __future__ import annotations
 
 import math
-from typing import Protocol
+import time
 
 import numpy as np
 
-from sim.scenarios import Actor, Scenario
+from sim.scenarios import Actor, Scenario, build
 from sim.sensors import GnssErrorModel, ImuErrorModel, simulate_gnss, simulate_imu
 from v2xpos import geo
+from v2xpos.sources.base import SessionClock, SourceContext, SourceError, VehicleSource
 from v2xpos.types import FixStatus, NavState
 
 IMU_RATE_HZ = 100.0
 GNSS_RATE_HZ = 10.0
-
-
-class NavSource(Protocol):
-    """Anything that yields navigation states as time advances."""
-    name: str
-
-    def advance(self, t_gps_s: float) -> list[NavState]: ...
+WARMUP_S = 1.0
+"""The filters run this long before the scenario epoch (states are published from then on)."""
+HISTORY_S = 1.5
+"""``warm_up`` runs the filter through the driving history up to this long before the epoch."""
 
 
 class _SimSensors:
@@ -218,62 +232,6 @@ def imu_units(sc: Scenario, actor: Actor, nav_imu=None) -> tuple[dict, dict]:
     return units, mounting
 
 
-class DatasetSource:
-    """A recorded drive (``v2xpos.datasets.load_dataset``: IMU + GNSS with the declared mounting and
-    lever arm) through the INS filter, paced by the caller's clock.
-
-    ``time_shift_s`` is added to the recording's GPS times so that its first IMU sample falls on the
-    scenario epoch (``align_to_epoch``); ``advance(t)`` consumes every sample with shifted time <= t.
-    The filter aligns itself from the data (no truth). GNSS epochs are fed when their time is reached.
-    """
-
-    def __init__(self, path: str, epoch_gps_s: float | None = None, t_skip_s: float = 0.0):
-        from v2xpos.datasets.loader import load_dataset
-        from v2xpos.ins import InsConfig, InsFilter
-        self.name = "dataset"
-        self.ds = load_dataset(path)
-        self.kind = "pedestrian" if self.ds.platform == "pedestrian" else "vehicle"
-        plat = self.ds.platform if self.ds.platform in ("car", "pedestrian") else "generic"
-        self.filter = InsFilter(InsConfig(platform=plat, imu_to_body=self.ds.imu_to_body,
-                                          lever_arm_m=self.ds.lever_arm_m, lever_arm_sd_m=self.ds.lever_arm_sd_m))
-        t0 = float(self.ds.imu.t_s[0]) + t_skip_s
-        self.time_shift_s = 0.0 if epoch_gps_s is None else epoch_gps_s - t0
-        self.i_imu = int(np.searchsorted(self.ds.imu.t_s, t0))
-        self.i_gnss = int(np.searchsorted(self.ds.gnss.t_s, t0))
-        self.last_t_s = -math.inf
-        self.non_monotonic = 0
-
-    def warm_up(self) -> None:
-        """Nothing precomputed beyond loading; the JIT is warmed by the first samples."""
-
-    def advance(self, t_gps_s: float) -> list[NavState]:
-        imu, gnss = self.ds.imu, self.ds.gnss
-        t_data = t_gps_s - self.time_shift_s
-        out = []
-        n = len(imu.t_s)
-        while self.i_imu < n and imu.t_s[self.i_imu] <= t_data:
-            k = self.i_imu
-            t_k = float(imu.t_s[k])
-            while self.i_gnss < len(gnss.t_s) and gnss.t_s[self.i_gnss] <= t_k:
-                j = self.i_gnss
-                vel = None if gnss.vel_ned_mps is None else gnss.vel_ned_mps[j]
-                vsd = None if gnss.vel_sd_ned_mps is None else gnss.vel_sd_ned_mps[j]
-                self.filter.update_gnss(float(gnss.t_s[j]), gnss.lla[j], gnss.sd_ned_m[j], FixStatus(int(gnss.fix[j])),
-                                        vel_ned_mps=vel, vel_sd_ned_mps=vsd)
-                self.i_gnss += 1
-            self.filter.process_imu(t_k, imu.acc_mps2[k], imu.gyro_rps[k])
-            self.i_imu = k + 1
-            if self.filter.initialized:
-                nav = self.filter.nav_state()
-                nav.t_s = nav.t_s + self.time_shift_s
-                if nav.t_s <= self.last_t_s:       # the estimated IMU time offset moved the label back
-                    self.non_monotonic += 1
-                    continue
-                self.last_t_s = nav.t_s
-                out.append(nav)
-        return out
-
-
 SOURCES = {"ins": InsSimSource, "truth_noise": TruthNoiseSource}
 
 
@@ -283,14 +241,113 @@ def simulated_gnss(sc: Scenario, actor: Actor):
     return _SimSensors(sc, actor).gnss
 
 
-def make_source(kind: str, sc: Scenario, actor: Actor, dataset: str | None = None,
-                align_to_epoch: bool = True) -> NavSource:
-    """Source by config name: ``ins`` (default, the real filter on simulated sensors),
-    ``truth_noise``, or ``dataset`` (a recording through the filter, ``dataset`` = its path)."""
-    if kind == "dataset":
-        if not dataset:
-            raise ValueError("[source] type 'dataset' needs [source].dataset = <path>")
-        return DatasetSource(dataset, sc.epoch_gps_s if align_to_epoch else None)
-    if kind not in SOURCES:
-        raise ValueError(f"[source] type {kind!r} is not one of {sorted(SOURCES) + ['dataset']}")
-    return SOURCES[kind](sc, actor)
+
+
+class ScenarioClock(SessionClock):
+    """Scenario time: ``t_gps = epoch + (wall - start)``. ``start()`` takes the start stamp from the
+    launcher's handshake file (``start_file``: signal ``<file>.ready.<id>``, then wait for the
+    stamp), else from ``start_unix_s`` (0: one second from now)."""
+
+    def __init__(self, epoch_gps_s: float, vehicle_id: str, start_file: str | None = None,
+                 start_unix_s: float = 0.0, timeout_s: float = 120.0):
+        self.epoch_gps_s = float(epoch_gps_s)
+        self.t_start_gps_s = self.epoch_gps_s
+        self.vehicle_id = vehicle_id
+        self.start_file = start_file
+        self.start_unix_s = float(start_unix_s) if start_unix_s > 0 else time.time() + WARMUP_S
+        self.timeout_s = timeout_s
+
+    def now_gps_s(self) -> float:
+        return self.epoch_gps_s + (time.time() - self.start_unix_s)
+
+    def wall_of(self, t_gps_s: float) -> float:
+        return self.start_unix_s + (t_gps_s - self.epoch_gps_s)
+
+    def start(self, stop=lambda: False) -> bool:
+        if self.start_file is None:
+            return not stop()
+        from sim.launcher import signal_ready_and_wait
+        got = signal_ready_and_wait(self.start_file, self.vehicle_id, timeout_s=self.timeout_s, stop=stop)
+        if got is None:
+            if stop():
+                return False
+            raise TimeoutError(f"no start stamp in {self.start_file} after {self.timeout_s:.0f} s")
+        self.start_unix_s = got
+        return True
+
+    def status(self) -> dict:
+        return {"kind": "scenario", "epoch_gps_s": self.epoch_gps_s, "t_rel_s": self.now_gps_s() - self.epoch_gps_s}
+
+
+class SimSource(VehicleSource):
+    """One actor of a scenario as a vehicle source (see the module docstring)."""
+
+    name = "sim"
+
+    def __init__(self, sc: Scenario, actor: Actor, model: str = "ins", start_file: str | None = None,
+                 start_unix_s: float = 0.0):
+        self.sc = sc
+        self.actor = actor
+        self.kind = actor.kind
+        self.geometry = actor.geometry
+        self.model = SOURCES[model](sc, actor)
+        self.start_file = start_file
+        self.start_unix_s = start_unix_s
+
+    def make_clock(self, ctx: SourceContext) -> SessionClock:
+        return ScenarioClock(self.sc.epoch_gps_s, ctx.vehicle_id, self.start_file, self.start_unix_s)
+
+    def warm_up(self) -> None:
+        """JIT warm-up, then the driving history up to HISTORY_S before the epoch (filter converged)."""
+        self.model.warm_up()
+        if isinstance(self.model, InsSimSource):
+            self.model.advance(self.sc.epoch_gps_s - HISTORY_S)
+
+    def prime(self, t_gps_s: float):
+        return None
+
+    def advance(self, t_gps_s: float) -> list[NavState]:
+        return self.model.advance(t_gps_s)
+
+    def finished(self, t_gps_s: float) -> bool:
+        return t_gps_s > self.sc.epoch_gps_s + self.sc.duration_s + 5.0
+
+    def imu_units(self):
+        if self.actor.imu_units < 2:
+            return None
+        sen = getattr(self.model, "sensors", None)
+        return imu_units(self.sc, self.actor, sen.imu if sen is not None else None)
+
+    def status(self) -> dict:
+        return {"source": self.name, "scenario": self.sc.name, "actor": self.actor.actor_id,
+                "model": self.model.name}
+
+
+SIM_KEYS = ("factory", "scenario", "actor", "model", "params", "start_file", "start_unix_s")
+
+
+def from_config(table: dict, where: str, ctx: SourceContext) -> SimSource:
+    """``[source] type = "sim"`` (see the module docstring); errors name ``where`` and the key."""
+    from v2xpos.datasets.calibration import did_you_mean
+    for key in table:
+        if key not in SIM_KEYS:
+            raise SourceError(f"{where}: unknown key {key!r}{did_you_mean(key, SIM_KEYS)}; allowed {list(SIM_KEYS)}")
+    model = table.get("model", "ins")
+    if model not in SOURCES:
+        raise SourceError(f"{where}.model: {model!r} is not one of {sorted(SOURCES)}")
+    params = table.get("params", {})
+    if not isinstance(params, dict):
+        raise SourceError(f"{where}.params: expected a table of scenario parameters")
+    try:
+        sc = build(str(table.get("scenario", "convoy")), **params)
+    except (TypeError, ValueError) as exc:
+        raise SourceError(f"{where}.params: {exc}") from None
+    actor_id = table.get("actor") or ctx.vehicle_id
+    if actor_id not in sc.actors:
+        raise SourceError(f"{where}.actor: {actor_id!r} not in scenario actors {sorted(sc.actors)}")
+    start_file = table.get("start_file")
+    start_unix = table.get("start_unix_s", 0.0)
+    if isinstance(start_unix, bool) or not isinstance(start_unix, (int, float)):
+        raise SourceError(f"{where}.start_unix_s: expected a number, got {start_unix!r}")
+    return SimSource(sc, sc.actors[actor_id], model, None if start_file is None else str(ctx.resolve(start_file)),
+                     float(start_unix))

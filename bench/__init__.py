@@ -1,0 +1,1 @@
+"""Benchmarks, load generators and test tools (above the services: they may use master/, slave/ and sim/)."""

@@ -1,0 +1,95 @@
+"""The ``recording`` source: the real filter on ../shared/data/drive_0708 advanced by a caller's
+clock on the recording's own GPS time (no epoch, no shift) stays on the RTK-fixed track; the
+``[source]`` table is validated with the key named; the replay clock's leader/follower pair agrees
+on time over a real zenoh link."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from v2xpos import geo
+from v2xpos.sources import SourceContext, SourceError, make_source
+from v2xpos.sources.clock import ReplayClock
+from v2xpos.types import FixStatus
+
+DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+
+
+def _drive():
+    path = DATA / "drive_0708" / "dataset.toml"
+    if not path.exists():
+        pytest.skip(f"dataset missing: {path}")
+    return path
+
+
+def test_recording_source_on_its_own_gps_time_and_on_track():
+    path = _drive()
+    src = make_source({"type": "recording", "dataset": str(path), "sync": "none"}, "[source]",
+                      SourceContext(vehicle_id="car"))
+    t0 = src.t_begin_gps_s
+    assert abs(t0 - float(src.ds.imu.t_s[0])) < 1e-9
+    states = []
+    for k in range(1, 61):                       # 60 s of data in 1 s steps of the caller's clock
+        new = src.advance(t0 + k)
+        assert all(t0 - 0.5 <= s.t_s <= t0 + k + 0.5 for s in new)   # + the estimated IMU time offset
+        states += new
+    assert len(states) > 3000 and src.filter.initialized
+    t = np.array([s.t_s for s in states])
+    assert np.all(np.diff(t) > 0)
+    g = src.ds.gnss
+    fixed = (g.fix == FixStatus.FIXED) & (g.t_s > t[0] + 20) & (g.t_s < t[-1])
+    lla = np.array([s.lla for s in states])
+    errs = []
+    for tg, llag in zip(g.t_s[fixed], g.lla[fixed]):
+        i = int(np.argmin(np.abs(t - tg)))
+        if abs(t[i] - tg) < 0.02:
+            errs.append(np.linalg.norm(geo.lla_to_ned(lla[i], llag)[:2]))
+    assert len(errs) > 50 and float(np.median(errs)) < 0.5
+    assert not src.finished(t0 + 60) and src.status()["imu_done"] > 0
+
+
+@pytest.mark.parametrize("table, where", [
+    ({"type": "recording"}, "[source].dataset"),
+    ({"type": "recording", "dataset": "x", "sped": 2.0}, "did you mean 'speed'"),
+    ({"type": "recording", "dataset": "x", "speed": 0}, "[source].speed"),
+    ({"type": "recording", "dataset": "x", "sync": "always"}, "[source].sync"),
+    ({"type": "recording", "dataset": "/nonexistent/dataset.toml"}, "[source].dataset"),
+    ({"type": "recordng", "dataset": "x"}, "did you mean 'recording'"),
+])
+def test_recording_table_errors_name_the_key(table, where):
+    with pytest.raises(SourceError) as e:
+        make_source(table, "[source]", SourceContext(vehicle_id="car"))
+    assert where in str(e.value)
+
+
+def test_replay_clock_follower_agrees_with_leader_over_zenoh():
+    from v2xpos.launch import free_tcp_port
+    from v2xpos.link import Link, LinkConfig
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    router = Link(LinkConfig(mode="router", listen=[ep]))
+    client = Link(LinkConfig(mode="client", connect=[ep], connect_timeout_ms=5000))
+    t_begin = 1.4e9 + 123.456
+    try:
+        leader = ReplayClock(t_begin, speed=2.0, mode="leader", link=router, fleet="f", vehicle_id="A",
+                             wait_for=("B",), wait_timeout_s=10, say=lambda m: None)
+        follower = ReplayClock(t_begin + 50.0, speed=1.0, mode="follower", link=client, fleet="f",
+                               vehicle_id="B", wait_timeout_s=10, say=lambda m: None)
+        import threading
+        got = {}
+        th = threading.Thread(target=lambda: got.update(ok=leader.start()))
+        th.start()
+        assert follower.start()            # announces ready; the leader starts; the follower anchors
+        th.join(5)
+        assert got["ok"] and follower.speed == 2.0      # the leader's speed wins
+        time.sleep(0.5)                     # a few clock messages refine the anchor
+        d = [follower.now_gps_s() - leader.now_gps_s() for _ in range(5)]
+        assert all(-0.005 < x <= 0.001 for x in d), d   # the follower is never ahead, at most a few ms behind
+        assert abs(leader.now_gps_s() - (t_begin + 2.0 * 0.5)) < 0.5
+    finally:
+        leader.close()
+        follower.close()
+        client.close()
+        router.close()

@@ -1,0 +1,106 @@
+"""Pieces shared by the service configurations (master and slave TOML files): loading, typed
+fields, unknown-key rejection with "did you mean", the ``[source]`` table, ``[link]`` and the
+``[impairment]`` table. Every error names the file, the table and the key.
+"""
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from v2xpos.datasets.calibration import did_you_mean
+from v2xpos.link import LinkConfig, LinkImpairment
+
+
+class ConfigError(ValueError):
+    """A configuration file that cannot be used; the message names the file and the key."""
+
+
+def load_toml(path: str | Path) -> dict:
+    p = Path(path)
+    try:
+        with p.open("rb") as f:
+            return tomllib.load(f)
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: file not found") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    except UnicodeDecodeError as exc:  # added by trust/resilience (fuzz finding): name the file
+        raise ConfigError(f"{p}: not UTF-8 text: {exc}") from None
+
+
+def take(table: dict, key: str, kind: type | tuple, default: Any, where: str) -> Any:
+    """``table[key]`` checked against ``kind`` (ints are accepted for floats); default if absent."""
+    if key not in table:
+        return default
+    v = table[key]
+    kinds = kind if isinstance(kind, tuple) else (kind,)
+    if float in kinds and isinstance(v, int) and not isinstance(v, bool):
+        v = float(v)
+    if not isinstance(v, kinds) or (isinstance(v, bool) and bool not in kinds):
+        names = "/".join(k.__name__ for k in kinds)
+        raise ConfigError(f"{where}.{key}: expected {names}, got {type(v).__name__} {v!r}")
+    return v
+
+
+def check_keys(table: dict, allowed: set, where: str) -> None:
+    """Reject keys outside ``allowed``, naming the first unknown one and the closest allowed key."""
+    unknown = sorted(set(table) - set(allowed))
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {unknown}{did_you_mean(unknown[0], allowed)}; "
+                          f"allowed {sorted(allowed)}")
+
+
+@dataclass
+class SourceConfig:
+    """Where the vehicle's states come from: the ``[source]`` table, handed as it is to
+    ``v2xpos.sources.make_source`` (each source type validates its own keys when the service builds
+    it). ``type`` is checked here: a built-in type (``recording``, ``device``), a registered one, or
+    any name with a ``factory = "module:function"``."""
+    table: dict = field(default_factory=lambda: {"type": "recording"})
+
+    @property
+    def type(self) -> str:
+        return str(self.table.get("type"))
+
+    @classmethod
+    def from_table(cls, t: dict, where: str) -> "SourceConfig":
+        from v2xpos.sources import source_types
+        typ = t.get("type")
+        if not isinstance(typ, str):
+            raise ConfigError(f"{where}.type: required: one of {sorted(source_types())}")
+        if typ not in source_types() and "factory" not in t:
+            raise ConfigError(f"{where}.type: {typ!r} is not one of {sorted(source_types())}"
+                              f"{did_you_mean(typ, source_types())} (or name its factory = 'module:function')")
+        return cls(table=dict(t))
+
+
+def impairment_from_table(t: dict, where: str) -> LinkImpairment:
+    """``[impairment]``: injected link delay for tests and trials (see ``v2xpos.link.LinkImpairment``)."""
+    check_keys(t, {"latency_ms", "jitter_ms", "spikes", "seed"}, where)
+    lat = take(t, "latency_ms", float, 0.0, where)
+    jit = take(t, "jitter_ms", float, 0.0, where)
+    if lat < 0 or jit < 0:
+        raise ConfigError(f"{where}: latency_ms and jitter_ms must be >= 0")
+    spikes = take(t, "spikes", list, [], where)
+    out = []
+    for k, sp in enumerate(spikes):
+        if (not isinstance(sp, list) or len(sp) != 3
+                or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in sp)):
+            raise ConfigError(f"{where}.spikes[{k}]: expected [t_start_gps_s, t_end_gps_s, extra_ms]")
+        out.append((float(sp[0]), float(sp[1]), float(sp[2])))
+    return LinkImpairment(lat, jit, out, take(t, "seed", int, 0, where))
+
+
+def link_from_table(t: dict, where: str) -> LinkConfig:
+    try:
+        return LinkConfig.from_dict(t, where)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def config_dir(path: str) -> Path:
+    """Directory against which a config's relative paths resolve: the file's own directory, or the
+    working directory for a config built in memory (``path`` like ``"<dict>"``)."""
+    return Path.cwd() if path.startswith("<") else Path(path).resolve().parent

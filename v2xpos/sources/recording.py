@@ -1,0 +1,169 @@
+"""The ``recording`` source: a recorded drive (``dataset.toml``) replayed on its own GPS time.
+
+``[source]`` table::
+
+    type = "recording"
+    dataset = "../shared/data/convoy_dev/B/dataset.toml"   # relative to the config file
+    speed = 1.0          # session seconds per wall second (> 1: faster than real time)
+    sync = "auto"        # auto: a master leads the session clock, a slave follows it; none: alone
+    wait_for = ["B"]     # leader only: vehicles to wait for before the clock starts
+    wait_timeout_s = 120
+    outline_m = [3.8, 1.0, 0.9]   # optional: front, rear, half width of the body outline [m]
+
+The IMU and GNSS samples go through the navigation filter (``v2xpos.ins.InsFilter``) exactly as
+in ``v2xpos replay`` without outages: every IMU sample with time of validity <= t is processed,
+each GNSS epoch when the IMU reaches its time, and one NavState is returned per IMU sample once
+the filter is initialised. Times are the recording's own GPS times (the IMU stamps from its
+TIMETAG clock model, the GNSS tags), corrected by the filter's IMU time-offset estimate; nothing
+is shifted onto another epoch.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from v2xpos.types import FixStatus, NavState
+
+from .base import SessionClock, SourceContext, SourceError, VehicleSource
+from .clock import ReplayClock
+
+log = logging.getLogger(__name__)
+
+KEYS = ("dataset", "speed", "sync", "wait_for", "wait_timeout_s", "outline_m")
+
+
+def _check_keys(table: dict, where: str) -> None:
+    from v2xpos.datasets.calibration import did_you_mean
+    for key in table:
+        if key not in KEYS:
+            raise SourceError(f"{where}: unknown key {key!r}{did_you_mean(key, KEYS)}; allowed {list(KEYS)}")
+
+
+def _number(table: dict, key: str, default: float, where: str, lo: float, hi: float) -> float:
+    v = table.get(key, default)
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not lo < float(v) <= hi:
+        raise SourceError(f"{where}.{key}: expected a number in ({lo}, {hi}], got {v!r}")
+    return float(v)
+
+
+def from_config(table: dict, where: str, ctx: SourceContext) -> "RecordingSource":
+    """Build from a ``[source]`` table (without ``type``); errors name ``where`` and the key."""
+    _check_keys(table, where)
+    path = table.get("dataset")
+    if not isinstance(path, str) or not path:
+        raise SourceError(f"{where}.dataset: required: the recording's dataset.toml (or its folder)")
+    speed = _number(table, "speed", 1.0, where, 0.0, 1000.0)
+    sync = table.get("sync", "auto")
+    if sync not in ("auto", "none"):
+        raise SourceError(f"{where}.sync: {sync!r} is not one of ['auto', 'none']")
+    wait_for = table.get("wait_for", [])
+    if not isinstance(wait_for, list) or not all(isinstance(x, str) for x in wait_for):
+        raise SourceError(f"{where}.wait_for: expected a list of vehicle ids")
+    timeout = _number(table, "wait_timeout_s", 120.0, where, 0.0, 86400.0)
+    outline = table.get("outline_m")
+    if outline is not None and (not isinstance(outline, list) or len(outline) != 3
+                                or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and x >= 0
+                                           for x in outline)):
+        raise SourceError(f"{where}.outline_m: expected [front, rear, half_width] in metres (>= 0)")
+    try:
+        return RecordingSource(ctx.resolve(path), speed=speed, sync=sync, wait_for=tuple(wait_for),
+                               wait_timeout_s=timeout, outline_m=outline)
+    except (OSError, ValueError) as exc:
+        raise SourceError(f"{where}.dataset: {exc}") from None
+
+
+def ins_config_for(ds) -> "object":
+    """The filter configuration of a recording: its declared mounting and lever arm, the platform's
+    vehicle constraints (car: NHC/ZUPT; pedestrian, generic: none)."""
+    from v2xpos.ins import InsConfig
+    plat = ds.platform if ds.platform in ("car", "pedestrian") else "generic"
+    if ds.calibration is not None and ds.calibration.effects:
+        log.warning("%s: [calibration] table present but not applied by the recording source yet", ds.source)
+    return InsConfig(platform=plat, imu_to_body=ds.imu_to_body, lever_arm_m=ds.lever_arm_m,
+                     lever_arm_sd_m=ds.lever_arm_sd_m)
+
+
+class RecordingSource(VehicleSource):
+    """A recorded drive through the INS filter on its own GPS time (see the module docstring)."""
+
+    name = "recording"
+
+    def __init__(self, path: str | Path, speed: float = 1.0, sync: str = "auto", wait_for: tuple = (),
+                 wait_timeout_s: float = 120.0, outline_m: list | None = None):
+        from v2xpos.datasets.loader import load_dataset
+        from v2xpos.ins import InsFilter
+        from v2xpos.wire import Geometry
+        self.path = Path(path)
+        self.ds = load_dataset(path)
+        if len(self.ds.imu) == 0 or len(self.ds.gnss) == 0:
+            raise ValueError(f"{path}: the recording has no IMU samples or no GNSS epochs")
+        self.speed = speed
+        self.sync = sync
+        self.wait_for = wait_for
+        self.wait_timeout_s = wait_timeout_s
+        self.kind = "pedestrian" if self.ds.platform == "pedestrian" else "vehicle"
+        if outline_m is not None:
+            self.geometry = Geometry.box(*(float(x) for x in outline_m))
+        elif self.kind == "pedestrian":
+            self.geometry = Geometry(kind="circle", radius_m=0.3)
+        else:
+            self.geometry = Geometry.box(3.8, 1.0, 0.9)
+        self.filter = InsFilter(ins_config_for(self.ds))
+        self.i_imu = 0
+        self.i_gnss = 0
+        self.last_t_s = -math.inf
+        self.non_monotonic = 0
+        self.gnss_updates = 0
+
+    @property
+    def t_begin_gps_s(self) -> float:
+        return float(self.ds.imu.t_s[0])
+
+    @property
+    def t_end_gps_s(self) -> float:
+        return float(self.ds.imu.t_s[-1])
+
+    def make_clock(self, ctx: SourceContext) -> SessionClock:
+        mode = "alone" if self.sync == "none" else ("leader" if ctx.role == "master" else "follower")
+        return ReplayClock(self.t_begin_gps_s, speed=self.speed, mode=mode, link=ctx.link, fleet=ctx.fleet,
+                           vehicle_id=ctx.vehicle_id, wait_for=self.wait_for, wait_timeout_s=self.wait_timeout_s,
+                           say=lambda m: print(f"{ctx.role} {ctx.vehicle_id}: {m}", file=sys.stderr, flush=True))
+
+    def advance(self, t_gps_s: float) -> list[NavState]:
+        imu, gnss, f = self.ds.imu, self.ds.gnss, self.filter
+        out: list[NavState] = []
+        n = len(imu.t_s)
+        while self.i_imu < n and imu.t_s[self.i_imu] <= t_gps_s:
+            k = self.i_imu
+            t_k = float(imu.t_s[k])
+            while self.i_gnss < len(gnss.t_s) and gnss.t_s[self.i_gnss] <= t_k:
+                j = self.i_gnss
+                vel = None if gnss.vel_ned_mps is None else gnss.vel_ned_mps[j]
+                vsd = None if gnss.vel_sd_ned_mps is None else gnss.vel_sd_ned_mps[j]
+                f.update_gnss(float(gnss.t_s[j]), gnss.lla[j], gnss.sd_ned_m[j], FixStatus(int(gnss.fix[j])),
+                              vel_ned_mps=vel, vel_sd_ned_mps=vsd)
+                self.i_gnss += 1
+                self.gnss_updates += 1
+            f.process_imu(t_k, imu.acc_mps2[k], imu.gyro_rps[k])
+            self.i_imu = k + 1
+            if f.initialized:
+                nav = f.nav_state()
+                if nav.t_s <= self.last_t_s:      # the estimated IMU time offset moved the label back
+                    self.non_monotonic += 1
+                    continue
+                self.last_t_s = nav.t_s
+                out.append(nav)
+        return out
+
+    def finished(self, t_gps_s: float) -> bool:
+        return self.i_imu >= len(self.ds.imu.t_s)
+
+    def status(self) -> dict:
+        return {"source": self.name, "dataset": str(self.path), "name": self.ds.name,
+                "span_gps_s": [self.t_begin_gps_s, self.t_end_gps_s], "imu_done": self.i_imu,
+                "imu_samples": len(self.ds.imu), "gnss_updates": self.gnss_updates,
+                "non_monotonic": self.non_monotonic, "malformed_lines": self.ds.malformed_lines}
