@@ -19,6 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "slave": ("slave.service", "run a slave (target) service"),
     "keys": ("v2xpos.security", "generate vehicle signing keys and manage the master's trust list"),
     "replay-session": ("master.replay_session", "re-run the master pipeline from an MCAP recording"),
+    "simulate": ("sim.recordings", "write simulated recordings in the shared formats (convoy: leader + followers, truth)"),
 }
 
 BENCHES: dict[str, tuple[str, str]] = {
