@@ -19,6 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "slave": ("slave.service", "run a slave (target) service"),
     "keys": ("v2xpos.security", "generate vehicle signing keys and manage the master's trust list"),
     "replay-session": ("master.replay_session", "re-run the master pipeline from an MCAP recording"),
+    "emulate": ("v2xpos.devices.emulate", "serve a recording's byte streams as live devices (pseudo-terminals or TCP)"),
 }
 
 BENCHES: dict[str, tuple[str, str]] = {
