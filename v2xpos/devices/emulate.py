@@ -20,8 +20,9 @@ synchronised (see ``v2xpos.sources.gnss_clock``).
 
 Why here (``v2xpos/devices``) and not a top-level ``bench/``: the emulator is the inverse of the
 transports (same TIMETAG semantics, same pty/TCP endpoints) and uses only the formats floor, so
-the library can ship it and the tests and the CLI import one module. Bytes written while no
-reader is attached are dropped and counted (a pseudo-terminal would otherwise block when full).
+the library can ship it and the tests and the CLI import one module. Bytes due while no reader
+is attached are dropped and counted (``counts()``); a reader that is slow delays the writes (a
+pseudo-terminal holds about 4 kB), as a real port with flow control would.
 """
 from __future__ import annotations
 
@@ -138,8 +139,13 @@ class Emulator:
         if duration_s is not None:
             self.t_end_rec_s = min(self.t_end_rec_s, self.t0_rec_s + duration_s)
         self._stop = threading.Event()
+        self.block_timeout_s = 1.0
         for s in self.streams:
             self._open(s)
+        self.set_start(start_in_s)
+
+    def set_start(self, start_in_s: float) -> None:
+        """(Re)fix the timeline: the first recorded byte goes out ``start_in_s`` from now."""
         self.h0_unix_s = time.time() + float(start_in_s)
         self.host_time_offset_s = self.t0_rec_s - self.speed * float(timebase.unix_to_gps_seconds(self.h0_unix_s))
 
@@ -156,8 +162,9 @@ class Emulator:
             m, sl = os.openpty()
             tty.setraw(sl)              # binary bytes pass unchanged (no echo, no CR/LF mapping)
             os.set_blocking(m, False)
-            s._master_fd, s._slave_fd = m, sl
             s.path = os.ttyname(sl)
+            os.close(sl)                # the master then polls POLLHUP until a reader opens the path
+            s._master_fd = m
 
     def devices(self) -> dict:
         """{name: {"format", "path" | "tcp", "source"}} of the served streams."""
@@ -191,21 +198,26 @@ class Emulator:
 
     def _write(self, s: EmulatedStream, data: bytes) -> None:
         if s._master_fd >= 0:
+            self._discard_echo(s)
+            poller = select.poll()
+            poller.register(s._master_fd, select.POLLOUT)
             view = memoryview(data)
             while view:
+                ev = poller.poll(int(self.block_timeout_s * 1000))
+                if not ev or ev[0][1] & select.POLLHUP or not ev[0][1] & select.POLLOUT:
+                    s.dropped += len(view)        # no reader attached (or it stopped reading)
+                    return
                 try:
                     n = os.write(s._master_fd, view)
-                except BlockingIOError:      # nobody reads: the pty is full
-                    s.dropped += len(view)
-                    return
+                except (BlockingIOError, InterruptedError):
+                    continue
                 except OSError as exc:
-                    if exc.errno in (errno.EIO, errno.EAGAIN):
+                    if exc.errno == errno.EIO:
                         s.dropped += len(view)
                         return
                     raise
                 s.written += n
                 view = view[n:]
-            self._discard_echo(s)
             return
         self._accept(s)
         if not s._clients:
@@ -322,6 +334,7 @@ def run(args: argparse.Namespace) -> int:
             floor = min_nav_pvt_latency_s(gs[0], Path(args.dataset).parent / tag)
     except (OSError, ValueError):
         floor = None
+    emu.set_start(args.start_in)
     info = {"devices": emu.devices(), **emu.timing(), "latency_floor_s": floor}
     if args.json:
         print(json.dumps(info), flush=True)

@@ -86,6 +86,7 @@ class StreamFramer:
             raise ValueError(f"unknown protocol(s) {sorted(unknown)}; known {PROTOCOLS}")
         self.protocols = tuple(protocols)
         self._sync = re.compile(b"|".join(_SYNC[p] for p in self.protocols))
+        self._ubx_enabled = UBX in self.protocols
         self.buf = bytearray()
         self.base_offset = 0
         self.issues = ParseIssues(name)
@@ -107,8 +108,9 @@ class StreamFramer:
         while pos < n:
             m = self._sync.search(buf, pos)
             if m is None:
-                self.skipped_bytes += n - pos
-                pos = n
+                keep = 1 if self._ubx_enabled and buf[n - 1] == 0xB5 else 0   # half of a UBX sync
+                self.skipped_bytes += n - keep - pos
+                pos = n - keep
                 break
             start = m.start()
             self.skipped_bytes += start - pos

@@ -64,7 +64,7 @@ class UbxDecoder:
         self.esf_tick_s = float(esf_tick_s)
         self.counts: dict[str, int] = {}
         self._week: int | None = None
-        self._esf: dict[tuple[str, int], list] = {}
+        self._esf_slots: dict[tuple[str, int], list] = {}
         self._last_pvt_t = -math.inf
 
     def decode(self, raw: bytes, arrival_s: float, where: int = 0) -> list:
@@ -118,7 +118,7 @@ class UbxDecoder:
         if not (msg.gnssFixOK and msg.relPosValid and msg.relPosHeadingValid) or self._week is None:
             return []
         t = float(timebase.gps_seconds_from_week_tow(self._week, int(msg.iTOW) * 1e-3))
-        baseline_m = (msg.relPosLength + msg._HPrelPosLength) * 1e-2
+        baseline_m = float(msg.relPosLength) * 1e-2    # pyubx2 adds the 0.1 mm part (_HPrelPosLength) [cm]
         return [HeadingObs(t_s=t, heading_rad=math.radians(msg.relPosHeading) % (2 * math.pi),
                            heading_sd_rad=math.radians(msg.accHeading), arrival_s=arrival_s,
                            baseline_m=baseline_m, message="NAV-RELPOSNED")]
@@ -142,7 +142,7 @@ class UbxDecoder:
         for tag, dtype, value in items:
             if dtype not in ESF_GYRO and dtype not in ESF_ACC:
                 continue
-            slot = self._esf.setdefault((kind, tag), [np.full(3, np.nan), np.full(3, np.nan)])
+            slot = self._esf_slots.setdefault((kind, tag), [np.full(3, np.nan), np.full(3, np.nan)])
             if dtype in ESF_GYRO:
                 slot[1][ESF_GYRO[dtype]] = math.radians(value * ESF_GYRO_SCALE_DPS)
             else:
@@ -150,9 +150,9 @@ class UbxDecoder:
             if np.isfinite(slot[0]).all() and np.isfinite(slot[1]).all():
                 out.append(ImuRecord(counter_s=tag * self.esf_tick_s, acc_mps2=slot[0], gyro_rps=slot[1],
                                      arrival_s=arrival_s))
-                del self._esf[(kind, tag)]
-        if len(self._esf) > 64:           # axes that never completed: forget the oldest
-            for k in sorted(self._esf, key=lambda kt: kt[1])[:len(self._esf) - 64]:
-                del self._esf[k]
+                del self._esf_slots[(kind, tag)]
+        if len(self._esf_slots) > 64:           # axes that never completed: forget the oldest
+            for k in sorted(self._esf_slots, key=lambda kt: kt[1])[:len(self._esf_slots) - 64]:
+                del self._esf_slots[k]
                 self.issues.add(0, f"ESF time tag {k[1]} never got all six axes")
         return out
