@@ -102,9 +102,14 @@ def test_device_config_is_validated_with_where_and_key():
     with pytest.raises(SourceError, match=r"calibration.*unknown key 'imu_time_ofset_s'"):
         make_source({**base, "gnss": {"format": "ubx", "tcp": "127.0.0.1:9"},
                      "calibration": {"imu_time_ofset_s": {"value": 0.0, "sd": 0.01}}}, "[source]", ctx)
-    src = make_source({**base, "gnss": {"format": "ubx", "tcp": "127.0.0.1:9"}, "platform": "pedestrian"},
+    src = make_source({**base, "gnss": {"format": "ubx", "tcp": "127.0.0.1:9"}, "platform": "pedestrian",
+                       "lever_arm_m": [0.1, 0.0, -0.2],
+                       "calibration": {"imu_time_offset_s": {"value": -0.025, "sd": 0.003},
+                                       "gnss_lever_arm_m": {"value": [0.02, 0.0, 0.0], "sd": [0.01, 0.01, 0.02]}}},
                       "[source]", ctx)
     try:
+        assert src.cfg.initial_time_offset_s == -0.025                  # the calibration reaches the filter
+        np.testing.assert_allclose(src.cfg.lever_arm_m, [0.12, 0.0, -0.2])
         assert src.kind == "pedestrian" and isinstance(src.make_clock(ctx), HostGnssClock)
         assert src.advance(src.make_clock(ctx).now_gps_s()) == []      # no data: no state, no crash
         st = src.status()

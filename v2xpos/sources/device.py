@@ -15,6 +15,9 @@ Config (the ``[source]`` table; paths relative to the config file)::
     clock = { max_offset_s = 0.02, latency_floor_s = 0.025 }   # v2xpos.sources.gnss_clock
     [source.calibration]                    # optional, the [calibration] table of v2xpos.datasets.calibration
 
+The filter configuration is ``v2xpos.ins.calibrated.ins_config`` of the declared platform, mounting
+and lever arm and the calibration table (the same function ``v2xpos replay`` uses).
+
 Each stream table is ``v2xpos.devices.stream`` (``format``, ``port``/``baud`` or ``tcp``,
 ``record``...). Unknown keys are rejected naming the table and the key.
 
@@ -229,8 +232,8 @@ class DeviceSource(VehicleSource):
                               "sd_deg": math.degrees(h.heading_sd_rad), "baseline_m": h.baseline_m,
                               "message": h.message, "used_by_filter": False}
         if self.calibration is not None:
-            out["calibration"] = {"source": self.calibration.source, "effects": sorted(self.calibration.effects),
-                                  "applied": False}
+            out["calibration"] = {"source": self.calibration.source, "date": self.calibration.date,
+                                  "effects": sorted(self.calibration.effects)}
         out["clock"] = self.clock.status()
         return out
 
@@ -246,7 +249,7 @@ class DeviceSource(VehicleSource):
 def from_config(table: dict, where: str, ctx: SourceContext) -> DeviceSource:
     """The ``device`` source from its ``[source]`` table (``type`` already removed); the ports are
     opened and their reader threads started. SourceError naming ``where`` and the key."""
-    from v2xpos.ins import InsConfig
+    from v2xpos.ins.calibrated import ins_config
     if not isinstance(table, dict):
         raise SourceError(f"{where}: expected a table")
     for key in table:
@@ -281,7 +284,7 @@ def from_config(table: dict, where: str, ctx: SourceContext) -> DeviceSource:
         clock = clock_from_config(table.get("clock"), f"{where}.clock")
     except ValueError as exc:
         raise SourceError(str(exc)) from None
-    cfg = InsConfig(platform=platform, imu_to_body=imu_to_body, lever_arm_m=lever, lever_arm_sd_m=float(lever_sd))
+    cfg = ins_config(platform, imu_to_body, lever, float(lever_sd), calibration)
 
     holder: dict = {}
 
