@@ -103,6 +103,26 @@ def test_loader_imu_time_is_true_time_plus_the_logging_delay(dev_like):
         assert late.max() < expected + 1.5e-3
 
 
+@pytest.mark.parametrize("rate_hz, drift_ppm", [(150.0, 0.0), (100.0, 40.0)])
+def test_loader_time_with_another_rate_and_a_drifting_imu_clock(tmp_path, rate_hz, drift_ppm):
+    """150 Hz (counter steps of 6-7 ms) and an IMU clock 40 ppm fast: the loader's rate and drift
+    are the simulated ones and its times stay true time + the logging delay (the counter's 1 ms
+    rounding added)."""
+    generate_convoy(tmp_path, seed=2, preset="clean", duration_s=40.0, imu_rate_hz=rate_hz,
+                    imu_clock_drift_ppm=drift_ppm)
+    meta = _meta(tmp_path)
+    v = meta["vehicles"]["A"]
+    res = read_imu_csv(tmp_path / "A" / "imu.csv", tmp_path / "A" / "imu.csv.tag")
+    assert res.issues.count == 1 and res.rate_hz == pytest.approx(rate_hz, rel=1e-3)
+    # the envelope touches the data within ~0.3 ms at its ends: 40 s give the drift to ~10 ppm
+    assert res.clock.as_dict()["drift_ppm"] == pytest.approx(-drift_ppm, abs=10.0)
+    k = np.arange(1, len(res.imu) + 1)                 # sample 0 is the cut line
+    t_true = _gps(meta, meta["generator"]["start_tow_s"]) + k / (rate_hz * (1 + drift_ppm * 1e-6))
+    late = res.imu.t_s - t_true
+    assert late.min() > v["imu_time_late_s"] - 0.8e-3
+    assert late.max() < v["imu_time_late_s"] + 2.0e-3
+
+
 def test_stamp_delay_shows_as_a_shift_of_the_imu_time(tmp_path):
     """Same seed, only B's extra delay changed: B's loader times move by it, A's do not."""
     times = {}
@@ -374,3 +394,24 @@ def test_filter_relative_error_on_a_clean_pair(clean, dev_like):
     assert res["clean"]["epochs"] > 300
     assert res["clean"]["horizontal_p50_m"] < 0.1
     assert res["dev_like"]["horizontal_p50_m"] > 2 * res["clean"]["horizontal_p50_m"]
+
+
+def test_follower_truth_is_what_the_mechanization_integrates():
+    """The follower's truth is built from per-sample controls (sim.routes.follower_trajectory):
+    error-free samples of it through the project's strapdown reproduce it over a route with turns,
+    grades, body roll and a lane change (< 3 cm after 90 s; the leader, straight from
+    sim.trajectory, gives 1 cm with body roll, < 1 mm without)."""
+    from sim.sensors import simulate_imu
+    from v2xpos.ins import InsConfig, InsFilter
+    p = draw_params(11, "clean", duration_s=DURATION_S, max_grade_rad=0.03, body_roll=True)
+    rec = simulate(p)
+    follower = rec.vehicles[1].truth
+    assert rec.vehicles[1].lane_change is not None
+    assert np.abs(follower.rpy_rad[:, 1]).max() > 0.01 and np.abs(follower.rpy_rad[:, 0]).max() > 0.005
+    imu = simulate_imu(follower)
+    f = InsFilter(InsConfig(platform="generic", effects=(), static_acc_std_max_mps2=-1.0,
+                            apply_static_calibration=False))
+    f.initialize(follower.t_s[0], follower.lla[0], follower.v_ned_mps[0], follower.rpy_rad[0])
+    f.process_imu_batch(imu.t_s, imu.acc_mps2, imu.gyro_rps)
+    assert np.linalg.norm(geo.lla_to_ned(f.lla, follower.lla[-1])) < 0.03
+    assert np.linalg.norm(f.v_ned_mps - follower.v_ned_mps[-1]) < 2e-3
