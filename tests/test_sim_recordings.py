@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.interpolate import CubicSpline
 
 from sim import recording_formats as fmt
 from sim.recordings import (Effects, apply_overrides, axis_mountings, draw_params, generate_convoy, relative_truth,
@@ -251,7 +252,9 @@ def test_misalignment_and_gyro_scale_show_in_the_imu(dev_like):
     vertical = int(np.argmax(np.abs(ds.imu_to_body[2])))
     scale = v["gyro_scale"][vertical]
     assert scale != 0.0
-    yaw_rate_true = np.interp(tow, tr[:, 0], np.gradient(np.unwrap(np.radians(tr[:, 9])), 0.1))
+    # the true yaw rate from truth.csv's yaw (a cubic spline's derivative: 0.1 s central differences
+    # bias the slope by up to 0.2 % on a drive with few turns)
+    yaw_rate_true = CubicSpline(tr[:, 0], np.unwrap(np.radians(tr[:, 9])))(tow, 1)
     sign = ds.imu_to_body[2, vertical]
     measured = ds.imu.gyro_rps[:, vertical] * sign
     moving = np.abs(yaw_rate_true) > 0.02
@@ -294,11 +297,30 @@ def test_route_starts_and_ends_at_rest_and_the_follower_follows(dev_like):
     gap = -rel[straight, 1]
     assert np.all(gap > follow["gap_m"] - 0.5) and np.all(gap < follow["gap_m"] + 1.5 * follow["lag_s"] * 20)
     lane = meta["vehicles"]["B"]["lane_change"]
-    if lane is not None:
-        t_rel = rel[:, 0] - rel[0, 0]
-        hold = (t_rel > lane["t_start_s"] + lane["ramp_s"] + 0.5) & (t_rel < lane["t_start_s"] + lane["ramp_s"]
-                                                                      + lane["hold_s"] - 0.5)
-        assert np.median(rel[hold, 2]) == pytest.approx(lane["offset_m"], abs=0.3)
+    assert lane is not None and lane["offset_m"] != 0
+
+
+def test_followers_drive_the_leaders_road_with_their_lane_offset():
+    """Each follower's IMU point is on the leader's path at its progress, offset sideways by its
+    lane offset, to < 5 mm (sim.routes: progress = the car ahead's delayed by lag, minus gap)."""
+    from sim.routes import Road, delayed
+    rec = simulate(draw_params(8, "clean", duration_s=DURATION_S, n_vehicles=3))
+    leader = rec.vehicles[0].truth
+    road = Road(leader)
+    t_rel = leader.t_s - leader.t_s[0]
+    progress = road.sigma_t
+    lanes = 0
+    for v in rec.vehicles[1:]:
+        progress = delayed(progress, int(round(v.spec.follow_lag_s / 0.01))) - v.spec.follow_gap_m
+        d = v.lane_change.offset(t_rel)[0] if v.lane_change else np.zeros_like(t_rel)
+        lanes += v.lane_change is not None and np.abs(d).max() > 3.0
+        on_road = np.stack([np.interp(progress, road.sigma_t, leader.r_ned_m[:, k]) for k in range(3)], axis=1)
+        behind = progress < 0
+        on_road[behind] = np.outer(progress[behind], [math.cos(road.psi0), math.sin(road.psi0), 0.0])
+        psi = road.heading(progress)
+        expected = on_road + d[:, None] * np.stack([-np.sin(psi), np.cos(psi), np.zeros_like(psi)], axis=1)
+        assert np.abs(v.truth.r_ned_m - expected).max() < 5e-3
+    assert lanes >= 1
 
 
 def test_axis_mountings():
