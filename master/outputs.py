@@ -21,6 +21,23 @@ from v2xpos.link import Publisher
 from v2xpos.wire import RelativeResult, encode_relative
 
 
+def summary_provenance(cfg: Any, seeds: Mapping[str, Any] | None = None) -> dict:
+    """The ``"provenance"`` object of the master summary JSON (``v2xpos.provenance``): software,
+    the master config file's hash (and its source's dataset / params when set), seeds, process start."""
+    from v2xpos.provenance import provenance
+    configs: dict = {"master": cfg.path}
+    src = getattr(cfg, "source", None)
+    dataset = getattr(src, "dataset", None)
+    if dataset:
+        configs["source_dataset"] = dataset
+    params = getattr(src, "params", None)
+    if params:
+        configs["source_params"] = dict(params)
+    if seeds is None and isinstance(params, Mapping) and "seed" in params:
+        seeds = {"source": params["seed"]}
+    return provenance("master", configs, seeds=seeds)
+
+
 def master_status(nav: Any, t_gps_s: float | None = None, heading_valid: bool | None = None,
                   clock_synced: bool | None = None, clock_offset_s: float | None = None) -> dict:
     """The ``write_master_status`` dict of the master's latest filter state ``nav`` (NavState or

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from master.config import MasterConfig
-from master.outputs import CanSink, UdpSink, ZenohSink
+from master.outputs import CanSink, UdpSink, ZenohSink, summary_provenance
 from master.pipeline import RECORD_FIELDS, MasterPipeline, PipelineConfig
 from sim.scenarios import build
 from slave.config import ConfigError
@@ -331,6 +331,7 @@ class MasterService:
             np.savez_compressed(cfg.results_npz, fields=np.array(RECORD_FIELDS), **arrays)
         if cfg.summary_json:
             Path(cfg.summary_json).parent.mkdir(parents=True, exist_ok=True)
+            final["provenance"] = summary_provenance(cfg)
             Path(cfg.summary_json).write_text(json.dumps(final, indent=1))
 
 
