@@ -17,9 +17,10 @@ Malformed payloads are counted and skipped.
 No false degradation (``GradeHysteresis``, docs/quality.md §"Persistence"): what is published as a
 unit's grade is the grader's raw grade filtered over consecutive regrades. A unit is published
 "fail" only once its raw grade was "fail" on ``FAIL_CONFIRM_REGRADES`` consecutive regrades, and stays
-"fail" until it was not "fail" on ``FAIL_CLEAR_REGRADES`` consecutive regrades; a raw "fail" that
-is not (yet) persistent is published "warn" and listed in the vehicle's ``warnings`` (a status
-field: never the CAN/UDP/zenoh ``degraded`` flag, which follows the published "fail"). The master's
+"fail" until it was not "fail" on ``FAIL_CLEAR_REGRADES`` consecutive regrades; a regrade in which
+all of three or more units fail is inconclusive (no evidence either way); a raw "fail" that is not
+(yet) persistent is published "warn" and listed in the vehicle's ``warnings`` (a status field: never
+the CAN/UDP/zenoh ``degraded`` flag, which follows the published "fail"). The master's
 ``_on_grades`` marks a vehicle degraded when a published unit grade is "fail", so it needs no
 knowledge of the rule.
 """
@@ -40,8 +41,9 @@ import numpy as np
 MAX_ROWS = 10_000
 GRADER_NICE = 10
 MAX_UNITS = 16
-FAIL_CONFIRM_REGRADES = 3
-"""Consecutive regrades with a raw "fail" before a unit is published "fail" (the vehicle DEGRADED)."""
+FAIL_CONFIRM_REGRADES = 2
+"""Consecutive regrades with a raw "fail" before a unit is published "fail" (the vehicle DEGRADED):
+the demo's false degradation was one regrade of raw "fail" on a healthy vehicle (docs/quality.md)."""
 FAIL_CLEAR_REGRADES = 3
 """Consecutive regrades without a raw "fail" before a published "fail" is lifted."""
 HISTORY_REGRADES = 16
@@ -94,7 +96,10 @@ class GradeHysteresis:
     the published ones: "fail" once the unit's raw grade was "fail" on ``confirm`` consecutive
     regrades, kept until it was not "fail" on ``clear`` consecutive regrades; a raw "fail" before
     that is "warn" (a transient, listed by ``warnings``); otherwise the raw grade. None (no grade
-    yet) neither confirms nor clears.
+    yet) neither confirms nor clears. A regrade in which every unit of a vehicle with three or more
+    units is raw "fail" is *inconclusive*: the units disagree with each other and none stands out
+    (seen with too little motion for the correlation checks, e.g. the first regrades of a drive);
+    it counts as None for every unit.
     """
 
     def __init__(self, confirm: int = FAIL_CONFIRM_REGRADES, clear: int = FAIL_CLEAR_REGRADES):
@@ -106,14 +111,19 @@ class GradeHysteresis:
         self.failed: dict[str, bool] = {}
         self.published: dict[str, str | None] = {}
         self.transient: dict[str, int] = {}
+        self.inconclusive = False
+        self.inconclusive_regrades = 0
 
     def update(self, raw: dict) -> dict:
+        self.inconclusive = len(raw) >= 3 and all(g == "fail" for g in raw.values())
+        self.inconclusive_regrades += self.inconclusive
         out = {}
         for unit, grade in raw.items():
-            if grade == "fail":
+            evidence = None if self.inconclusive else grade
+            if evidence == "fail":
                 self.fail_streak[unit] = self.fail_streak.get(unit, 0) + 1
                 self.ok_streak[unit] = 0
-            elif grade is not None:
+            elif evidence is not None:
                 self.ok_streak[unit] = self.ok_streak.get(unit, 0) + 1
                 self.fail_streak[unit] = 0
             failed = self.failed.get(unit, False)
@@ -129,9 +139,16 @@ class GradeHysteresis:
         return out
 
     def warnings(self) -> dict:
-        """{unit: text} of the units whose last raw grade is a not (yet) persistent "fail"."""
-        return {u: f"transient fail ({self.fail_streak.get(u, 0)} of {self.confirm} consecutive regrades)"
-                for u, g in self.published.items() if g == "warn" and self.fail_streak.get(u, 0) > 0}
+        """{unit: text} of the units whose last raw grade is a "fail" not published as such."""
+        out = {}
+        for u, g in self.published.items():
+            if g != "warn":
+                continue
+            if self.inconclusive:
+                out[u] = "inconclusive regrade: every unit failed, none stands out (too little motion?)"
+            elif self.fail_streak.get(u, 0) > 0:
+                out[u] = f"transient fail ({self.fail_streak[u]} of {self.confirm} consecutive regrades)"
+        return out
 
 
 class FleetGrader:
@@ -192,7 +209,7 @@ class FleetGrader:
                 "warnings": flt.warnings(), "regrades": self.regrades.get(vid, 0),
                 "degraded_regrades": self.degraded_regrades.get(vid, 0),
                 "first_degraded_t_s": self.first_degraded_t.get(vid),
-                "transient_fails": dict(flt.transient),
+                "transient_fails": dict(flt.transient), "inconclusive_regrades": flt.inconclusive_regrades,
                 "rule": {"confirm_regrades": flt.confirm, "clear_regrades": flt.clear},
                 "history": list(self.history.get(vid, [])),
                 "rejected_samples": r["rejected_samples"], "t_s": r.get("t_s")}
