@@ -169,6 +169,8 @@ def make_report(sc, plan: FleetPlan, duration_s: float, exit_codes: dict) -> dic
         "imu_faults_injected": {a.actor_id: {"unit": f"imu{a.imu_fault[0] + 1}", "fault": a.imu_fault[1]}
                                 for a in sc.actors.values() if a.imu_fault},
         "degraded_vehicles": summary.get("degraded_vehicles", []),
+        "degraded_vehicles_ever": sorted(vid for vid, g in (summary.get("imu_grades") or {}).items()
+                                         if (g or {}).get("degraded_regrades")),
         "exit_codes": exit_codes,
         "notes": ("errors against the scenario truth at the master time of each VALID result, reference point "
                   "to reference point; latency = master GPS time - target time of validity (includes the "

@@ -48,7 +48,7 @@ def test_report_layout_and_processes(report):
     faulty = report["imu_faults_injected"]
     assert set(faulty) == {"t2"} and grades["t2"]["units"][faulty["t2"]["unit"]] == "fail"
     assert all(v == "pass" for u, v in grades["t1"]["units"].items())
-    assert report["degraded_vehicles"] == ["t2"]
+    assert report["degraded_vehicles"] == ["t2"] and report["degraded_vehicles_ever"] == ["t2"]
     prov = on_disk["provenance"]                # traceable: software, configs' hashes, seeds, start
     assert prov["command"] == "demo" and prov["seeds"] == {"scenario": 0} and prov["configs_sha256"]
     assert {"demo_arguments", "ego", "t1", "t2", "p1"} <= {c["name"] for c in prov["configs"]}
