@@ -149,8 +149,8 @@ class MasterPipeline:
         self._known = set(config.known_vehicles)
         self._batching = False
         self._unflushed: list[tuple] = []     # (result, message, arrival wall time, uncompensated)
-        for vid in self._known:
-            self.tracks[vid] = TargetTrack(vid)
+        for vid in dict.fromkeys(config.known_vehicles):   # configured order, not set order:
+            self.tracks[vid] = TargetTrack(vid)             # tick() emits NO_DATA in this order
 
     def warm_up(self) -> None:
         """Compile (or load from numba's cache) the compensation kernel before the first message."""
