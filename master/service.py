@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from master.config import MasterConfig
-from master.outputs import CanSink, UdpSink, ZenohSink
+from master.outputs import CanSink, UdpSink, ZenohSink, master_status, summary_provenance
 from master.pipeline import RECORD_FIELDS, MasterPipeline, PipelineConfig
 from v2xpos.config import ConfigError, config_dir
 from v2xpos.link import Link, LinkUnavailable, grades_key, status_key
@@ -111,6 +111,7 @@ class MasterService:
         self.nav_ms: list[float] = []
         self.stop_event: asyncio.Event | None = None
         self.link: Link | None = None
+        self.relay = None
         self.sinks: list = []
         self.pipeline: MasterPipeline | None = None
         self.grading_proc = None
@@ -136,10 +137,10 @@ class MasterService:
             raise ConfigError(f"{cfg.path}: [link]: {exc}") from None
         self.ctx.link = self.link
         if cfg.can_enabled:
-            self.can = CanSink(channel=cfg.can_channel, interface=cfg.can_interface, rate_hz=cfg.can_rate_hz or None)
+            self.can = CanSink.from_config(cfg)
             self.sinks.append(self.can)
         if cfg.udp_enabled:
-            self.udp = UdpSink(cfg.udp_host, cfg.udp_port)
+            self.udp = UdpSink.from_config(cfg)
             self.sinks.append(self.udp)
         if cfg.zenoh_enabled:
             self.sinks.append(ZenohSink(self.link.publisher(relative_key(cfg.fleet, cfg.master_id), express=False)))
@@ -245,6 +246,7 @@ class MasterService:
         s.update({"master_id": self.cfg.master_id, "t_gps_s": t_now, "t_rel_s": t_now - self.t_start_gps_s,
                   "phase": self.phase, "clock": self.clock.status(), "time_synchronised": self.clock.synchronised(),
                   "source_status": self.source.status(),
+                  "corrections": None if self.relay is None else self.relay.stats(),
                   "master_fix": None if self.nav is None else int(self.nav.fix), "nav_steps": self.nav_steps,
                   "nav_ms_p50": float(np.percentile(self.nav_ms, 50)) if self.nav_ms else None,
                   "can_frames": self.can.frames if self.cfg.can_enabled else 0,
@@ -254,6 +256,19 @@ class MasterService:
                   "clock_skew": self.authenticator.skew_report(),
                   "admission": self.authenticator.stats.as_dict()})
         return s
+
+    async def _can_status_task(self) -> None:
+        """MASTER_STATUS / MASTER_SIGMA frames at ``[output.can] status_hz``: the master's own time,
+        fix, sigmas, whether its heading is determined and its clock synchronised."""
+        period = 1.0 / self.cfg.can_status_hz
+        clock = self.clock
+        while not self.stop_event.is_set():
+            await asyncio.sleep(period)
+            nav = self.nav
+            with self.lock:
+                self.can.write_master_status(master_status(
+                    nav, t_gps_s=self.gps_now(), heading_valid=None if nav is None else bool(nav.attitude_ok),
+                    clock_synced=clock.synchronised(), clock_offset_s=clock.status().get("offset_s")))
 
     async def _status_task(self) -> None:
         period = 1.0 / self.cfg.status_hz
@@ -310,7 +325,19 @@ class MasterService:
         if self._stopping():
             return self._early_exit()
         self.phase = "link"
-        self._open()
+        try:
+            self._open()
+        except ConfigError:
+            self._close()
+            raise
+        if self.cfg.corrections is not None and self.cfg.corrections.source is not None:
+            from v2xpos.sources.corrections import CorrectionRelay
+            try:
+                self.relay = CorrectionRelay(self.cfg.corrections, self.link, self.cfg.fleet,
+                                             local_write=self.source.write_corrections).start()
+            except (OSError, ValueError) as exc:
+                self._close()
+                raise ConfigError(f"{self.cfg.path}: [corrections]: {exc}") from None
         self.clock = self.source.make_clock(self.ctx)
         self.phase = "clock"
         try:
@@ -339,6 +366,8 @@ class MasterService:
         gc.freeze()                       # long-lived setup objects leave the collector's scans
         gc.set_threshold(50_000, 50, 100)  # fewer young-generation pauses in the message path
         coros = [self._nav_task(), self._tick_task(), self._status_task()]
+        if self.cfg.can_enabled and self.cfg.can_status_hz > 0:
+            coros.append(self._can_status_task())
         if self.cfg.dispatch != "inline":
             coros.append(self._consume_task(sub))
         tasks = [asyncio.create_task(c) for c in coros]
@@ -377,6 +406,8 @@ class MasterService:
         if self._closed:
             return
         self._closed = True
+        if self.relay is not None:
+            self.relay.close()
         for s in self.sinks:
             s.close()
         if self.recorder is not None:
@@ -405,6 +436,7 @@ class MasterService:
             np.savez_compressed(cfg.results_npz, fields=np.array(RECORD_FIELDS), **arrays)
         if cfg.summary_json:
             Path(cfg.summary_json).parent.mkdir(parents=True, exist_ok=True)
+            final["provenance"] = summary_provenance(cfg)
             Path(cfg.summary_json).write_text(json.dumps(final, indent=1))
 
 

@@ -27,6 +27,9 @@ Example (``configs/slave_t1.toml``)::
     [security]
     key_file = "keys/t1.key"   # optional Ed25519 signing key (v2xpos keys)
 
+    [corrections]          # RTK corrections relayed by the master (v2xpos.sources.corrections)
+    receive = true         # write them into this vehicle's receiver
+
 Every error names the file and the key.
 """
 from __future__ import annotations
@@ -34,8 +37,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from v2xpos.config import (ConfigError, LinkImpairment, SourceConfig, check_keys, impairment_from_table,  # noqa: F401
-                           link_from_table, load_toml, take)
+from v2xpos.config import (ConfigError, LinkImpairment, SourceConfig, check_keys,  # noqa: F401
+                           corrections_from_table, impairment_from_table, link_from_table, load_toml, take)
 from v2xpos.link import LinkConfig
 
 
@@ -51,6 +54,7 @@ class SlaveConfig:
     impairment: LinkImpairment = field(default_factory=LinkImpairment)
     key_file: str | None = None
     publish_imu: bool = False
+    corrections: object | None = None
     path: str = "<defaults>"
 
     @classmethod
@@ -60,7 +64,7 @@ class SlaveConfig:
 
     @classmethod
     def from_dict(cls, d: dict, path: str = "<dict>") -> "SlaveConfig":
-        check_keys(d, {"service", "link", "source", "impairment", "security"}, path)
+        check_keys(d, {"service", "link", "source", "impairment", "security", "corrections"}, path)
         s = take(d, "service", dict, {}, path)
         w = f"{path}: [service]"
         check_keys(s, {"fleet", "vehicle_id", "rate_hz", "duration_s", "publish_imu"}, w)
@@ -76,5 +80,6 @@ class SlaveConfig:
                   source=SourceConfig.from_table(take(d, "source", dict, {}, path), f"{path}: [source]"),
                   impairment=impairment_from_table(take(d, "impairment", dict, {}, path), f"{path}: [impairment]"),
                   key_file=take(sec, "key_file", str, None, f"{path}: [security]"),
-                  publish_imu=take(s, "publish_imu", bool, False, w), path=path)
+                  publish_imu=take(s, "publish_imu", bool, False, w),
+                  corrections=corrections_from_table(d, path), path=path)
         return cfg

@@ -80,7 +80,7 @@ def run_slave(cfg: SlaveConfig, stop: _Stop | None = None) -> dict:
             raise ConfigError(f"{cfg.path}: [security].key_file: {exc}") from None
     counters = {"vehicle_id": cfg.vehicle_id, "source": source.name, "states": 0, "queued": 0, "sent": 0,
                 "imu_msgs": 0, "late_ms_max": 0.0, "phase": "warm_up"}
-    link = clock = None
+    link = clock = sink = None
     try:
         run_until_stopped(source.warm_up, stopped)
         counters["phase"] = "link"
@@ -91,6 +91,9 @@ def run_slave(cfg: SlaveConfig, stop: _Stop | None = None) -> dict:
         if link is None:
             return counters
         ctx.link = link
+        if cfg.corrections is not None and cfg.corrections.receive:
+            from v2xpos.sources.corrections import CorrectionSink
+            sink = CorrectionSink(link, cfg.fleet, source.write_corrections)
         clock = source.make_clock(ctx)
         counters["phase"] = "clock"
         try:
@@ -104,6 +107,9 @@ def run_slave(cfg: SlaveConfig, stop: _Stop | None = None) -> dict:
     except Stopped:
         counters["stopped_early"] = True
     finally:
+        if sink is not None:
+            counters["corrections"] = sink.stats()
+            sink.close()
         counters["source_status"] = source.status()
         if clock is not None:
             counters["clock"] = clock.status()

@@ -104,3 +104,14 @@ def config_dir(path: str) -> Path:
     """Directory against which a config's relative paths resolve: the file's own directory, or the
     working directory for a config built in memory (``path`` like ``"<dict>"``)."""
     return Path.cwd() if path.startswith("<") else Path(path).resolve().parent
+
+
+def corrections_from_table(d: dict, path: str):
+    """The ``[corrections]`` table of a service config (``v2xpos.sources.corrections``), or None."""
+    if "corrections" not in d:
+        return None
+    from v2xpos.sources.corrections import parse_corrections
+    try:
+        return parse_corrections(d["corrections"], f"{path}: [corrections]")
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
