@@ -347,10 +347,10 @@ class MasterService:
         if not started:
             return self._early_exit()
         self.phase = "run"
-        self.t_start_gps_s = self.clock.now_gps_s()
+        self.t_start_gps_s = self.clock.session_start_gps_s()
         if self.cfg.duration_s is not None:
             self.end_gps = self.t_start_gps_s + self.cfg.duration_s
-        primed = self.source.prime(self.t_start_gps_s)
+        primed = self.source.prime(self.clock.now_gps_s())
         if primed is not None:
             self.nav = primed
         if self.cfg.dispatch == "inline":
