@@ -35,11 +35,11 @@ Every error names the file and the key.
 """
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from v2xpos.compat import tomllib
 from v2xpos.link import LinkConfig
 
 

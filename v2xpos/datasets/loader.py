@@ -35,10 +35,7 @@ import numpy as np
 
 from v2xpos.types import Dataset, GnssData, MultiImuRecording
 
-try:
-    import tomllib
-except ImportError:  # Python 3.10
-    import tomli as tomllib  # type: ignore[no-redef]
+from v2xpos.compat import tomllib
 
 IMU_FORMATS = ("csv_g_dps_ms",)
 GNSS_FORMATS = ("rtklib_pos", "ubx")
