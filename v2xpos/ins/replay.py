@@ -424,7 +424,7 @@ def load_for_command(path: str, command: str, min_overlap_share: float | None = 
         ds = load_dataset(path)
     except (OSError, ValueError) as e:
         msg = " ".join(str(e).split())
-        print(f"v2xpos {command}: {msg if str(path) in msg else f'cannot load {path}: {msg}'}",
+        print(f"v2xpos {command}: cannot load {msg if str(path) in msg else f'{path}: {msg}'}",
               file=sys.stderr)
         return None
     finally:
