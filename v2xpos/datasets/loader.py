@@ -287,6 +287,7 @@ def load_multi_imu(path: str | Path) -> MultiImuRecording:
     path = Path(path)
     if path.is_file():
         desc = read_descriptor(path)
+        check_keys(desc, LAYOUT_KEYS, f"{path}: top level (layout descriptor)")
         if desc.get("layout") != "quadrotor_mimu":
             raise ValueError(f"{path}: field layout must be 'quadrotor_mimu' for a multi-IMU load")
         return read_quadrotor_path(path.parent / _field(desc, "path", "", path))

@@ -52,6 +52,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--simulate", choices=("faults", "lidar"),
                         help="grade simulated vehicles instead of a recording")
     parser.add_argument("--seeds", type=int, default=20, help="seeds per fault for --simulate faults")
+    parser.add_argument("--check", action="store_true",
+                        help="only check the inputs (files, [grade] table, each unit's coverage): exit 2 "
+                             "on an error, 0 otherwise (warnings printed and in --json)")
 
 
 def _json_default(o):
@@ -245,9 +248,10 @@ def reference_rate_checks(rec: MultiImuRecording, window_s: float | None = None)
     return out or None
 
 
-def grade_recording(path: str | Path, reference: str | None = None, cfg: GradeConfig | None = None,
-                    fusion: bool = True) -> dict:
-    """Load and grade a multi-IMU recording; returns the full report (with internals)."""
+def prepare_recording(path: str | Path, reference: str | None = None, cfg: GradeConfig | None = None) -> dict:
+    """Everything ``grade_recording`` checks before grading (``v2xpos grade --check``): load, the
+    ``[grade]`` table, coverage (units cut to the common span), reference and mounting unit ids.
+    Returns {'rec', 'coverage', 'reference', 'mounting', 'cfg'}; ValueError naming the file."""
     rec, opts = load_recording(path)
     rec, coverage = check_coverage(rec)
     cfg = cfg or GradeConfig()
@@ -264,6 +268,14 @@ def grade_recording(path: str | Path, reference: str | None = None, cfg: GradeCo
             from v2xpos.datasets.calibration import did_you_mean
             raise ValueError(f"{path}: [grade.mounting_xyz_deg] {uid}: no such unit{did_you_mean(uid, rec.units)}; "
                              f"units {list(rec.units)}")
+    return {"rec": rec, "coverage": coverage, "reference": reference, "mounting": mounting, "cfg": cfg}
+
+
+def grade_recording(path: str | Path, reference: str | None = None, cfg: GradeConfig | None = None,
+                    fusion: bool = True) -> dict:
+    """Load and grade a multi-IMU recording; returns the full report (with internals)."""
+    prep = prepare_recording(path, reference, cfg)
+    rec, coverage, reference, mounting, cfg = (prep[k] for k in ("rec", "coverage", "reference", "mounting", "cfg"))
     fixes = None
     if fusion and rec.reference is not None and getattr(rec.reference, "pos_ned_m", None) is not None:
         fixes = {"t_s": rec.reference.t_s, "r_ned_m": rec.reference.pos_ned_m, "sd_m": 0.05,
@@ -380,10 +392,24 @@ def run(args: argparse.Namespace) -> int:
     if not args.path:
         print("v2xpos grade: give CONFIG_OR_DIR or --simulate", file=sys.stderr)
         return 2
+    if args.check:
+        try:
+            prep = prepare_recording(args.path, args.reference, cfg)
+        except (ValueError, OSError) as exc:
+            print(f"v2xpos grade: {' '.join(str(exc).split())}", file=sys.stderr)
+            return 2
+        cov = prep["coverage"]
+        for w in cov["warnings"]:
+            print(f"v2xpos grade: warning: {w}", file=sys.stderr)
+        print(f"v2xpos grade: inputs OK: {len(prep['rec'].units)} units, common span {cov['common_s']:.1f} s "
+              f"of {cov['recording_s']:.1f} s, {len(cov['warnings'])} warning(s)")
+        if args.json:
+            _write_json(args.json, {"recording": prep["rec"].name, "coverage": cov, "warnings": cov["warnings"]})
+        return 0
     try:
         rep = grade_recording(args.path, args.reference, cfg, fusion=not args.no_fusion)
     except (ValueError, OSError) as exc:
-        print(f"v2xpos grade: {exc}", file=sys.stderr)
+        print(f"v2xpos grade: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
     for w in rep.get("warnings", []):
         print(f"v2xpos grade: warning: {w}", file=sys.stderr)
