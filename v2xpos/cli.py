@@ -38,6 +38,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "soak": ("master.bench_soak", "long run: sent / received / recorded / lost, memory growth"),
     "trust": ("v2xpos.security_bench", "forged / replayed messages, fuzzing, fault scenarios"),
     "fuzz": ("v2xpos.fuzz", "fuzz the message decoder and dataset readers"),
+    "corpus": ("v2xpos.corpus", "broken inputs through replay/calibrate/grade/config loading: tracebacks, silent exits"),
 }
 
 

@@ -126,7 +126,20 @@ class LinkConfig:
                  "connect_timeout_ms", "extra_json5"}
         unknown = set(d) - known
         if unknown:
-            raise ValueError(f"{where}: unknown key(s) {sorted(unknown)}; allowed {sorted(known)}")
+            from v2xpos.datasets.calibration import did_you_mean
+            first = sorted(map(str, unknown))[0]
+            raise ValueError(f"{where}: unknown key(s) {sorted(unknown)}{did_you_mean(first, known)}; "
+                             f"allowed {sorted(known)}")
+        for k, kinds, low in (("retry_init_ms", (int,), 1), ("retry_max_ms", (int,), 1),
+                              ("retry_factor", (int, float), 1), ("connect_timeout_ms", (int,), -1)):
+            v = d.get(k)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, kinds) or not v >= low):
+                raise ValueError(f"{where}.{k}: expected {'an integer' if kinds == (int,) else 'a number'} "
+                                 f">= {low}, got {type(v).__name__} {v!r}")
+        if "mode" in d and not isinstance(d["mode"], str):
+            raise ValueError(f"{where}.mode: expected one of {MODES}, got {d['mode']!r}")
+        if "extra_json5" in d and not isinstance(d["extra_json5"], dict):
+            raise ValueError(f"{where}.extra_json5: expected a table, got {d['extra_json5']!r}")
         kw = dict(d)
         for k in ("listen", "connect"):
             if k in kw and isinstance(kw[k], str):

@@ -15,6 +15,8 @@ Checks (``check_dataset``):
   z points down). A wrong or missing matrix (identity for an IMU mounted z-up) shows as ~180 deg.
   Without a static period the mean specific force of the whole recording is used (vehicle
   accelerations average out over minutes) and the report says so.
+* **gravity magnitude**: the same specific force within 20 % of standard gravity (an IMU file in
+  m/s^2 read as g, or shifted columns, is an error naming the IMU file).
 * **sample rates and gaps**: rates from the median spacing; IMU gaps longer than
   ``IMU_GAP_S`` and GNSS gaps longer than ``GNSS_GAP_S`` (and 10 spacings) are warnings with their
   spans.
@@ -42,6 +44,9 @@ UNCOVERED_TOLERANCE_S = 5.0
 """Uncovered spans up to this long at the start or end (a logger started a few seconds after the
 receiver) are listed in the report's details, not warned about, and change nothing."""
 MAX_DOWN_ANGLE_DEG = 20.0
+MAX_GRAVITY_ERROR = 0.2
+"""The measured specific force at rest (or averaged over the recording) must be standard gravity
+within this fraction: a factor 9.8 (m/s^2 read as g) or a swapped column shows at once."""
 IMU_GAP_S = 1.0
 """An IMU spacing longer than this is a gap: the IMU does not cover it (no outage scored there)."""
 GNSS_GAP_S = 2.0
@@ -173,7 +178,12 @@ def _check_overlap(ds: Dataset, out: InputCheck, t_ref: float, min_share: float)
     out.details["overlap"] = {"imu_span_s": [i0, i1], "gnss_span_s": [g0, g1],
                               "common_span_s": [c0, c1] if common > 0 else None, "share": share,
                               "min_share": min_share, "uncovered": []}
-    spans = f"IMU {rel(i0, i1)}, GNSS {rel(g0, g1)} (s from the first GNSS epoch)"
+    files = ds.notes.get("files", {})
+    imu_name = f"IMU ({Path(files['imu']).name}" + (f", stamped by {Path(files['imu_timetag']).name}"
+                                                     if "imu_timetag" in files else "") + ")" \
+        if "imu" in files else "IMU"
+    gnss_name = f"GNSS ({Path(files['gnss']).name})" if "gnss" in files else "GNSS"
+    spans = f"{imu_name} {rel(i0, i1)}, {gnss_name} {rel(g0, g1)} (s from the first GNSS epoch)"
     if share < min_share:
         hint = ""
         if common == 0 and "imu_time" in ds.notes:
@@ -215,8 +225,9 @@ def _check_gaps_and_rates(ds: Dataset, out: InputCheck, t_ref: float) -> None:
         if gaps:
             listed = ", ".join(_fmt_span(a - t_ref, b - t_ref) for a, b in gaps[:MAX_LISTED])
             more = f" and {len(gaps) - MAX_LISTED} more" if len(gaps) > MAX_LISTED else ""
+            fname = ds.notes.get("files", {}).get(kind, src)
             out.add("warning", f"{kind}_gaps",
-                    f"{src}: {len(gaps)} {kind.upper()} gap(s) longer than {limit:.2g} s "
+                    f"{fname}: {len(gaps)} {kind.upper()} gap(s) longer than {limit:.2g} s "
                     f"({sum(b - a for a, b in gaps):.1f} s in all): {listed}{more}")
     imu_note = ds.notes.get("imu") if isinstance(ds.notes.get("imu"), dict) else {}
     if imu_note.get("rate_hz") is not None:
@@ -239,10 +250,12 @@ def _check_mounting(ds: Dataset, out: InputCheck, t_ref: float, max_angle_deg: f
         f_imu = acc.mean(axis=0)
         how = "from the mean specific force of the whole recording (no static period found)"
     norm = float(np.linalg.norm(f_imu))
-    if not np.isfinite(norm) or norm < 0.5 * G0_MPS2:
-        out.add("warning", "mounting",
-                f"{_descriptor_name(ds)}: mounting not checked: the mean specific force {how} is "
-                f"{norm:.2f} m/s^2, not gravity")
+    if not np.isfinite(norm) or abs(norm - G0_MPS2) > MAX_GRAVITY_ERROR * G0_MPS2:
+        fname = ds.notes.get("files", {}).get("imu", _descriptor_name(ds))
+        out.add("error", "gravity",
+                f"{fname}: the specific force {how} is {norm:.2f} m/s^2, not gravity "
+                f"({G0_MPS2:.2f} m/s^2 +- {100 * MAX_GRAVITY_ERROR:.0f} %): accelerometer units or "
+                "columns do not match the declared [imu] format")
         return
     down_imu = -f_imu / norm
     C = np.asarray(ds.imu_to_body, float)

@@ -79,7 +79,15 @@ def check_keys(table: dict, allowed: tuple[str, ...], where: str) -> None:
                              f"allowed {list(allowed)}")
 
 
+def _all_numbers(value: Any) -> bool:
+    if isinstance(value, list):
+        return all(_all_numbers(v) for v in value)
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def _matrix(value: Any, shape: tuple[int, ...], field_name: str, toml_path: Path) -> np.ndarray:
+    if not _all_numbers(value):
+        raise ValueError(f"{toml_path}: field {field_name} must hold numbers only, got {value!r}")
     try:
         arr = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
@@ -116,6 +124,8 @@ def _load_toml(toml_path: Path, read_raw: bool) -> Dataset:
         if layout not in LAYOUTS:
             raise ValueError(f"{toml_path}: field layout: unknown {layout!r} (known: {LAYOUTS})")
         folder = base / _field(desc, "path", "", toml_path)
+        if not folder.is_dir():
+            raise ValueError(f"{toml_path}: field path: folder {folder} not found")
         ds = _load_layout(layout, folder)
         ds.name = _field(desc, "name", "", toml_path, required=False, default=ds.name)
         ds.source = toml_path
@@ -176,7 +186,9 @@ def _load_toml(toml_path: Path, read_raw: bool) -> Dataset:
 
     imu_res = read_imu_csv(imu_file, base / timetag if timetag else None)
     _enough(len(imu_res.imu), "IMU samples", imu_file, "[imu] file", toml_path, imu_res.issues)
-    notes: dict[str, Any] = {"imu": imu_res.summary(), "malformed": [imu_res.issues.as_dict()]}
+    notes: dict[str, Any] = {"imu": imu_res.summary(), "malformed": [imu_res.issues.as_dict()],
+                             "files": {"imu": str(imu_file), "gnss": str(gnss_file),
+                                       **({"imu_timetag": str(base / timetag)} if timetag else {})}}
     malformed = imu_res.issues.count
     if imu_res.timetag_issues is not None:
         malformed += imu_res.timetag_issues.count
@@ -290,7 +302,10 @@ def load_multi_imu(path: str | Path) -> MultiImuRecording:
         check_keys(desc, LAYOUT_KEYS, f"{path}: top level (layout descriptor)")
         if desc.get("layout") != "quadrotor_mimu":
             raise ValueError(f"{path}: field layout must be 'quadrotor_mimu' for a multi-IMU load")
-        return read_quadrotor_path(path.parent / _field(desc, "path", "", path))
+        folder = path.parent / _field(desc, "path", "", path)
+        if not folder.is_dir():
+            raise ValueError(f"{path}: field path: folder {folder} not found")
+        return read_quadrotor_path(folder)
     if _detect_layout(path) != "quadrotor_mimu":
         raise ValueError(f"{path}: not a multi-IMU folder (need IMU_k.csv and GT.csv)")
     return read_quadrotor_path(path)
