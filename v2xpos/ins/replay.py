@@ -66,15 +66,15 @@ class ReplayResult:
 
 
 def config_for(dataset: Dataset, **overrides) -> InsConfig:
-    """InsConfig from what the dataset declares (platform, mounting, lever arm) plus overrides."""
-    platform = dataset.platform if dataset.platform in ("car", "pedestrian") else "generic"
-    kw = dict(platform=platform, imu_to_body=dataset.imu_to_body, lever_arm_m=dataset.lever_arm_m,
-              lever_arm_sd_m=dataset.lever_arm_sd_m)
-    if dataset.wheel is not None and platform == "car":
-        kw["effects"] = ("lever_arm", "imu_time_offset", "imu_clock_drift", "misalignment", "gnss_vel_latency",
-                         "odometer_scale")
+    """InsConfig from what the dataset declares (platform, mounting, lever arm) and its
+    ``[calibration]`` table (``calibrated.ins_config``), plus overrides."""
+    from .calibrated import dataset_ins_config
+    kw = {}
+    if dataset.wheel is not None and dataset.platform == "car":
+        base = dataset_ins_config(dataset).effects
+        kw["effects"] = tuple(base) + ("odometer_scale",)
     kw.update(overrides)
-    return InsConfig(**kw)
+    return dataset_ins_config(dataset, **kw)
 
 
 def _interp_lla(t_q: float, t: np.ndarray, lla: np.ndarray, max_gap_s: float = 1.0) -> np.ndarray | None:

@@ -1,0 +1,113 @@
+"""The filter configuration of a calibrated vehicle: declared values + a ``[calibration]`` table.
+
+One function, :func:`ins_config`, used by ``v2xpos replay``, ``v2xpos calibrate``, the services'
+``recording`` and ``device`` sources and any live vehicle config, so that a calibration is applied
+the same way to a recording and to a live stream: it never rewrites samples, it sets the filter's
+mounting, lever arm and the *starting values and 1-sigma* of its own effect states
+(``InsConfig.initial_time_offset_s``, ``initial_misalignment_rad``, ``initial_effects``,
+``effect_initial_sd``), which the filter then keeps refining online within those sds.
+
+Conventions are those of ``v2xpos calibrate`` and ``v2xpos.datasets.calibration`` (every entry is
+a correction to what the descriptor declares, not a total):
+
+* mounting: ``v_vehicle = R imu_to_body v_imu`` with ``R = Rz(yaw) Ry(pitch) Rx(roll)`` from
+  ``imu_misalignment_deg``; the calibrated mounting ``R imu_to_body`` becomes the filter's body
+  frame, so that the filter body *is* the vehicle frame (the lever arm and the scale factors are
+  given in vehicle axes) and the filter's misalignment state starts at zero with the calibration's
+  sd (a residual correction);
+* lever arm: ``declared + gnss_lever_arm_m`` [vehicle frame, m], per-axis sd = the calibration's;
+* IMU time: ``t_gps = t_stamp + imu_time_offset_s + 1e-6 imu_clock_drift_ppm (t - t_start)``;
+  the filter integrates the drift from its own start (for a recording that starts within seconds
+  of the first stamp the difference is ``drift x seconds``, e.g. 50 ppm x 5 s = 0.25 ms);
+* GNSS latency: a solution tagged t is valid at ``t - gnss_latency_s``;
+* scale factors: ``measured = (1 + s) true`` per vehicle axis (the filter's correction vector).
+
+An entry's sd of 0 makes the corresponding state exact (zero initial variance).
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from v2xpos.rotation import dcm_from_euler
+
+from .effects import PLATFORM_EFFECTS
+from .filter import InsConfig
+
+_TIMING_STATES = ("imu_time_offset", "imu_clock_drift")
+
+
+def _vec(v: Any) -> np.ndarray:
+    return np.asarray(v, float).reshape(3)
+
+
+def ins_config(platform: str, imu_to_body: np.ndarray, lever_arm_m: np.ndarray, lever_arm_sd_m: float,
+               calibration: Any = None, **overrides: Any) -> InsConfig:
+    """``InsConfig`` of a vehicle from its declared mounting and antenna lever arm and an optional
+    ``CalibrationTable`` (``v2xpos.datasets.calibration``; None = declared values only).
+
+    platform: "car", "pedestrian" or anything else (-> "generic"); imu_to_body: declared nominal
+    ``v_body = imu_to_body v_imu``; lever_arm_m: declared antenna position from the IMU [m, vehicle
+    frame x fwd, y right, z down] with 1-sigma lever_arm_sd_m; overrides: any other ``InsConfig``
+    field (they win over the calibration, e.g. ``effects=()`` for a filter without effect states).
+    """
+    plat = platform if platform in ("car", "pedestrian") else "generic"
+    B = np.asarray(imu_to_body, float).reshape(3, 3)
+    kw: dict[str, Any] = dict(platform=plat, imu_to_body=B, lever_arm_m=_vec(lever_arm_m),
+                              lever_arm_sd_m=float(lever_arm_sd_m))
+    if calibration is not None and calibration.effects:
+        kw.update(_calibrated_fields(plat, B, _vec(lever_arm_m), float(lever_arm_sd_m), calibration))
+    for key in ("effect_initial_sd", "initial_effects"):
+        if key in overrides and key in kw:
+            overrides[key] = {**kw[key], **overrides[key]}
+    kw.update(overrides)
+    return InsConfig(**kw)
+
+
+def _calibrated_fields(platform: str, B: np.ndarray, lever: np.ndarray, lever_sd: float, cal: Any) -> dict:
+    eff = cal.effects
+    out: dict[str, Any] = {}
+    sd0: dict[str, Any] = {}
+    init: dict[str, Any] = {}
+    states = list(PLATFORM_EFFECTS[platform])
+    if "imu_misalignment_deg" in eff:
+        e = eff["imu_misalignment_deg"]
+        out["imu_to_body"] = dcm_from_euler(*np.radians(_vec(e.value))) @ B
+        sd0["misalignment"] = np.radians(_vec(e.sd))
+    if "gnss_lever_arm_m" in eff:
+        e = eff["gnss_lever_arm_m"]
+        out["lever_arm_m"] = lever + _vec(e.value)
+        sd = _vec(e.sd)
+        out["lever_arm_sd_m"] = float(np.max(sd))
+        sd0["lever_arm"] = sd
+    if "imu_time_offset_s" in eff:
+        e = eff["imu_time_offset_s"]
+        out["initial_time_offset_s"] = float(e.value)
+        sd0["imu_time_offset"] = float(e.sd)
+    if "imu_clock_drift_ppm" in eff:
+        e = eff["imu_clock_drift_ppm"]
+        init["imu_clock_drift"] = 1e-6 * float(e.value)
+        sd0["imu_clock_drift"] = 1e-6 * float(e.sd)
+        if float(e.value) != 0.0:
+            # the filter applies a drift only through its timing states (``InsFilter._flush_covariance``)
+            states += [s for s in _TIMING_STATES if s not in states]
+    if "gnss_latency_s" in eff:
+        e = eff["gnss_latency_s"]
+        init["gnss_latency_s"] = float(e.value)
+        sd0["gnss_latency"] = float(e.sd)
+    for name in ("gyro_scale", "accel_scale"):
+        if name in eff:
+            init[name] = _vec(eff[name].value)
+            sd0[name] = _vec(eff[name].sd)
+    out["effects"] = tuple(states)
+    out["effect_initial_sd"] = sd0
+    out["initial_effects"] = init
+    return out
+
+
+def dataset_ins_config(dataset: Any, **overrides: Any) -> InsConfig:
+    """:func:`ins_config` of a loaded ``Dataset`` (its declared values and ``Dataset.calibration``)."""
+    return ins_config(dataset.platform, dataset.imu_to_body, dataset.lever_arm_m, dataset.lever_arm_sd_m,
+                      getattr(dataset, "calibration", None), **overrides)
+
