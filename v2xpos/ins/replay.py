@@ -353,7 +353,7 @@ def write_plots(result: ReplayResult, out_dir: str | Path) -> list[Path]:
 
     res = [r for r in S["residuals"] if r.kind == "gnss_pos" and len(r.innovation) == 3]
     if res:
-        tt = np.array([r.t_s for r in res]) - t0
+        tt = np.array([r.t_s for r in res]) - t0   # same time axis as the other plots
         inn = np.array([r.innovation for r in res])
         nis = np.array([r.nis for r in res])
         acc = np.array([r.accepted for r in res])
@@ -362,29 +362,33 @@ def write_plots(result: ReplayResult, out_dir: str | Path) -> list[Path]:
             ax[0].plot(tt, inn[:, k], ".", ms=2, label=lab)
         ax[0].set_ylabel("position innovation [m]")
         ax[0].set_ylim(-1, 1)
-        ax[0].legend()
+        ax[0].legend(markerscale=5)
         ax[1].semilogy(tt[acc], nis[acc], ".", ms=2, label="accepted")
         ax[1].semilogy(tt[~acc], nis[~acc], "x", ms=3, color="C3", label="rejected")
-        ax[1].set_ylabel("NIS")
-        ax[1].set_xlabel("time [s]")
-        ax[1].legend()
+        ax[1].set_ylabel("NIS (chi-square, 3 dof)")
+        ax[1].set_xlabel("time since first GNSS epoch [s]")
+        ax[1].legend(markerscale=3)
+        ax[0].set_title(f"{name}: GNSS position innovations (z - h(x), NED) and their NIS")
         files.append(out / "innovations.png")
         fig.savefig(files[-1], dpi=110)
         plt.close(fig)
 
-    fig, ax = plt.subplots(4, 1, figsize=(10, 10), sharex=True)
-    ax[0].plot(t, np.degrees(S["bg"]) * 3600, lw=0.8)
-    ax[0].set_ylabel("gyro bias [deg/h]")
-    ax[1].plot(t, S["ba"], lw=0.8)
-    ax[1].set_ylabel("accel bias [m/s^2]")
-    ax[2].plot(t, S["dt"] * 1e3, lw=0.8, label="IMU time offset [ms]")
-    ax[2].plot(t, S["lever"] * 100, lw=0.8, label="lever arm [cm]")
-    ax[2].legend(fontsize=7)
-    ax[3].plot(t, np.degrees(S["mis"]), lw=0.8)
-    ax[3].set_ylabel("misalignment r/p/y [deg]")
-    ax[3].set_xlabel("time [s]")
-    for a in ax[:2]:
-        a.legend(list("xyz"), fontsize=7)
+    # one quantity (one unit) per panel, one labelled line per component
+    panels = (("gyro bias [deg/h]", np.degrees(S["bg"]) * 3600, ("x", "y", "z")),
+              ("accel bias [m/s^2]", S["ba"], ("x", "y", "z")),
+              ("IMU time offset [ms]", S["dt"].reshape(-1, 1) * 1e3, ("IMU time offset",)),
+              ("lever arm, body [cm]", S["lever"] * 100, ("x (forward)", "y (right)", "z (down)")),
+              ("misalignment [deg]", np.degrees(S["mis"]), ("roll", "pitch", "yaw")))
+    fig, ax = plt.subplots(len(panels), 1, figsize=(10, 12), sharex=True)
+    for a, (ylabel, values, names) in zip(ax, panels):
+        for k, lab in enumerate(names):
+            a.plot(t, values[:, k], lw=0.8, label=lab)
+        a.set_ylabel(ylabel)
+        a.legend(fontsize=7, loc="upper right")
+        a.grid(alpha=0.3)
+    ax[-1].set_xlabel("time since first GNSS epoch [s]")
+    ax[0].set_title(f"{name}: IMU bias and effect estimates (filter states)")
+    fig.tight_layout()
     files.append(out / "bias_estimates.png")
     fig.savefig(files[-1], dpi=110)
     plt.close(fig)
