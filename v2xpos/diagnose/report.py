@@ -154,7 +154,7 @@ def write_report(cal, out_dir: Path) -> Path:
             xm, ym, ye = _binned(np.asarray(x), np.asarray(r))
             ax.errorbar(xm, ym, yerr=ye, fmt="o-", color="C3" if title.startswith("declared") else "C2", ms=4,
                         label="mean per quantile bin +- s.e.")
-            ax.legend(fontsize=7, markerscale=3, loc="best")
+            ax.legend(fontsize=7, markerscale=2, loc="best")
             c = structure.correlation(r, x)
             ax.set_title(f"{title}: r={c.detail['r']:+.2f}, p={c.p_value:.1e}", fontsize=9)
             ax.set_xlabel(xlab)
