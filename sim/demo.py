@@ -22,6 +22,7 @@ import numpy as np
 from sim import evaluate
 from sim.launcher import Fleet, FleetPlan, free_tcp_port, free_udp_port, release_when_ready, write_configs
 from sim.scenarios import build, check_rtk_vertical_factor
+from v2xpos.provenance import provenance
 
 STARTUP_LEAD_S = 1.5
 """Wall time between the last process signalling ready and the scenario epoch (the filters start
@@ -93,6 +94,11 @@ def run_demo(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 10
         if fleet.running():
             fleet.stop()
     report = make_report(sc, plan, duration_s, codes)
+    arguments = {"vehicles": vehicles, "duration_s": duration_s, "latency_ms": latency_ms, "jitter_ms": jitter_ms,
+                 "seed": seed, "source": source, "pedestrian": pedestrian, "degradations": degradations,
+                 "spikes": spikes, "rtk_vertical_factor": rtk_vertical_factor}
+    report["provenance"] = provenance("demo", {"demo_arguments": arguments, **plan.configs},
+                                      seeds={"scenario": seed}, started_utc=t_launch)
     report["latency_ms_injected"] = latency_ms
     ego = sc.actors[sc.master_id]
     report["rtk_fixed_sd_m"] = {"horizontal": ego.gnss_sd_fixed_m,
@@ -136,8 +142,10 @@ def make_report(sc, plan: FleetPlan, duration_s: float, exit_codes: dict) -> dic
         entry = evaluate.evaluate_target(sc, a.actor_id, r, sc.epoch_gps_s)
         entry["gnss_rel_err_rms_1s_m"] = floor.get(a.actor_id)
         entry["rejected"] = (summary.get("targets", {}).get(a.actor_id, {}) or {}).get("rejected", {})
-        entry["fix_schedule_rel_s"] = [[t0, t1, st.name.lower()] for t0, t1, st in a.fix_schedule]
-        entry["delay_spikes_rel_s"] = [list(s) for s in a.link.spikes]
+        entry["fix_schedule_rel_s"] = [{"start_rel_s": t0, "end_rel_s": t1, "fix": st.name.lower()}
+                                       for t0, t1, st in a.fix_schedule]
+        entry["delay_spikes_rel_s"] = [{"start_rel_s": t0, "end_rel_s": t1, "extra_delay_ms": extra}
+                                       for t0, t1, extra in a.link.spikes]
         targets.append(entry)
     clean = [t for t in targets if not t["fix_schedule_rel_s"] and t["rel_pos_err_rms_m"] is not None]
     scene = evaluate_scene(sc, plan)
@@ -161,6 +169,8 @@ def make_report(sc, plan: FleetPlan, duration_s: float, exit_codes: dict) -> dic
         "imu_faults_injected": {a.actor_id: {"unit": f"imu{a.imu_fault[0] + 1}", "fault": a.imu_fault[1]}
                                 for a in sc.actors.values() if a.imu_fault},
         "degraded_vehicles": summary.get("degraded_vehicles", []),
+        "degraded_vehicles_ever": sorted(vid for vid, g in (summary.get("imu_grades") or {}).items()
+                                         if (g or {}).get("degraded_regrades")),
         "exit_codes": exit_codes,
         "notes": ("errors against the scenario truth at the master time of each VALID result, reference point "
                   "to reference point; latency = master GPS time - target time of validity (includes the "

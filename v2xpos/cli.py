@@ -20,6 +20,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "keys": ("v2xpos.security", "generate vehicle signing keys and manage the master's trust list"),
     "replay-session": ("master.replay_session", "re-run the master pipeline from an MCAP recording"),
     "monitor": ("v2xpos.monitor.command", "live table and web bird's-eye view of a running master"),
+    "emulate": ("v2xpos.devices.emulate", "serve a recording's byte streams as live devices (pseudo-terminals or TCP)"),
+    "simulate": ("sim.recordings", "write simulated recordings in the shared formats (convoy: leader + followers, truth)"),
 }
 
 BENCHES: dict[str, tuple[str, str]] = {

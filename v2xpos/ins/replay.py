@@ -419,6 +419,16 @@ def load_for_command(path: str, command: str) -> Dataset | None:
         return None
 
 
+def command_provenance(command: str, args: argparse.Namespace) -> dict:
+    """``v2xpos.provenance`` object of a dataset command: the dataset descriptor's hash (its
+    ``dataset.toml``; a directory without one: path only) and the command's options."""
+    from v2xpos.provenance import provenance
+    ds = Path(args.dataset)
+    descriptor = ds / "dataset.toml" if ds.is_dir() and (ds / "dataset.toml").is_file() else ds
+    options = {k: v for k, v in sorted(vars(args).items()) if k not in ("dataset", "func") and not callable(v)}
+    return provenance(command, {"dataset": descriptor, "options": options})
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``v2xpos replay``."""
     parser.add_argument("dataset", help="dataset.toml (or a dataset directory, e.g. a comma2k19 segment)")
@@ -471,7 +481,8 @@ def run(args: argparse.Namespace) -> int:
           f"{np.round(np.degrees(eff['misalignment_rad']), 2).tolist()} deg")
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(res.summary, indent=2))
+        Path(args.json).write_text(json.dumps({**res.summary, "provenance": command_provenance("replay", args)},
+                                              indent=2))
     if args.plots:
         for p in write_plots(res, args.plots):
             print(f"{'plot':>20}: {p}")
