@@ -147,7 +147,8 @@ SCHEMAS: dict[str, tuple[str, dict]] = {
                                          **{k: _vec3(k) for k in _NAV_VECTORS}},
         "required": ["index", "t_s", "fix", *_NAV_VECTORS]}),
     TOPIC_TICK: ("v2xpos.Tick", {
-        "type": "object", "properties": {"t_now_gps_s": _NUM, "master_t_gps_s": _NUM_OR_NULL},
+        "type": "object", "properties": {"t_now_gps_s": _NUM, "master_t_gps_s": _NUM_OR_NULL,
+                                         "master_fix": {"type": ["integer", "null"]}},
         "required": ["t_now_gps_s", "master_t_gps_s"]}),
     TOPIC_DEGRADED: ("v2xpos.DegradedVehicles", {
         "type": "object", "properties": {"vehicle_ids": {"type": "array", "items": _STR}},
@@ -444,9 +445,11 @@ class McapRecorder:
             if msg is not None:
                 self._pending_state[msg.vehicle_id] = msg
 
-    def record_tick(self, t_now_gps_s: float, master_t_gps_s: float | None, log_time_ns: int | None = None) -> None:
+    def record_tick(self, t_now_gps_s: float, master_t_gps_s: float | None, log_time_ns: int | None = None,
+                    master_fix: int | None = None) -> None:
         doc = {"t_now_gps_s": float(t_now_gps_s),
-               "master_t_gps_s": None if master_t_gps_s is None else float(master_t_gps_s)}
+               "master_t_gps_s": None if master_t_gps_s is None else float(master_t_gps_s),
+               "master_fix": None if master_fix is None else int(master_fix)}
         with self._lock:
             self._add(TOPIC_TICK, doc, time.time_ns() if log_time_ns is None else log_time_ns)
 
@@ -584,10 +587,12 @@ class RecordingPipeline:
         self.recorder.record_received(payload, key, t_arrival_wall_s, t_now_gps_s, self._nav_index)
         return self._pipeline.handle(payload, key, master, t_now_gps_s, t_arrival_wall_s, signature_valid)
 
-    def tick(self, t_now_gps_s: float, master_t_gps_s: float | None = None):
+    def tick(self, t_now_gps_s: float, master_t_gps_s: float | None = None, master_fix: Any = None):
         self._check_degraded()
-        self.recorder.record_tick(t_now_gps_s, master_t_gps_s)
-        return self._pipeline.tick(t_now_gps_s, master_t_gps_s)
+        self.recorder.record_tick(t_now_gps_s, master_t_gps_s, master_fix=master_fix)
+        if master_fix is None:
+            return self._pipeline.tick(t_now_gps_s, master_t_gps_s)
+        return self._pipeline.tick(t_now_gps_s, master_t_gps_s, master_fix)
 
     def process_scene(self, scene: Any, master: Any):
         if not self._scene_sent:
