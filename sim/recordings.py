@@ -51,7 +51,7 @@ from pathlib import Path
 import numpy as np
 
 from sim import recording_formats as fmt
-from sim.routes import (BLOCKS, LaneChange, Road, RouteSpec, delayed, find_lane_change, follower_trajectory,
+from sim.routes import (LaneChange, Road, RouteSpec, delayed, find_lane_change, follower_trajectory,
                         leader_route, leader_trajectory)
 from sim.sensors import GnssErrorModel, ImuErrorModel, simulate_gnss, simulate_imu
 from sim.trajectory import Trajectory
@@ -266,6 +266,7 @@ def draw_params(seed: int, preset: str = "dev_like", duration_s: float = 200.0, 
                 effects_on: tuple[str, ...] | None = None, effect_kinds: tuple[str, ...] = EFFECT_NAMES,
                 float_spells: bool = True, imu_grade: str = "mems_automotive", imu_rate_hz: float = 100.0,
                 max_grade_rad: float = 0.0, body_roll: bool = False, max_speed_mps: float | None = None,
+                imu_clock_drift_ppm: float = 0.0,
                 gps_week: int | None = None, start_tow_s: float | None = None,
                 origin_lla: tuple[float, float, float] | None = None) -> ConvoyParams:
     """Draw a recording's parameters from ``seed``.
@@ -314,6 +315,7 @@ def draw_params(seed: int, preset: str = "dev_like", duration_s: float = 200.0, 
         logging = LoggingModel(min_delay_s=round(float(r.uniform(0.002, 0.008)), 4),
                                jitter_mean_s=float(r.uniform(0.0005, 0.0015)),
                                counter_start_ms=int(r.integers(10_000, 5_000_000)),
+                               clock_drift_ppm=float(imu_clock_drift_ppm),
                                tick_ms=int(r.integers(1_000, 100_000_000)))
         spells = []
         if float_spells:
@@ -344,7 +346,6 @@ class VehicleRecording:
     truth: Trajectory
     files: dict[str, bytes]
     lane_change: LaneChange | None = None
-    imu_first_true_gps_s: float = 0.0
     notes: dict = field(default_factory=dict)
 
 
@@ -378,7 +379,6 @@ def _imu_files(p: ConvoyParams, spec: VehicleSpec, truth: Trajectory) -> tuple[d
     rate_gps = spec.imu_rate_hz * (1.0 + drift)          # samples per GPS second
     model = _imu_model(spec, rng)
     imu = simulate_imu(truth, model, rate_hz=rate_gps, rng=rng, imu_to_body=spec.true_imu_to_body)
-    t0 = float(truth.t_s[0])
     n = int(math.floor(p.route.duration_s * rate_gps + 1e-9))
     t_true = imu.t_s[:n]
     counter = lg.counter_start_ms + np.round(np.arange(n) * 1000.0 / spec.imu_rate_hz).astype(np.int64)
@@ -392,7 +392,7 @@ def _imu_files(p: ConvoyParams, spec: VehicleSpec, truth: Trajectory) -> tuple[d
                                          lg.poll_jitter_max_ms)
     files = {"imu.csv": b"".join(lines),
              "imu.csv.tag": fmt.timetag_bytes(open_gps, lg.tick_ms, rec_ms, rec_off)}
-    notes = {"imu_samples": n, "imu_first_sample_true_gps_s": float(t_true[0]), "t0": t0,
+    notes = {"imu_samples": n, "imu_first_sample_true_gps_s": float(t_true[0]),
              "gyro_bias_dps": np.degrees(model.gyro_bias_rps).round(4).tolist(),
              "accel_bias_mps2": model.accel_bias_mps2.round(4).tolist()}
     return files, notes
@@ -438,7 +438,8 @@ def _gnss_file(p: ConvoyParams, spec: VehicleSpec, truth: Trajectory) -> tuple[b
     return text.encode("ascii"), {"gnss_epochs": int(len(rel)), "float_epochs": int(is_float.sum())}
 
 
-def _grid_rows(truth: Trajectory, duration_s: float) -> np.ndarray:
+def _grid_rows(duration_s: float) -> np.ndarray:
+    """Trajectory sample indices of the truth rows (every 0.1 s over the duration)."""
     n = int(round(duration_s / (DT_S * TRUTH_STEP)))
     return np.arange(n) * TRUTH_STEP
 
@@ -484,7 +485,7 @@ def simulate(p: ConvoyParams) -> ConvoyRecording:
         truths.append(follower_trajectory(road, progress, rate, d, dd, leader, p.route.roll_per_lat_acc_rad))
         lanes.append(lane)
 
-    rows = _grid_rows(leader, p.route.duration_s)
+    rows = _grid_rows(p.route.duration_s)
     tow = np.round(p.start_tow_s + rows * DT_S, 6)
     vehicles = []
     for spec, truth, lane in zip(p.vehicles, truths, lanes):
@@ -672,7 +673,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="float spells in s from the start, e.g. A=70:73 or B=none (default: one drawn per car)")
     parser.add_argument("--no-float", action="store_true", help="RTK fixed throughout")
     parser.add_argument("--imu-grade", default="mems_automotive", choices=sorted(IMU_GRADES))
-    parser.add_argument("--imu-rate", type=float, default=100.0, help="IMU sample rate [Hz]")
+    parser.add_argument("--imu-rate", type=float, default=100.0, help="IMU sample rate [Hz] of its own clock")
+    parser.add_argument("--imu-clock-drift-ppm", type=float, default=0.0,
+                        help="the IMU clocks run this fast against GPS time [ppm] (default 0)")
     parser.add_argument("--max-speed", type=float, default=None, help="leader's top speed [m/s] (default 14-19)")
     parser.add_argument("--max-grade-pct", type=float, default=0.0, help="road grades up to this [%%] (default flat)")
     parser.add_argument("--body-roll", action="store_true", help="body roll 0.006 rad per m/s^2 of lateral acc.")
@@ -696,7 +699,8 @@ def run(args: argparse.Namespace) -> int:
             effects_on=tuple(x for x in args.effects_on.split(",") if x) if args.effects_on is not None else None,
             effect_kinds=tuple(x for x in args.effect_kinds.split(",") if x), float_spells=not args.no_float,
             imu_grade=args.imu_grade, imu_rate_hz=args.imu_rate, max_grade_rad=math.atan(args.max_grade_pct / 100.0),
-            body_roll=args.body_roll, max_speed_mps=args.max_speed, gps_week=args.week, start_tow_s=args.tow,
+            body_roll=args.body_roll, max_speed_mps=args.max_speed, imu_clock_drift_ppm=args.imu_clock_drift_ppm,
+            gps_week=args.week, start_tow_s=args.tow,
             origin_lla=origin)
         apply_overrides(p, args.mounting, args.effect, args.float)
     except ValueError as exc:

@@ -18,7 +18,7 @@ leader's samples, a straight line behind its start for sigma < 0). A follower's 
 the road is the vehicle ahead's progress delayed by ``lag_s`` and set back by ``gap_m``
 (sigma_k(t) = sigma_{k-1}(t - lag) - gap), which keeps it at gap + lag * speed behind and makes it
 stop ``gap_m`` behind when the one ahead stops for longer than ``lag_s``. A lateral offset d(t)
-(right positive; a lane change is a half-cosine ramp of d) is driven on the parallel curve:
+(right positive; a lane change is a cycloidal ramp of d) is driven on the parallel curve:
 
     along-road speed  u = dsigma/dt (1 - kappa d)          (arc length of the parallel curve)
     speed             s = sqrt(u^2 + d'^2),   heading psi_k = psi(sigma) + atan2(d', u)
@@ -252,8 +252,10 @@ class Road:
 
 @dataclass
 class LaneChange:
-    """A lane change and back: offset ramps to ``offset_m`` (right positive, so negative = to the
-    left) over ``ramp_s`` from ``t_start_s`` (relative to the start), holds ``hold_s``, ramps back."""
+    """A lane change and back: the offset ramps to ``offset_m`` (right positive, so negative = to
+    the left) over ``ramp_s`` from ``t_start_s`` (relative to the start), holds ``hold_s``, ramps
+    back. Each ramp is cycloidal, d = W (u - sin(2 pi u) / (2 pi)) for u = 0..1: lateral velocity
+    and acceleration start and end at zero, so yaw rate and body roll stay continuous."""
     t_start_s: float
     ramp_s: float
     hold_s: float
@@ -263,6 +265,11 @@ class LaneChange:
     def t_end_s(self) -> float:
         return self.t_start_s + 2 * self.ramp_s + self.hold_s
 
+    def _ramp(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        two_pi = 2.0 * np.pi
+        return (self.offset_m * (u - np.sin(two_pi * u) / two_pi),
+                self.offset_m / self.ramp_s * (1.0 - np.cos(two_pi * u)))
+
     def offset(self, t_rel_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(d [m], d' [m/s]) at times relative to the start."""
         t = np.asarray(t_rel_s, float)
@@ -271,14 +278,11 @@ class LaneChange:
         t1 = self.t_start_s + self.ramp_s
         t2 = t1 + self.hold_s
         up = (t >= self.t_start_s) & (t < t1)
-        u = (t[up] - self.t_start_s) / self.ramp_s
-        d[up] = 0.5 * self.offset_m * (1 - np.cos(np.pi * u))
-        dd[up] = 0.5 * self.offset_m * np.pi / self.ramp_s * np.sin(np.pi * u)
+        d[up], dd[up] = self._ramp((t[up] - self.t_start_s) / self.ramp_s)
         d[(t >= t1) & (t < t2)] = self.offset_m
         down = (t >= t2) & (t < self.t_end_s)
-        u = (t[down] - t2) / self.ramp_s
-        d[down] = 0.5 * self.offset_m * (1 + np.cos(np.pi * u))
-        dd[down] = -0.5 * self.offset_m * np.pi / self.ramp_s * np.sin(np.pi * u)
+        back, back_rate = self._ramp((t[down] - t2) / self.ramp_s)
+        d[down], dd[down] = self.offset_m - back, -back_rate
         return d, dd
 
 
@@ -291,7 +295,7 @@ def delayed(x: np.ndarray, lag_samples: int) -> np.ndarray:
 
 def find_lane_change(road: Road, t_rel_s: np.ndarray, progress_m: np.ndarray, rate_mps: np.ndarray,
                      rng: np.random.Generator, ramp_s: float, hold_s: float, offset_m: float,
-                     min_speed_mps: float = 6.0, max_curvature: float = 1.0 / 40.0,
+                     min_speed_mps: float = 8.0, max_curvature: float = 1.0 / 40.0,
                      t_window: tuple[float, float] | None = None) -> LaneChange | None:
     """A lane change placed at random where the follower keeps >= min_speed_mps and the road's
     |curvature| <= max_curvature for the whole manoeuvre (the hold shortened down to 2 s if it does
@@ -335,15 +339,13 @@ def follower_trajectory(road: Road, progress_m: np.ndarray, rate_mps: np.ndarray
     theta_cmd[1:] = (theta[1:] - a * theta[:-1]) / (1.0 - a)
     n = len(like.t_s)
     segs = [Segment(dt, float(acc_cmd[k]), float(yaw_rate_cmd[k]), float(theta_cmd[k])) for k in range(n - 1)]
-    # start point: on the straight behind the leader's start (or on the road), offset to the right by d
+    # start point: on the straight behind the leader's start, offset to the right by d
     s0 = float(progress_m[0])
+    if s0 > 0:
+        raise ValueError("a follower starts behind the leader (progress <= 0 at the start)")
     psi0 = float(road.heading(s0))
-    if s0 <= 0:
-        c = math.cos(road.theta0)
-        r0 = np.array([s0 * c * math.cos(psi0), s0 * c * math.sin(psi0), -s0 * math.sin(road.theta0)])
-    else:
-        k = int(np.searchsorted(road.sigma_t, s0))
-        r0 = like.r_ned_m[min(k, n - 1)].copy()
+    c = math.cos(road.theta0)
+    r0 = np.array([s0 * c * math.cos(psi0), s0 * c * math.sin(psi0), -s0 * math.sin(road.theta0)])
     r0 += float(offset_m[0]) * np.array([-math.sin(psi0), math.cos(psi0), 0.0])
     return generate(segs, dt_s=dt, lla0=like.lla0, speed0_mps=float(speed[0]), yaw0_rad=float(psi[0]),
                     pitch0_rad=float(theta[0]), t0_s=float(like.t_s[0]), smooth_tau_s=0.0,
