@@ -21,7 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from v2xpos.ins.replay import add_input_arguments, add_schedule_arguments, check_only, load_for_command
+from v2xpos.ins.replay import (add_input_arguments, add_schedule_arguments, check_only, command_provenance,
+                                  load_for_command)
 from v2xpos.types import Dataset
 
 from . import identify, structure
@@ -560,6 +561,7 @@ def run(args: argparse.Namespace) -> int:
     out = to_json(cal)
     out["input_checks"] = ds.notes.get("input_check", {})
     out["warnings"] = len(out["input_checks"].get("warnings", []))
+    out["provenance"] = command_provenance("calibrate", args)
     text = json.dumps(out, indent=2)
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
