@@ -503,8 +503,14 @@ def config_damages(text: str, rng: random.Random, scenario_params: bool = True) 
         return c
 
     for p in paths(d):
-        if len(p) >= 2 and p[-2] == "params":
-            continue   # scenario parameters: below
+        if len(p) >= 2 and p[-2] in FREE_KEY_TABLES:
+            if p[-2] == "params":
+                continue   # scenario parameters: below
+            v = _get(d, p)   # the keys are the user's names (target ids): only the values can be wrong
+            for wrong in _wrong_values(v):
+                out.append((f"config {'.'.join(p)} = {wrong!r}",
+                            dump_toml(edit(p, lambda t, k, w=wrong: t.__setitem__(k, w))).encode()))
+            continue
         for bad in misspellings(p[-1], rng, 3):
             out.append((f"config {'.'.join(p)} misspelt {bad}",
                         dump_toml(edit(p, lambda t, k, b=bad: t.__setitem__(b, t.pop(k)))).encode()))
@@ -528,6 +534,11 @@ def config_damages(text: str, rng: random.Random, scenario_params: bool = True) 
     out.append(("config non-UTF-8", text.encode().replace(b"[service]", b"[service]\n# \xff\xfe", 1)))
     out.append(("config cut inside a string", text[:text.index('"', text.index("[service]")) + 3].encode()))
     return out
+
+
+FREE_KEY_TABLES = ("params", "slots")
+"""Config tables whose keys the user names (scenario parameters are checked against the scenario;
+CAN slots map any target id): a renamed key there is not a typo the loader can know."""
 
 
 def _get(d: dict, path: tuple):
