@@ -38,7 +38,7 @@ import time
 
 import numpy as np
 
-from sim.scenarios import Actor, Scenario, build
+from sim.scenarios import Actor, Scenario, build, check_params
 from sim.sensors import GnssErrorModel, ImuErrorModel, simulate_gnss, simulate_imu
 from v2xpos import geo
 from v2xpos.sources.base import SessionClock, SourceContext, SourceError, VehicleSource
@@ -338,10 +338,12 @@ def from_config(table: dict, where: str, ctx: SourceContext) -> SimSource:
     params = table.get("params", {})
     if not isinstance(params, dict):
         raise SourceError(f"{where}.params: expected a table of scenario parameters")
+    name = str(table.get("scenario", "convoy"))
     try:
-        sc = build(str(table.get("scenario", "convoy")), **params)
+        check_params(name, params, f"{where.rstrip(']')}.params]" if where.endswith("]") else f"{where}.params")
+        sc = build(name, **params)
     except (TypeError, ValueError) as exc:
-        raise SourceError(f"{where}.params: {exc}") from None
+        raise SourceError(str(exc)) from None
     actor_id = table.get("actor") or ctx.vehicle_id
     if actor_id not in sc.actors:
         raise SourceError(f"{where}.actor: {actor_id!r} not in scenario actors {sorted(sc.actors)}")
