@@ -224,7 +224,7 @@ def test_port_in_use_is_one_line_naming_the_endpoint(tmp_path):
     port = busy.getsockname()[1]
     cfg = tmp_path / "master.toml"
     cfg.write_text(f'[service]\nfleet = "t"\nduration_s = 1\n[link]\nmode = "router"\n'
-                   f'listen = ["tcp/127.0.0.1:{port}"]\n[source]\ntype = "truth_noise"\n[source.params]\nvehicles = 2\n')
+                   f'listen = ["tcp/127.0.0.1:{port}"]\n[source]\ntype = "sim"\nfactory = "sim.source:from_config"\nmodel = "truth_noise"\n[source.params]\nvehicles = 2\n')
     try:
         r = v2xpos("master", "--config", cfg, timeout=120)
     finally:
@@ -233,7 +233,7 @@ def test_port_in_use_is_one_line_naming_the_endpoint(tmp_path):
     assert ".rs:" not in line                       # zenoh's source locations are cut
 
 
-@pytest.mark.parametrize("service, config", [("slave", "slave_t1.toml"), ("master", "master.toml")])
+@pytest.mark.parametrize("service, config", [("slave", "slave_p1.toml"), ("master", "master_sim.toml")])
 def test_misspelt_scenario_parameter_names_file_and_key(tmp_path, service, config):
     text = (ROOT / "configs" / config).read_text()
     bad = tmp_path / config

@@ -67,13 +67,11 @@ class SourceConfig:
 
     @classmethod
     def from_table(cls, t: dict, where: str) -> "SourceConfig":
-        from v2xpos.sources import source_types
-        typ = t.get("type")
-        if not isinstance(typ, str):
-            raise ConfigError(f"{where}.type: required: one of {sorted(source_types())}")
-        if typ not in source_types() and "factory" not in t:
-            raise ConfigError(f"{where}.type: {typ!r} is not one of {sorted(source_types())}"
-                              f"{did_you_mean(typ, source_types())} (or name its factory = 'module:function')")
+        from v2xpos.sources import SourceError, check_source_table
+        try:
+            check_source_table(t, where)
+        except SourceError as exc:
+            raise ConfigError(str(exc)) from None
         return cls(table=dict(t))
 
 

@@ -8,8 +8,8 @@ multi-IMU folder or a service config -- and it goes through the command that rea
   (the commands' own input path: ``load_for_command`` = loader + plausibility checks, exit codes,
   messages; ``--check`` stops before the filter runs, which is what makes 500 cases cheap);
 * grade cases: ``v2xpos grade PATH --check --json F`` (loading, ``[grade]`` table, coverage);
-* config cases: ``MasterConfig.load`` / ``SlaveConfig.load`` plus the scenario parameter check the
-  services run before they start (``sim.scenarios.check_params``).
+* config cases: ``MasterConfig.load`` / ``SlaveConfig.load``, which validate every table including
+  ``[source]`` (its type's own ``check_table``: a simulator source checks its scenario parameters).
 
 The commands are called through ``v2xpos.cli.run_command`` (the dispatcher without the top-level
 guard), so an exception a command did not turn into a message counts as a traceback. Outcomes:
@@ -24,7 +24,8 @@ Every generated case is damage that must be noticed (a mutation that leaves the 
 the same meaning, such as deleting a key whose default equals its value, is not generated).
 Bases: the first ``BASE_SECONDS`` of ``drive_0708`` (written into the work folder, never into the
 repository), the ``quadrotor_mimu/path_1`` folder (damaged files copied, the others linked) and
-``configs/master.toml`` / ``configs/slave_t1.toml``.
+``configs/master.toml`` / ``configs/slave_t1.toml`` (recordings) and ``configs/master_sim.toml`` /
+``configs/slave_p1.toml`` (the simulator, with scenario parameters).
 """
 from __future__ import annotations
 
@@ -528,7 +529,7 @@ def config_damages(text: str, rng: random.Random, scenario_params: bool = True) 
                         dump_toml(edit(("source", "params", k), lambda t, kk: t.__setitem__(kk, "x"))).encode()))
     out.append(("config unknown table", (text + "\n[telemetry]\nenabled = true\n").encode()))
     out.append(("config unknown top-level key", ("mode = 1\n" + text).encode()))
-    out.append(("config TOML unterminated string", re.sub(r'= "([^"]*)"', r'= "\1', text, count=1).encode()))
+    out.append(("config TOML unterminated string", re.sub(r'(?m)^(\w+ = )"([^"]*)"', r'\1"\2', text, count=1).encode()))
     out.append(("config TOML table header not closed", text.replace("[link]", "[link", 1).encode()))
     out.append(("config TOML duplicate table", (text + "\n[service]\n").encode()))
     out.append(("config non-UTF-8", text.encode().replace(b"[service]", b"[service]\n# \xff\xfe", 1)))
@@ -602,11 +603,13 @@ def build_corpus(work: Path, data_dir: Path = DATA_DIR, seed: int = 17) -> Corpu
             corpus.cases.append(Case(name, "grade", target, folder / fname))
 
     for kind, cfg in (("master_config", ROOT / "configs" / "master.toml"),
-                      ("slave_config", ROOT / "configs" / "slave_t1.toml")):
-        corpus.base[kind] = cfg
+                      ("slave_config", ROOT / "configs" / "slave_t1.toml"),
+                      ("master_config", ROOT / "configs" / "master_sim.toml"),
+                      ("slave_config", ROOT / "configs" / "slave_p1.toml")):
+        corpus.base.setdefault(kind, cfg)
         for i, (name, content) in enumerate(config_damages(cfg.read_text(), rng)):
-            path = _write(work / f"{kind}_{i:04d}" / cfg.name, content)
-            corpus.cases.append(Case(name, kind, path, path))
+            path = _write(work / f"{kind}_{cfg.stem}_{i:04d}" / cfg.name, content)
+            corpus.cases.append(Case(f"{cfg.name}: {name}", kind, path, path))
     return corpus
 
 
@@ -675,11 +678,7 @@ def _run_config(case: Case) -> Outcome:
         else:
             from slave.config import SlaveConfig
             cfg = SlaveConfig.load(case.target)
-        params = getattr(getattr(cfg, "source", None), "params", None)
-        scenario = getattr(getattr(cfg, "source", None), "scenario", None)
-        if isinstance(params, dict) and scenario:
-            from sim.scenarios import check_params
-            check_params(scenario, params, f"{case.target}: [source.params]")
+        del cfg    # loading validates the [source] table too (v2xpos.sources.check_source_table)
     except ValueError as exc:      # ConfigError, ScenarioError
         code = 2
         err.write(str(exc))

@@ -50,8 +50,9 @@ def _number(table: dict, key: str, default: float, where: str, lo: float, hi: fl
     return float(v)
 
 
-def from_config(table: dict, where: str, ctx: SourceContext) -> "RecordingSource":
-    """Build from a ``[source]`` table (without ``type``); errors name ``where`` and the key."""
+def check_table(table: dict, where: str) -> dict:
+    """Validate a ``recording`` ``[source]`` table (without ``type``) without loading anything; the
+    parsed values. SourceError naming ``where`` and the key."""
     _check_keys(table, where)
     path = table.get("dataset")
     if not isinstance(path, str) or not path:
@@ -69,9 +70,15 @@ def from_config(table: dict, where: str, ctx: SourceContext) -> "RecordingSource
                                 or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and x >= 0
                                            for x in outline)):
         raise SourceError(f"{where}.outline_m: expected [front, rear, half_width] in metres (>= 0)")
+    return {"dataset": path, "speed": speed, "sync": sync, "wait_for": tuple(wait_for), "wait_timeout_s": timeout,
+            "outline_m": outline}
+
+
+def from_config(table: dict, where: str, ctx: SourceContext) -> "RecordingSource":
+    """Build from a ``[source]`` table (without ``type``); errors name ``where`` and the key."""
+    v = check_table(table, where)
     try:
-        return RecordingSource(ctx.resolve(path), speed=speed, sync=sync, wait_for=tuple(wait_for),
-                               wait_timeout_s=timeout, outline_m=outline)
+        return RecordingSource(ctx.resolve(v.pop("dataset")), **v)
     except (OSError, ValueError) as exc:
         raise SourceError(f"{where}.dataset: {exc}") from None
 
