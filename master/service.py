@@ -288,7 +288,7 @@ class MasterService:
             try:
                 res = fn(*args)
             except BaseException as exc:  # noqa: BLE001 -- handed to the awaiting task
-                loop.call_soon_threadsafe(lambda: fut.done() or fut.set_exception(exc))
+                loop.call_soon_threadsafe(lambda e=exc: fut.done() or fut.set_exception(e))
             else:
                 loop.call_soon_threadsafe(lambda: fut.done() or fut.set_result(res))
 

@@ -160,7 +160,6 @@ def convoy(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 100.
     actors: dict[str, Actor] = {}
     ego_shift = (n_lane - 1) * headway_s
     body = Geometry.box(front_m=3.8, rear_m=1.0, half_width_m=0.9)
-    link = LinkImpairment(latency_ms=latency_ms, jitter_ms=jitter_ms)
 
     actors["ego"] = Actor("ego", "vehicle", "master", lead.shifted(ego_shift), body, imu_grade=imu_grade,
                           seed=seed * 1000 + 1)

@@ -41,6 +41,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "fanin": ("bench.fanin", "slaves at 100 Hz one master core sustains with e2e p99 <= 10 ms"),
     "soak": ("bench.soak", "long run: sent / received / recorded / lost, memory growth"),
     "trust": ("v2xpos.security_bench", "forged / replayed messages, fuzzing, fault scenarios"),
+    "grading": ("bench.grading", "IMU grading on simulated vehicles: fault sweep, lidar rate check"),
     "fuzz": ("v2xpos.fuzz", "fuzz the message decoder and dataset readers"),
     "monitor": ("v2xpos.monitor.command", "monitor CPU and status-change delay at N targets x rate"),
     "corpus": ("v2xpos.corpus", "broken inputs through replay/calibrate/grade/config loading: tracebacks, silent exits"),

@@ -24,7 +24,6 @@ import math
 import sys
 from pathlib import Path
 
-import numpy as np
 
 from v2xpos.types import FixStatus, NavState
 
