@@ -77,6 +77,8 @@ def run_demo(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 10
     fleet.start()
     try:
         start = release_when_ready(start_file, list(plan.configs), lead_s=STARTUP_LEAD_S, fleet=fleet)
+        print(f"demo: watch it with `v2xpos monitor --connect tcp/127.0.0.1:{plan.router_port} --web`; "
+              f"recording {out / 'session.mcap'}", file=log, flush=True)
         print(f"demo: all processes ready after {start - STARTUP_LEAD_S - t_launch:.1f} s; scenario epoch at start stamp",
               file=log, flush=True)
         if live:
