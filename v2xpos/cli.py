@@ -27,6 +27,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "soak": ("master.bench_soak", "long run: sent / received / recorded / lost, memory growth"),
     "trust": ("v2xpos.security_bench", "forged / replayed messages, fuzzing, fault scenarios"),
     "fuzz": ("v2xpos.fuzz", "fuzz the message decoder and dataset readers"),
+    "calibration": ("sim.bench_calibration", "Monte-Carlo coverage of calibrate's estimates and sds (simulated drives)"),
 }
 
 
