@@ -208,6 +208,7 @@ class Calibration:
     table: object | None = None          # datasets.calibration.CalibrationTable written back
     tuning: dict = field(default_factory=dict)
     source: str = ""
+    online: list = field(default_factory=list)    # ``agreement`` rows: offline vs the live filter's states
 
 
 CALIBRATION_REPLAY_CONFIG = {"gate_probability": 1.0}
@@ -345,6 +346,37 @@ class Estimator:
         th[P_LEVER_ARM] = np.asarray(rep.get("lever_arm_m", self.ds.lever_arm_m), float) - np.asarray(self.ds.lever_arm_m)
         self.check_velocity_lag(th)
         return th
+
+    def online(self) -> dict:
+        """The live filter's own effect states on this recording: ``v2xpos replay``'s filter (its
+        default effect states and noise) with the effect priors of this fit, one run without outages.
+        Returns {parameter index: (value at the end of the drive, sd)} in the ``inject.P_*`` units
+        (IMU offset, mounting, lever arm relative to the declared one)."""
+        from v2xpos.ins.replay import OutageSchedule as InsSchedule
+        from v2xpos.ins.replay import config_for
+        from v2xpos.ins.replay import replay as ins_replay
+        p = self.prior_sd
+        cfg = config_for(self.ds, effect_initial_sd={"lever_arm": p[P_LEVER_ARM].copy(),
+                                                     "imu_time_offset": float(p[P_TIME_OFFSET]),
+                                                     "misalignment": p[P_MISALIGN].copy()})
+        self.bar.start("online effect states (agreement)")
+        res = ins_replay(self.ds, InsSchedule(0.0, 0.0, 0.0), cfg=cfg, progress=self.progress, keep_series=False)
+        self.bar.done()
+        self.replays += 1
+        rep = res.summary.get("effects", {})
+        sds = rep.get("sd", {})
+        out = {}
+        if "imu_time_offset" in sds:
+            out[P_TIME_OFFSET] = (float(rep["imu_time_offset_s"]), float(sds["imu_time_offset"][0]))
+        if "misalignment" in sds:
+            for k in range(3):
+                out[P_MISALIGN.start + k] = (float(rep["misalignment_rad"][k]), float(sds["misalignment"][k]))
+        if "lever_arm" in sds:
+            lever = np.asarray(rep["lever_arm_m"], float) - np.asarray(self.ds.lever_arm_m, float)
+            for k in range(3):
+                out[P_LEVER_ARM.start + k] = (float(lever[k]), float(sds["lever_arm"][k]))
+        self.online_t_end_s = float(self.ds.imu.t_s[-1] - self.t0_s)
+        return out
 
     def tune(self, theta: np.ndarray, iterations: int = 2) -> dict:
         """Make the fit replays' filter match the recording (``tuning``): IMU white noise from the
@@ -604,13 +636,34 @@ def calibrate_dataset(ds: Dataset, schedule: OutageSchedule, progress: bool = Tr
         table = calibration_table(f.theta, f.sd, f.significant, f.determined, est.prior_sd, ds.lever_arm_sd_m,
                                   source=source)
         after = metrics_replay(with_calibration(ds, table), schedule, bar, "after: the calibrated vehicle")
+        online = agreement(f, est.online(), est.online_t_end_s)
         base_fit = est._replay(ds, np.zeros(N_PARAMS), "declared model (report)")
     finally:
         bar.close()
     return Calibration(dataset=ds.name, fit=f, problem=prob, theta_coarse=theta_c, fit_first=f1,
                        fit_second=f2, effects_significant=sig, before=before, after=after,
                        log_before=base_fit.log, log_after=out_fit.log, coarse_report=est.coarse_report,
-                       replays=est.replays + 2, table=table, tuning=est.tuning, source=source)
+                       replays=est.replays + 2, table=table, tuning=est.tuning, source=source, online=online)
+
+
+def agreement(f: Fit, online: dict, t_end_s: float) -> list[dict]:
+    """Offline estimate against the live filter's state per effect: ``z = (online - offline) /
+    sqrt(sd_on^2 + sd_off^2)``, agreeing when |z| <= 2. The offline IMU offset is moved to the end
+    of the drive with its clock drift (the online state is the offset at that time)."""
+    rows = []
+    for i, (v_on, sd_on) in sorted(online.items()):
+        v_off, var_off = float(f.theta[i]), float(f.sd[i]) ** 2
+        if i == P_TIME_OFFSET:
+            g = np.zeros(N_PARAMS)
+            g[P_TIME_OFFSET], g[P_CLOCK_DRIFT] = 1.0, 1e-6 * t_end_s
+            v_off = float(g @ f.theta)
+            var_off = max(float(g @ f.cov @ g), var_off)
+        comb = np.sqrt(var_off + sd_on ** 2)
+        z = (v_on - v_off) / comb if comb > 0 else np.inf
+        rows.append({"index": int(i), "name": PARAM_NAMES[i], "offline": v_off, "offline_sd": float(np.sqrt(var_off)),
+                     "online": v_on, "online_sd": sd_on, "z": float(z), "agree": bool(abs(z) <= 2.0),
+                     "determined": bool(f.determined[i])})
+    return rows
 
 
 # ---------------------------------------------------------------------------------- JSON
@@ -638,7 +691,9 @@ def to_json(cal: Calibration) -> dict:
     return {"dataset": cal.dataset,
             "effects": effects_json(cal.fit),
             "before": {k: cal.before[k] for k in METRIC_KEYS},
-            "after": {k: cal.after[k] for k in METRIC_KEYS}}
+            "after": {k: cal.after[k] for k in METRIC_KEYS},
+            "online_agreement": {r["name"]: {k: r[k] for k in ("offline", "offline_sd", "online", "online_sd", "z", "agree")}
+                                 for r in cal.online}}
 
 
 # ---------------------------------------------------------------------------------- command

@@ -72,6 +72,15 @@ def summary_text(cal) -> str:
     lines += ["", "significant: beyond 3 sd and confirmed by replays without it (docs/calibration.md); "
               "not determined: the recording cannot tell it (sd not below half the prior's)", ""]
     lines += _table(("error", "before", "after", "unit"), metric_rows(cal.before, cal.after))
+    if getattr(cal, "online", None):
+        rows = []
+        for r in cal.online:
+            _, label, unit, k = DISPLAY[r["index"]]
+            rows.append((label, f"{r['offline'] * k:+.4g} +- {r['offline_sd'] * k:.2g}",
+                         f"{r['online'] * k:+.4g} +- {r['online_sd'] * k:.2g}", unit, f"{r['z']:+.1f}",
+                         "yes" if r["agree"] else "NO"))
+        lines += ["", "the live filter's own effect states (v2xpos replay's filter, same priors) against this calibration:"]
+        lines += _table(("effect", "offline", "online (end of drive)", "unit", "z", "within 2 sd"), rows)
     t = cal.tuning or {}
     if t.get("gyro_noise_rps_rthz") is not None:
         lines += ["", f"fit predictor: IMU noise from the samples, gyro {t['gyro_noise_rps_rthz']:.2e} rad/s/sqrt(Hz), "
