@@ -13,10 +13,19 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
+# Debian packages the browser test needs (headless Chromium + its WebDriver); installed only when
+# missing, as root (CI) or through sudo; otherwise the test says why it is skipped.
+browser-deps:
+	@if command -v chromium >/dev/null && command -v chromedriver >/dev/null; then :; \
+	elif ! command -v apt-get >/dev/null; then echo "browser-deps: no apt-get; browser test will be skipped"; \
+	elif [ "$$(id -u)" = 0 ]; then apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver >/dev/null || echo "browser-deps: apt-get install failed; browser test will be skipped"; \
+	elif command -v sudo >/dev/null && sudo -n true 2>/dev/null; then sudo apt-get update -qq && sudo DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver >/dev/null || echo "browser-deps: apt-get install failed; browser test will be skipped"; \
+	else echo "browser-deps: not root; install chromium chromium-driver to run the browser test"; fi
+
 demo: $(STAMP)
 	$(BIN)/v2xpos demo --out out/demo
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
-.PHONY: install demo test
+.PHONY: install demo test browser-deps

@@ -22,14 +22,22 @@
     [source.params]
     vehicles = 4
 
-    [output.can]
+    [output.can]                      # docs/protocol.md §5
     enabled = true
-    interface = "virtual"             # socketcan on a vehicle
+    interface = "virtual"             # python-can interface: "socketcan" (channel "can0") on a vehicle
     channel = "v2xpos"
-    rate_hz = 0                       # max updates per target per second (0 = every result)
+    bitrate = 500000                  # optional; SocketCAN takes it from `ip link set can0 type can bitrate ...`
+    fd = false                        # CAN FD bus (frames stay 8 bytes, layout unchanged)
+    data_bitrate = 2000000            # optional, CAN FD data phase
+    receive_own_messages = false
+    rate_hz = 25                      # max updates per target per second (0 = every result)
+    status_hz = 10                    # MASTER_STATUS / MASTER_SIGMA frames per second
+    [output.can.slots]                # fixed target -> slot (0..63); other ids: first free slot
+    car-2 = 0
+    ped-1 = 7
     [output.udp]
     enabled = true
-    host = "127.0.0.1"
+    host = "127.0.0.1"                # any unicast address or host name (not multicast/broadcast)
     port = 47001
     [output.zenoh]
     enabled = true                    # republish RelativeResult on .../master/<id>/relative
@@ -57,6 +65,7 @@
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -81,7 +90,13 @@ class MasterConfig:
     can_enabled: bool = False
     can_interface: str = "virtual"
     can_channel: str = "v2xpos"
-    can_rate_hz: float = 0.0
+    can_rate_hz: float = 25.0
+    can_status_hz: float = 10.0
+    can_bitrate: int | None = None
+    can_fd: bool = False
+    can_data_bitrate: int | None = None
+    can_receive_own_messages: bool = False
+    can_slots: dict = field(default_factory=dict)
     udp_enabled: bool = False
     udp_host: str = "127.0.0.1"
     udp_port: int = 47001
@@ -129,21 +144,7 @@ class MasterConfig:
         known = take(s, "known_vehicles", list, [], w)
         if not all(isinstance(x, str) for x in known):
             raise ConfigError(f"{w}.known_vehicles: expected a list of strings")
-        out = take(d, "output", dict, {}, path)
-        check_keys(out, {"can", "udp", "zenoh"}, f"{path}: [output]")
-        wc, wu, wz = f"{path}: [output.can]", f"{path}: [output.udp]", f"{path}: [output.zenoh]"
-        can_t = take(out, "can", dict, {}, f"{path}: [output]")
-        udp_t = take(out, "udp", dict, {}, f"{path}: [output]")
-        zen_t = take(out, "zenoh", dict, {}, f"{path}: [output]")
-        check_keys(can_t, {"enabled", "interface", "channel", "rate_hz"}, wc)
-        can_rate = take(can_t, "rate_hz", float, 0.0, wc)
-        if can_rate < 0:
-            raise ConfigError(f"{wc}.rate_hz: must be >= 0, got {can_rate}")
-        check_keys(udp_t, {"enabled", "host", "port"}, wu)
-        check_keys(zen_t, {"enabled"}, wz)
-        port = take(udp_t, "port", int, 47001, wu)
-        if not 0 < port < 65536:
-            raise ConfigError(f"{wu}.port: {port} outside 1..65535")
+        outputs = output_from_table(take(d, "output", dict, {}, path), path)
         sc = take(d, "scene", dict, {}, path)
         check_keys(sc, {"geojson", "rate_hz"}, f"{path}: [scene]")
         scene_hz = take(sc, "rate_hz", float, 10.0, f"{path}: [scene]")
@@ -169,10 +170,7 @@ class MasterConfig:
             link=link_from_table(take(d, "link", dict, {"mode": "router", "listen": ["tcp/127.0.0.1:7447"]}, path),
                                  f"{path}: [link]"),
             source=SourceConfig.from_table(take(d, "source", dict, {}, path), f"{path}: [source]"),
-            can_enabled=take(can_t, "enabled", bool, False, wc), can_interface=take(can_t, "interface", str, "virtual", wc),
-            can_channel=take(can_t, "channel", str, "v2xpos", wc), can_rate_hz=can_rate,
-            udp_enabled=take(udp_t, "enabled", bool, False, wu), udp_host=take(udp_t, "host", str, "127.0.0.1", wu),
-            udp_port=port, zenoh_enabled=take(zen_t, "enabled", bool, True, wz),
+            **outputs,
             geojson=take(sc, "geojson", str, None, f"{path}: [scene]"), scene_hz=scene_hz,
             results_npz=take(rec, "results_npz", str, None, wr), summary_json=take(rec, "summary_json", str, None, wr),
             evaluate_uncompensated=take(rec, "evaluate_uncompensated", bool, False, wr),
@@ -183,3 +181,83 @@ class MasterConfig:
             max_age_s=take(sec, "max_age_s", float, 5.0, ws),
             future_tolerance_s=take(sec, "future_tolerance_s", float, 0.05, ws), replay_window=window,
             path=path)
+
+    def can_bus_kwargs(self) -> dict:
+        """python-can ``Bus`` options of ``[output.can]`` (besides interface and channel)."""
+        kw = {"receive_own_messages": self.can_receive_own_messages}
+        if self.can_bitrate is not None:
+            kw["bitrate"] = self.can_bitrate
+        if self.can_fd:
+            kw["fd"] = True
+            if self.can_data_bitrate is not None:
+                kw["data_bitrate"] = self.can_data_bitrate
+        return kw
+
+
+CAN_INTERFACES_HINT = ("socketcan", "virtual")
+"""The interfaces this project runs and tests: SocketCAN on a vehicle, python-can's virtual bus in tests."""
+
+
+def output_from_table(out: dict, path: str) -> dict:
+    """The MasterConfig fields of the ``[output]`` table (``[output.can]``, ``[output.udp]``,
+    ``[output.zenoh]``), validated; ConfigError naming the file and key otherwise."""
+    check_keys(out, {"can", "udp", "zenoh"}, f"{path}: [output]")
+    wc, wu, wz = f"{path}: [output.can]", f"{path}: [output.udp]", f"{path}: [output.zenoh]"
+    can_t = take(out, "can", dict, {}, f"{path}: [output]")
+    udp_t = take(out, "udp", dict, {}, f"{path}: [output]")
+    zen_t = take(out, "zenoh", dict, {}, f"{path}: [output]")
+    check_keys(can_t, {"enabled", "interface", "channel", "rate_hz", "status_hz", "bitrate", "fd", "data_bitrate",
+                       "receive_own_messages", "slots"}, wc)
+    check_keys(udp_t, {"enabled", "host", "port"}, wu)
+    check_keys(zen_t, {"enabled"}, wz)
+    can_rate = take(can_t, "rate_hz", float, 25.0, wc)
+    if not 0 <= can_rate <= 1000:
+        raise ConfigError(f"{wc}.rate_hz: {can_rate} outside 0..1000 (0 = every result)")
+    status_hz = take(can_t, "status_hz", float, 10.0, wc)
+    if not 0 < status_hz <= 100:
+        raise ConfigError(f"{wc}.status_hz: {status_hz} outside (0, 100]")
+    interface = take(can_t, "interface", str, "virtual", wc)
+    from can.interfaces import VALID_INTERFACES
+    if interface not in VALID_INTERFACES:
+        from difflib import get_close_matches
+        near = get_close_matches(interface, sorted(VALID_INTERFACES), n=1)
+        hint = f"; did you mean {near[0]!r}?" if near else f" (python-can interfaces: {sorted(VALID_INTERFACES)})"
+        raise ConfigError(f"{wc}.interface: {interface!r} is not a python-can interface{hint}")
+    channel = take(can_t, "channel", str, "v2xpos", wc)
+    if not channel:
+        raise ConfigError(f"{wc}.channel: empty")
+    bitrates = {}
+    for key, lo, hi in (("bitrate", 10_000, 1_000_000), ("data_bitrate", 10_000, 16_000_000)):
+        v = take(can_t, key, int, None, wc)
+        if v is not None and not lo <= v <= hi:
+            raise ConfigError(f"{wc}.{key}: {v} outside {lo}..{hi} bit/s")
+        bitrates[key] = v
+    fd = take(can_t, "fd", bool, False, wc)
+    if bitrates["data_bitrate"] is not None and not fd:
+        raise ConfigError(f"{wc}.data_bitrate: only with fd = true")
+    from v2xpos.output.can import N_SLOTS
+    slots = take(can_t, "slots", dict, {}, wc)
+    seen: dict = {}
+    for vid, slot in slots.items():
+        if not re.fullmatch(r"[A-Za-z0-9_.\-]{1,32}", vid):
+            raise ConfigError(f"{wc}.slots: {vid!r} is not a vehicle id (1-32 characters of [A-Za-z0-9_.-])")
+        if not isinstance(slot, int) or isinstance(slot, bool) or not 0 <= slot < N_SLOTS:
+            raise ConfigError(f"{wc}.slots.{vid}: {slot!r} is not a slot number 0..{N_SLOTS - 1}")
+        if slot in seen:
+            raise ConfigError(f"{wc}.slots: {seen[slot]!r} and {vid!r} both on slot {slot}")
+        seen[slot] = vid
+    host = take(udp_t, "host", str, "127.0.0.1", wu)
+    from v2xpos.output.udp import check_destination
+    try:
+        check_destination(host)
+    except ValueError as exc:
+        raise ConfigError(f"{wu}.host: {exc}") from None
+    port = take(udp_t, "port", int, 47001, wu)
+    if not 0 < port < 65536:
+        raise ConfigError(f"{wu}.port: {port} outside 1..65535")
+    return dict(can_enabled=take(can_t, "enabled", bool, False, wc), can_interface=interface, can_channel=channel,
+                can_rate_hz=can_rate, can_status_hz=status_hz, can_bitrate=bitrates["bitrate"], can_fd=fd,
+                can_data_bitrate=bitrates["data_bitrate"],
+                can_receive_own_messages=take(can_t, "receive_own_messages", bool, False, wc), can_slots=dict(slots),
+                udp_enabled=take(udp_t, "enabled", bool, False, wu), udp_host=host, udp_port=port,
+                zenoh_enabled=take(zen_t, "enabled", bool, True, wz))

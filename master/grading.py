@@ -13,6 +13,16 @@ IMU payload (msgpack map): ``{"T": "imu", "ver": 1, "fleet": str, "id": str, "ra
 "mounting_xyz_deg": {unit: [x, y, z]}, "units": {unit: [[t_gps_s, ax, ay, az, gx, gy, gz], ...]}}``
 (m/s^2, rad/s, unit axes; mounting: X-Y-Z Euler angles unit -> vehicle body, ``docs/quality.md``).
 Malformed payloads are counted and skipped.
+
+No false degradation (``GradeHysteresis``, docs/quality.md §"Persistence"): what is published as a
+unit's grade is the grader's raw grade filtered over consecutive regrades. A unit is published
+"fail" only once its raw grade was "fail" on ``FAIL_CONFIRM_REGRADES`` consecutive regrades, and stays
+"fail" until it was not "fail" on ``FAIL_CLEAR_REGRADES`` consecutive regrades; a regrade in which
+all of three or more units fail is inconclusive (no evidence either way); a raw "fail" that is not
+(yet) persistent is published "warn" and listed in the vehicle's ``warnings`` (a status field: never
+the CAN/UDP/zenoh ``degraded`` flag, which follows the published "fail"). The master's
+``_on_grades`` marks a vehicle degraded when a published unit grade is "fail", so it needs no
+knowledge of the rule.
 """
 from __future__ import annotations
 
@@ -31,6 +41,13 @@ import numpy as np
 MAX_ROWS = 10_000
 GRADER_NICE = 10
 MAX_UNITS = 16
+FAIL_CONFIRM_REGRADES = 2
+"""Consecutive regrades with a raw "fail" before a unit is published "fail" (the vehicle DEGRADED):
+the demo's false degradation was one regrade of raw "fail" on a healthy vehicle (docs/quality.md)."""
+FAIL_CLEAR_REGRADES = 3
+"""Consecutive regrades without a raw "fail" before a published "fail" is lifted."""
+HISTORY_REGRADES = 16
+"""Regrades kept per vehicle in the published ``history`` (raw and published grades)."""
 
 
 class ImuPayloadError(ValueError):
@@ -72,12 +89,83 @@ def parse_imu_payload(data: bytes) -> dict:
     return {"id": vid, "fleet": m.get("fleet"), "units": out, "mounting": angles}
 
 
-class FleetGrader:
-    """One VehicleGrader per vehicle, created on the vehicle's first IMU payload."""
+class GradeHysteresis:
+    """Per-unit persistence filter of one vehicle's raw grades (module docstring; docs/quality.md).
 
-    def __init__(self, history_s: float = 60.0, min_history_s: float = 10.0, regrade_every_s: float = 5.0):
+    ``update(raw)`` takes the raw grades of one regrade {unit: "pass"|"warn"|"fail"|None} and returns
+    the published ones: "fail" once the unit's raw grade was "fail" on ``confirm`` consecutive
+    regrades, kept until it was not "fail" on ``clear`` consecutive regrades; a raw "fail" before
+    that is "warn" (a transient, listed by ``warnings``); otherwise the raw grade. None (no grade
+    yet) neither confirms nor clears. A regrade in which every unit of a vehicle with three or more
+    units is raw "fail" is *inconclusive*: the units disagree with each other and none stands out
+    (seen with too little motion for the correlation checks, e.g. the first regrades of a drive);
+    it counts as None for every unit.
+    """
+
+    def __init__(self, confirm: int = FAIL_CONFIRM_REGRADES, clear: int = FAIL_CLEAR_REGRADES):
+        if confirm < 1 or clear < 1:
+            raise ValueError("confirm and clear must be >= 1 regrade")
+        self.confirm, self.clear = confirm, clear
+        self.fail_streak: dict[str, int] = {}
+        self.ok_streak: dict[str, int] = {}
+        self.failed: dict[str, bool] = {}
+        self.published: dict[str, str | None] = {}
+        self.transient: dict[str, int] = {}
+        self.inconclusive = False
+        self.inconclusive_regrades = 0
+
+    def update(self, raw: dict) -> dict:
+        self.inconclusive = len(raw) >= 3 and all(g == "fail" for g in raw.values())
+        self.inconclusive_regrades += self.inconclusive
+        out = {}
+        for unit, grade in raw.items():
+            evidence = None if self.inconclusive else grade
+            if evidence == "fail":
+                self.fail_streak[unit] = self.fail_streak.get(unit, 0) + 1
+                self.ok_streak[unit] = 0
+            elif evidence is not None:
+                self.ok_streak[unit] = self.ok_streak.get(unit, 0) + 1
+                self.fail_streak[unit] = 0
+            failed = self.failed.get(unit, False)
+            if not failed and self.fail_streak.get(unit, 0) >= self.confirm:
+                failed = True
+            elif failed and self.ok_streak.get(unit, 0) >= self.clear:
+                failed = False
+            self.failed[unit] = failed
+            out[unit] = "fail" if failed else "warn" if grade == "fail" else grade
+            if grade == "fail" and not failed:
+                self.transient[unit] = self.transient.get(unit, 0) + 1
+        self.published = out
+        return out
+
+    def warnings(self) -> dict:
+        """{unit: text} of the units whose last raw grade is a "fail" not published as such."""
+        out = {}
+        for u, g in self.published.items():
+            if g != "warn":
+                continue
+            if self.inconclusive:
+                out[u] = "inconclusive regrade: every unit failed, none stands out (too little motion?)"
+            elif self.fail_streak.get(u, 0) > 0:
+                out[u] = f"transient fail ({self.fail_streak[u]} of {self.confirm} consecutive regrades)"
+        return out
+
+
+class FleetGrader:
+    """One VehicleGrader per vehicle, created on the vehicle's first IMU payload; its raw grades go
+    through a ``GradeHysteresis`` once per regrade (a new grading time ``t_s``)."""
+
+    def __init__(self, history_s: float = 60.0, min_history_s: float = 10.0, regrade_every_s: float = 5.0,
+                 confirm_regrades: int = FAIL_CONFIRM_REGRADES, clear_regrades: int = FAIL_CLEAR_REGRADES):
         self.history_s, self.min_history_s, self.regrade_every_s = history_s, min_history_s, regrade_every_s
+        self.confirm_regrades, self.clear_regrades = confirm_regrades, clear_regrades
         self.graders: dict = {}
+        self.filters: dict[str, GradeHysteresis] = {}
+        self.last_graded_t: dict[str, float] = {}
+        self.history: dict[str, list] = {}
+        self.regrades: dict[str, int] = {}
+        self.degraded_regrades: dict[str, int] = {}
+        self.first_degraded_t: dict[str, float | None] = {}
         self.malformed = 0
         self.lock = threading.Lock()
 
@@ -97,17 +185,47 @@ class FleetGrader:
                 g = self.graders[p["id"]] = VehicleGrader(
                     sorted(p["units"]), history_s=self.history_s, min_history_s=self.min_history_s,
                     regrade_every_s=self.regrade_every_s, mounting_xyz_deg=p["mounting"] or None)
+                self.filters[p["id"]] = GradeHysteresis(self.confirm_regrades, self.clear_regrades)
         for uid, (t, acc, gyro) in p["units"].items():
             g.add(uid, t, gyro, acc)
 
+    def _filtered(self, vid: str, r: dict) -> dict:
+        """Published grades of vehicle ``vid`` from its grader's answer ``r`` (one filter step per new regrade)."""
+        flt = self.filters[vid]
+        if r["status"] == "graded" and r.get("t_s") is not None and r["t_s"] != self.last_graded_t.get(vid):
+            self.last_graded_t[vid] = r["t_s"]
+            units = flt.update(r["units"])
+            self.regrades[vid] = self.regrades.get(vid, 0) + 1
+            degraded = any(v == "fail" for v in units.values())
+            if degraded:
+                self.degraded_regrades[vid] = self.degraded_regrades.get(vid, 0) + 1
+                if self.first_degraded_t.get(vid) is None:
+                    self.first_degraded_t[vid] = r["t_s"]
+            hist = self.history.setdefault(vid, [])
+            hist.append({"t_s": r["t_s"], "raw": dict(r["units"]), "published": dict(units)})
+            del hist[:-HISTORY_REGRADES]
+        units = dict(flt.published) if flt.published else {u: None for u in r["units"]}
+        return {"status": r["status"], "units": units, "raw_units": dict(r["units"]),
+                "warnings": flt.warnings(), "regrades": self.regrades.get(vid, 0),
+                "degraded_regrades": self.degraded_regrades.get(vid, 0),
+                "first_degraded_t_s": self.first_degraded_t.get(vid),
+                "transient_fails": dict(flt.transient), "inconclusive_regrades": flt.inconclusive_regrades,
+                "rule": {"confirm_regrades": flt.confirm, "clear_regrades": flt.clear},
+                "history": list(self.history.get(vid, [])),
+                "rejected_samples": r["rejected_samples"], "t_s": r.get("t_s")}
+
     def grades(self) -> dict:
+        """{vehicle id: {"status", "units" (published, hysteresis-filtered), "raw_units", "warnings",
+        "regrades", "degraded_regrades", "first_degraded_t_s", "transient_fails", "rule", "history" (last
+        HISTORY_REGRADES regrades: raw and published), "rejected_samples", "t_s"}} -- call periodically
+        (the worker: every second); each new regrade (new grading time) is one filter step. The
+        counters are cumulative over the run: ``degraded_regrades`` > 0 means the vehicle was DEGRADED
+        at some point."""
         with self.lock:
             graders = dict(self.graders)
         out = {}
         for vid, g in graders.items():
-            r = g.grades()
-            out[vid] = {"status": r["status"], "units": r["units"], "rejected_samples": r["rejected_samples"],
-                        "t_s": r.get("t_s")}
+            out[vid] = self._filtered(vid, g.grades())
         return out
 
 

@@ -1,34 +1,84 @@
 """Output sinks of the master pipeline: each has ``write(result)`` and counts what it sent.
 
 * ``CanSink`` -- ``v2xpos.output.can.CanOutput`` (DBC frames; python-can ``virtual`` or socketcan);
-  scene results as LANE / OBJECT frames (``write_scene``);
+  scene results as LANE / OBJECT frames (``write_scene``); the master status frames
+  (``write_master_status``, to be called at ``[output.can] status_hz``);
 * ``UdpSink`` -- ``v2xpos.output.udp.UdpOutput``, one datagram per flush: the results of one message
-  or of one dispatch batch (layout in docs/protocol.md)
+  or of one dispatch batch, each record with its own time of validity (layout in docs/protocol.md)
   and one datagram of lane / object records per scene update;
 * ``ZenohSink`` -- ``encode_relative`` republished on ``v2xpos/<fleet>/master/<id>/relative``.
+
+``CanSink.from_config(cfg)`` / ``UdpSink.from_config(cfg)`` build them from a ``MasterConfig``
+(``[output.can]`` / ``[output.udp]``); a bus that cannot be opened is a ``ConfigError`` naming the
+file, interface and channel. ``master_status(nav, ...)`` makes the dict ``write_master_status`` takes.
 """
 from __future__ import annotations
 
+from typing import Any, Mapping
 
+from slave.config import ConfigError
 from v2xpos.link import Publisher
 from v2xpos.wire import RelativeResult, encode_relative
 
 
+def summary_provenance(cfg: Any, seeds: Mapping[str, Any] | None = None) -> dict:
+    """The ``"provenance"`` object of the master summary JSON (``v2xpos.provenance``): software,
+    the master config file's hash (and its source's dataset / params when set), seeds, process start."""
+    from v2xpos.provenance import provenance
+    configs: dict = {"master": cfg.path}
+    src = getattr(cfg, "source", None)
+    dataset = getattr(src, "dataset", None)
+    if dataset:
+        configs["source_dataset"] = dataset
+    params = getattr(src, "params", None)
+    if params:
+        configs["source_params"] = dict(params)
+    if seeds is None and isinstance(params, Mapping) and "seed" in params:
+        seeds = {"source": params["seed"]}
+    return provenance("master", configs, seeds=seeds)
+
+
+def master_status(nav: Any, t_gps_s: float | None = None, heading_valid: bool | None = None,
+                  clock_synced: bool | None = None, clock_offset_s: float | None = None) -> dict:
+    """The ``write_master_status`` dict of the master's latest filter state ``nav`` (NavState or
+    StateMessage; None before the first state): time (``t_gps_s`` or the state's), fix, position sd
+    (N, E, D) and yaw sd; the heading and clock flags when the caller knows them (None = unknown)."""
+    st: dict = {"heading_valid": heading_valid, "clock_synced": clock_synced, "clock_offset_s": clock_offset_s}
+    if nav is None:
+        st.update(t_gps_s=t_gps_s if t_gps_s is not None else 0.0, master_fix=None)
+        return st
+    st.update(t_gps_s=float(nav.t_s if t_gps_s is None else t_gps_s), master_fix=int(nav.fix),
+              pos_sd_m=[float(x) for x in nav.pos_sd_m], yaw_sd_rad=float(nav.att_sd_rad[2]))
+    return st
+
+
 class CanSink:
-    """Target results as CAN frames (slots assigned per target id by the CanOutput).
+    """Target results as CAN frames (slots: ``slots`` {id: slot} fixed, others first come first served).
 
     ``rate_hz``: at most this many updates per target per second (None = every result); a change of
-    status is always sent at once. A 1 Mbit/s bus carries about 8,000 8-byte frames per second, i.e.
-    5-frame target updates for 64 targets at 25 Hz; UDP and zenoh carry every result regardless.
+    status is always sent at once. A target update with kinematics is 9 frames (docs/protocol.md §5):
+    a 1 Mbit/s bus carries about 8,000 8-byte frames per second, i.e. 64 targets at 13 Hz or 16 at
+    50 Hz; UDP and zenoh carry every result regardless.
     """
 
     def __init__(self, channel: str = "v2xpos", interface: str = "virtual", dbc_path: str | None = None,
-                 rate_hz: float | None = None, **bus_kwargs):
+                 rate_hz: float | None = None, slots: Mapping[str, int] | None = None, **bus_kwargs):
         from v2xpos.output.can import CanOutput
-        self.out = CanOutput(channel=channel, interface=interface, dbc_path=dbc_path, **bus_kwargs)
+        self.out = CanOutput(channel=channel, interface=interface, dbc_path=dbc_path, slots=slots, **bus_kwargs)
         self.min_period_s = 0.0 if not rate_hz else 1.0 / rate_hz
         self._last: dict[str, tuple[float, int]] = {}
         self.skipped = 0
+        self.status_frames = 0
+
+    @classmethod
+    def from_config(cls, cfg: Any) -> "CanSink":
+        """CanSink of ``cfg``'s ``[output.can]``; ConfigError (one line) when the bus cannot be opened."""
+        from v2xpos.output.can import CanBusError
+        try:
+            return cls(channel=cfg.can_channel, interface=cfg.can_interface, rate_hz=cfg.can_rate_hz or None,
+                       slots=cfg.can_slots, **cfg.can_bus_kwargs())
+        except CanBusError as exc:
+            raise ConfigError(f"{cfg.path}: [output.can]: {exc}") from None
 
     @property
     def frames(self) -> int:
@@ -48,20 +98,35 @@ class CanSink:
         """LANE / OBJECT frames numbered as in docs/protocol.md §5 (``CanOutput.send_scene``)."""
         self.out.send_scene(scene_result)
 
+    def write_master_status(self, status: Mapping[str, Any]) -> None:
+        """MASTER_STATUS + MASTER_SIGMA frames (``CanOutput.send_master_status``; keys ``t_gps_s``,
+        ``master_fix``, ``heading_valid``, ``pos_sd_m``, ``yaw_sd_rad``, ``clock_synced``,
+        ``clock_offset_s``; ``master_status(nav, ...)`` makes it). Call at ``[output.can] status_hz``."""
+        self.status_frames += self.out.send_master_status(status)
+
     def close(self) -> None:
         self.out.close()
 
 
 class UdpSink:
-    """UDP datagrams to a loopback address by default: ``write`` queues a result, ``flush`` sends the
+    """UDP datagrams to a configured unicast host: ``write`` queues a result, ``flush`` sends the
     queued results as one datagram (the pipeline flushes after every message, or once per dispatch
-    batch); the header's sequence number is the last result's. Scene updates go out at once."""
+    batch); every record carries its own time of validity and sequence number, the header the last
+    result's. Scene updates go out at once."""
 
-    def __init__(self, host: str = "127.0.0.1", port: int = 47001, allow_remote: bool = False):
+    def __init__(self, host: str = "127.0.0.1", port: int = 47001):
         from v2xpos.output.udp import MAX_DATAGRAM_BYTES, TARGET, UdpOutput
-        self.out = UdpOutput(host=host, port=port, allow_remote=allow_remote)
+        self.out = UdpOutput(host=host, port=port)
         self.max_targets = (MAX_DATAGRAM_BYTES - 64) // TARGET.size
         self._queued: list[RelativeResult] = []
+
+    @classmethod
+    def from_config(cls, cfg: Any) -> "UdpSink":
+        """UdpSink of ``cfg``'s ``[output.udp]``; ConfigError when the destination is refused."""
+        try:
+            return cls(cfg.udp_host, cfg.udp_port)
+        except (ValueError, OSError) as exc:
+            raise ConfigError(f"{cfg.path}: [output.udp]: {exc}") from None
 
     @property
     def datagrams(self) -> int:

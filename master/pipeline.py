@@ -49,6 +49,7 @@ import numpy as np
 
 from v2xpos.relative import check_latency, evaluate_target
 from v2xpos.stats import LatencyHistogram
+from v2xpos.types import FixStatus
 from v2xpos.wire import FixSide, RelativeResult, StateMessage, TargetStatus, WireError, decode_state
 
 REJECT_MALFORMED = "malformed"
@@ -130,6 +131,8 @@ class MasterPipeline:
         self.tracks: dict[str, TargetTrack] = {}
         self.rejected: Counter = Counter()
         self.degraded_vehicles: set[str] = set()
+        self.master_fix = FixStatus.NONE
+        """Fix of the master state of the last handled message (or given to ``tick``)."""
         self.seq = 0
         self.processed = 0
         self.pipeline_ms = LatencyHistogram(recent=LATENCY_WINDOW)
@@ -146,8 +149,8 @@ class MasterPipeline:
         self._known = set(config.known_vehicles)
         self._batching = False
         self._unflushed: list[tuple] = []     # (result, message, arrival wall time, uncompensated)
-        for vid in self._known:
-            self.tracks[vid] = TargetTrack(vid)
+        for vid in dict.fromkeys(config.known_vehicles):   # configured order, not set order:
+            self.tracks[vid] = TargetTrack(vid)             # tick() emits NO_DATA in this order
 
     def warm_up(self) -> None:
         """Compile (or load from numba's cache) the compensation kernel before the first message."""
@@ -230,10 +233,12 @@ class MasterPipeline:
         """Stages 2-5 for an admitted message."""
         cfg = self.config
         status, age_s = check_latency(t_now_gps_s, msg.t_gps_s, cfg.timeout_s, cfg.future_tolerance_s)
+        self.master_fix = FixStatus(master.fix)
         if status != TargetStatus.VALID:
             res = RelativeResult(target_id=msg.vehicle_id, target_kind=msg.kind, status=status,
                                  source_seq=msg.seq, t_gps_s=float(master.t_s), latency_s=age_s,
-                                 t_sent_wall_s=msg.t_sent_wall_s)
+                                 t_sent_wall_s=msg.t_sent_wall_s, master_fix=self.master_fix,
+                                 target_fix=FixStatus(msg.fix))
         else:
             res = evaluate_target(master, msg, self._mpoint, timeout_s=math.inf,
                                   future_tolerance_s=math.inf)
@@ -343,11 +348,16 @@ class MasterPipeline:
                                                   r.object_ttc_s)}}
 
     # ------------------------------------------------------------------ silence
-    def tick(self, t_now_gps_s: float, master_t_gps_s: float | None = None) -> list[RelativeResult]:
+    def tick(self, t_now_gps_s: float, master_t_gps_s: float | None = None,
+             master_fix: FixStatus | None = None) -> list[RelativeResult]:
         """Status-only results for targets without fresh data: NO_DATA (never heard) or TIMEOUT
-        (last message older than the timeout). Call a few times per second."""
+        (last message older than the timeout). Call a few times per second. ``master_fix``: the
+        master's current fix (default: the one of the last handled message); the target's fix is
+        that of its last result (NONE when never heard)."""
         out = []
         t_m = t_now_gps_s if master_t_gps_s is None else master_t_gps_s
+        if master_fix is not None:
+            self.master_fix = FixStatus(master_fix)
         for track in self.tracks.values():
             if track.last_seq < 0:
                 status, lat = TargetStatus.NO_DATA, math.nan
@@ -357,7 +367,9 @@ class MasterPipeline:
                     continue
                 status = TargetStatus.TIMEOUT
             res = RelativeResult(target_id=track.target_id, target_kind=track.kind, status=status,
-                                 source_seq=max(track.last_seq, 0), t_gps_s=t_m, latency_s=lat)
+                                 source_seq=max(track.last_seq, 0), t_gps_s=t_m, latency_s=lat,
+                                 master_fix=self.master_fix,
+                                 target_fix=FixStatus.NONE if track.last_result is None else track.last_result.target_fix)
             out.append(self._emit(res, None, self.clock_wall()))
         return out
 

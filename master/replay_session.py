@@ -2,11 +2,14 @@
 it reproduces the recorded outputs exactly.
 
 The recording (``v2xpos.output.recorder``) holds the pipeline configuration, the admission
-settings (trust list), every received payload with the master GPS time it was processed at, the
-master filter state it was processed against, and every silence tick. Replaying these inputs in
-the recorded order through a fresh ``master.pipeline.MasterPipeline`` is deterministic, so the
-``encode_relative`` bytes of every result must equal the recorded ones; any difference is
-reported with its index.
+settings (trust list), every received payload (``/v2xpos/raw/rx``) with the master GPS time it was
+processed at, the master filter state it was processed against, every silence tick and every
+change of the degraded-vehicle set. Replaying these inputs in the recorded order through a fresh
+``master.pipeline.MasterPipeline`` is deterministic -- nothing in it depends on set or dict
+order or on the replaying computer's clock (the pipeline's wall clock is the recorded arrival
+time of the message being replayed) -- so the ``encode_relative`` bytes of every result must equal
+the recorded ones (``/v2xpos/raw/out/relative``), in order; any difference is reported with its
+index.
 """
 from __future__ import annotations
 
@@ -20,8 +23,8 @@ from pathlib import Path
 from tqdm import tqdm
 
 from master.pipeline import MasterPipeline, PipelineConfig
-from v2xpos.output.recorder import (TOPIC_NAV, TOPIC_RELATIVE, TOPIC_RX, TOPIC_TICK, nav_from_dict,
-                                    read_recording, read_session, recording_files)
+from v2xpos.output.recorder import (TOPIC_DEGRADED, TOPIC_NAV, TOPIC_RAW_RELATIVE, TOPIC_RAW_RX, TOPIC_TICK,
+                                    nav_from_dict, read_recording, read_session, recording_files)
 from v2xpos.security import MessageAuthenticator, parse_trust_list
 from v2xpos.wire import RelativeResult, encode_relative
 
@@ -67,7 +70,17 @@ class ReplayReport:
                 "rejected": self.rejected, "damaged": self.damaged}
 
 
-def pipeline_from_session(session: dict, sinks: list) -> MasterPipeline:
+class _RecordedClock:
+    """The pipeline's wall clock during a replay: the recorded time of the input being replayed."""
+
+    def __init__(self):
+        self.t_wall_s = 0.0
+
+    def __call__(self) -> float:
+        return self.t_wall_s
+
+
+def pipeline_from_session(session: dict, sinks: list, clock_wall=None) -> MasterPipeline:
     """A fresh pipeline configured as the recorded one."""
     cfg = dict(session.get("pipeline_config") or {})
     for k in ("measurement_point_m", "known_vehicles"):
@@ -80,35 +93,46 @@ def pipeline_from_session(session: dict, sinks: list) -> MasterPipeline:
                                     require_signature=a["require_signature"], max_age_s=a["max_age_s"],
                                     future_tolerance_s=a["future_tolerance_s"],
                                     replay_window=a["replay_window"])
-    return MasterPipeline(PipelineConfig(**cfg), sinks, authenticator=auth)
+    kw = {} if clock_wall is None else {"clock_wall": clock_wall}
+    return MasterPipeline(PipelineConfig(**cfg), sinks, authenticator=auth, **kw)
 
 
 def replay_session(path: str | Path, progress: bool = False) -> ReplayReport:
     """Replay a recording and compare outputs (see the module docstring)."""
     session = read_session(path)
     capture = _Capture()
-    pipe = pipeline_from_session(session, [capture])
+    clock = _RecordedClock()
+    pipe = pipeline_from_session(session, [capture], clock)
     report = ReplayReport(files=len(recording_files(path)))
     recorded: list[bytes] = []
     navs: dict[int, object] = {}
-    for rec in tqdm(read_recording(path, errors=report.damaged), disable=not progress, unit="msg",
-                    desc="replay"):
+    topics = (TOPIC_NAV, TOPIC_RAW_RX, TOPIC_TICK, TOPIC_DEGRADED, TOPIC_RAW_RELATIVE)
+    for rec in tqdm(read_recording(path, topics=topics, errors=report.damaged), disable=not progress,
+                    unit="msg", desc="replay"):
         d = rec.doc
         if rec.topic == TOPIC_NAV:
             navs = {d["index"]: nav_from_dict(d)}
-        elif rec.topic == TOPIC_RX:
+        elif rec.topic == TOPIC_RAW_RX:
             report.received += 1
             nav = navs.get(d["nav_index"])
             if nav is None:
                 report.mismatches.append((report.received, f"master state {d['nav_index']} missing"))
                 continue
-            pipe.handle(base64.b64decode(d["raw_b64"]), d["key"], nav, d["t_now_gps_s"],
+            clock.t_wall_s = d["t_arrival_wall_s"]
+            pipe.handle(base64.b64decode(d["payload_b64"]), d["key"], nav, d["t_now_gps_s"],
                         d["t_arrival_wall_s"])
         elif rec.topic == TOPIC_TICK:
             report.ticks += 1
-            pipe.tick(d["t_now_gps_s"], d["master_t_gps_s"])
-        elif rec.topic == TOPIC_RELATIVE:
-            recorded.append(base64.b64decode(d["raw_b64"]))
+            clock.t_wall_s = rec.log_time_ns * 1e-9
+            if d.get("master_fix") is None:
+                pipe.tick(d["t_now_gps_s"], d["master_t_gps_s"])
+            else:
+                pipe.tick(d["t_now_gps_s"], d["master_t_gps_s"], d["master_fix"])
+        elif rec.topic == TOPIC_DEGRADED:
+            pipe.degraded_vehicles.clear()
+            pipe.degraded_vehicles.update(d["vehicle_ids"])
+        elif rec.topic == TOPIC_RAW_RELATIVE:
+            recorded.append(base64.b64decode(d["payload_b64"]))
     report.recorded_outputs = len(recorded)
     report.replayed_outputs = len(capture.results)
     for i, (a, b) in enumerate(zip(recorded, capture.results)):

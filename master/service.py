@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from master.config import MasterConfig
-from master.outputs import CanSink, UdpSink, ZenohSink
+from master.outputs import CanSink, UdpSink, ZenohSink, summary_provenance
 from master.pipeline import RECORD_FIELDS, MasterPipeline, PipelineConfig
 from sim.scenarios import build
 from slave.config import ConfigError
@@ -129,10 +129,10 @@ class MasterService:
         cfg = self.cfg
         self.link = Link(cfg.link)
         if cfg.can_enabled:
-            self.can = CanSink(channel=cfg.can_channel, interface=cfg.can_interface, rate_hz=cfg.can_rate_hz or None)
+            self.can = CanSink.from_config(cfg)
             self.sinks.append(self.can)
         if cfg.udp_enabled:
-            self.udp = UdpSink(cfg.udp_host, cfg.udp_port)
+            self.udp = UdpSink.from_config(cfg)
             self.sinks.append(self.udp)
         if cfg.zenoh_enabled:
             self.sinks.append(ZenohSink(self.link.publisher(relative_key(cfg.fleet, cfg.master_id), express=False)))
@@ -331,6 +331,7 @@ class MasterService:
             np.savez_compressed(cfg.results_npz, fields=np.array(RECORD_FIELDS), **arrays)
         if cfg.summary_json:
             Path(cfg.summary_json).parent.mkdir(parents=True, exist_ok=True)
+            final["provenance"] = summary_provenance(cfg)
             Path(cfg.summary_json).write_text(json.dumps(final, indent=1))
 
 
@@ -481,10 +482,10 @@ def run(args: argparse.Namespace) -> int:
     try:
         cfg = MasterConfig.load(args.config)
         svc = MasterService(cfg, args.start, args.start_file)
+        final = asyncio.run(svc.run())
     except ConfigError as exc:
         print(f"v2xpos master: {exc}", file=sys.stderr)
         return 2
-    final = asyncio.run(svc.run())
     print(json.dumps({k: final[k] for k in ("processed", "rejected", "pipeline_ms_p99", "e2e_ms_p99",
                                              "can_frames", "udp_datagrams")}), flush=True)
     return 0

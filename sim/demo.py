@@ -22,6 +22,7 @@ import numpy as np
 from sim import evaluate
 from sim.launcher import Fleet, FleetPlan, free_tcp_port, free_udp_port, release_when_ready, write_configs
 from sim.scenarios import build, check_rtk_vertical_factor
+from v2xpos.provenance import provenance
 
 STARTUP_LEAD_S = 1.5
 """Wall time between the last process signalling ready and the scenario epoch (the filters start
@@ -93,6 +94,11 @@ def run_demo(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 10
         if fleet.running():
             fleet.stop()
     report = make_report(sc, plan, duration_s, codes)
+    arguments = {"vehicles": vehicles, "duration_s": duration_s, "latency_ms": latency_ms, "jitter_ms": jitter_ms,
+                 "seed": seed, "source": source, "pedestrian": pedestrian, "degradations": degradations,
+                 "spikes": spikes, "rtk_vertical_factor": rtk_vertical_factor}
+    report["provenance"] = provenance("demo", {"demo_arguments": arguments, **plan.configs},
+                                      seeds={"scenario": seed}, started_utc=t_launch)
     report["latency_ms_injected"] = latency_ms
     ego = sc.actors[sc.master_id]
     report["rtk_fixed_sd_m"] = {"horizontal": ego.gnss_sd_fixed_m,
@@ -136,8 +142,10 @@ def make_report(sc, plan: FleetPlan, duration_s: float, exit_codes: dict) -> dic
         entry = evaluate.evaluate_target(sc, a.actor_id, r, sc.epoch_gps_s)
         entry["gnss_rel_err_rms_1s_m"] = floor.get(a.actor_id)
         entry["rejected"] = (summary.get("targets", {}).get(a.actor_id, {}) or {}).get("rejected", {})
-        entry["fix_schedule_rel_s"] = [[t0, t1, st.name.lower()] for t0, t1, st in a.fix_schedule]
-        entry["delay_spikes_rel_s"] = [list(s) for s in a.link.spikes]
+        entry["fix_schedule_rel_s"] = [{"start_rel_s": t0, "end_rel_s": t1, "fix": st.name.lower()}
+                                       for t0, t1, st in a.fix_schedule]
+        entry["delay_spikes_rel_s"] = [{"start_rel_s": t0, "end_rel_s": t1, "extra_delay_ms": extra}
+                                       for t0, t1, extra in a.link.spikes]
         targets.append(entry)
     clean = [t for t in targets if not t["fix_schedule_rel_s"] and t["rel_pos_err_rms_m"] is not None]
     scene = evaluate_scene(sc, plan)
@@ -161,6 +169,8 @@ def make_report(sc, plan: FleetPlan, duration_s: float, exit_codes: dict) -> dic
         "imu_faults_injected": {a.actor_id: {"unit": f"imu{a.imu_fault[0] + 1}", "fault": a.imu_fault[1]}
                                 for a in sc.actors.values() if a.imu_fault},
         "degraded_vehicles": summary.get("degraded_vehicles", []),
+        "degraded_vehicles_ever": sorted(vid for vid, g in (summary.get("imu_grades") or {}).items()
+                                         if (g or {}).get("degraded_regrades")),
         "exit_codes": exit_codes,
         "notes": ("errors against the scenario truth at the master time of each VALID result, reference point "
                   "to reference point; latency = master GPS time - target time of validity (includes the "
@@ -212,15 +222,17 @@ def make_plots(sc, plan: FleetPlan, out: Path) -> list[Path]:
     ser = {vid: evaluate.series(sc, vid, r) for vid, r in rows.items() if vid in sc.actors}
     paths = []
     fig, ax = plt.subplots(figsize=(10, 5))
-    for vid, s in sorted(ser.items()):
-        ax.plot(s["t_rel_s"], s["err_m"] * 100, ".", ms=1.5, label=f"{vid} compensated")
-    for vid, s in sorted(ser.items()):
-        ax.plot(s["t_rel_s"], s["unc_err_m"] * 100, ",", alpha=0.4, label=f"{vid} uncompensated")
+    for k, (vid, s) in enumerate(sorted(ser.items())):
+        # one colour per target: compensated dots, uncompensated crosses (markers big enough to
+        # show in the legend, which is drawn with larger markers still)
+        ax.plot(s["t_rel_s"], s["err_m"] * 100, ".", ms=2, color=f"C{k}", label=f"{vid} compensated")
+        ax.plot(s["t_rel_s"], s["unc_err_m"] * 100, "x", ms=2, mew=0.5, alpha=0.5, color=f"C{k}",
+                label=f"{vid} uncompensated")
     ax.set_yscale("log")
     ax.set_xlabel("time since epoch [s]")
     ax.set_ylabel("relative position error [cm]")
-    ax.set_title("Relative position error vs truth (VALID results)")
-    ax.legend(fontsize=6, ncol=2)
+    ax.set_title("Relative position error vs truth (VALID results), with and without latency compensation")
+    ax.legend(fontsize=7, ncol=2, markerscale=4)
     ax.grid(True, which="both", alpha=0.3)
     paths.append(out / "rel_pos_error.png")
     fig.savefig(paths[-1], dpi=120)
@@ -253,17 +265,23 @@ def make_plots(sc, plan: FleetPlan, out: Path) -> list[Path]:
 
     fig, ax = plt.subplots(figsize=(10, 4))
     names = sorted(ser)
-    colors = {0: "tab:green", 1: "tab:orange", 2: "tab:red", 3: "tab:gray", 4: "tab:purple"}
+    from v2xpos.output.foxglove import STATUS_RGBA
+    from v2xpos.wire import TargetStatus
     for i, vid in enumerate(names):
         s = ser[vid]
-        for code, col in colors.items():
-            m = s["status"] == code
+        for st in TargetStatus:
+            m = s["status"] == int(st)
             if m.any():
-                ax.plot(s["t_rel_s"][m], np.full(m.sum(), i), "|", color=col, ms=8)
+                ax.plot(s["t_rel_s"][m], np.full(m.sum(), i), "|", color=STATUS_RGBA[st.name.lower()], ms=8,
+                        label=st.name.lower())
+    handles = {h.get_label(): h for h in ax.get_lines()}   # one legend entry per status seen
+    ax.legend(handles.values(), handles.keys(), fontsize=7, loc="upper right", ncol=3)
     ax.set_yticks(range(len(names)))
     ax.set_yticklabels(names)
+    ax.set_ylim(-0.7, len(names) - 0.3 + 0.8)
     ax.set_xlabel("time since epoch [s]")
-    ax.set_title("Target status (green valid, orange fix_invalid, red timeout, gray no_data, purple future)")
+    ax.set_ylabel("target")
+    ax.set_title("Target status of every result over time")
     paths.append(out / "status.png")
     fig.savefig(paths[-1], dpi=120)
     plt.close(fig)

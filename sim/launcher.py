@@ -115,7 +115,7 @@ def write_configs(sc: Scenario, plan: FleetPlan, duration_s: float, can: bool = 
             "scene": {"geojson": str(plan.geojson)},
             "grading": {"enabled": publish_imu},
             "record": {"results_npz": str(plan.results_npz), "summary_json": str(plan.summary_json),
-                       "evaluate_uncompensated": True}}
+                       "evaluate_uncompensated": True, "mcap": str(plan.out_dir / "session.mcap")}}
     path = cdir / "master.toml"
     path.write_text(to_toml(mcfg))
     plan.configs[sc.master_id] = path

@@ -48,7 +48,14 @@ def test_report_layout_and_processes(report):
     faulty = report["imu_faults_injected"]
     assert set(faulty) == {"t2"} and grades["t2"]["units"][faulty["t2"]["unit"]] == "fail"
     assert all(v == "pass" for u, v in grades["t1"]["units"].items())
-    assert report["degraded_vehicles"] == ["t2"]
+    assert report["degraded_vehicles"] == ["t2"] and report["degraded_vehicles_ever"] == ["t2"]
+    prov = on_disk["provenance"]                # traceable: software, configs' hashes, seeds, start
+    assert prov["command"] == "demo" and prov["seeds"] == {"scenario": 0} and prov["configs_sha256"]
+    assert {"demo_arguments", "ego", "t1", "t2", "p1"} <= {c["name"] for c in prov["configs"]}
+    summary = json.loads((out / "master_summary.json").read_text())
+    assert summary["provenance"]["command"] == "master" and summary["provenance"]["configs"][0]["sha256"]
+    fix = {x["id"]: x["fix_schedule_rel_s"] for x in on_disk["targets"]}["t2"]   # named fields, no tuples
+    assert fix and set(fix[0]) == {"start_rel_s", "end_rel_s", "fix"}
     scene = report["scene"]                     # V2L / V2X from the GeoJSON the demo wrote
     assert scene["updates"] >= 100
     assert max(scene["lane_lateral_err_rms_m"].values()) < 0.05

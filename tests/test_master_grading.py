@@ -1,12 +1,14 @@
-"""Master-side IMU grading: the IMU stream payload is validated (malformed counted, never raised)
-and a vehicle's faulty unit is graded fail from streamed chunks."""
+"""Master-side IMU grading: the IMU stream payload is validated (malformed counted, never raised),
+a vehicle's faulty unit is graded fail from streamed chunks, and a unit is published "fail" (the
+vehicle DEGRADED) only when its raw fail persists over consecutive regrades (hysteresis)."""
 from __future__ import annotations
 
 import msgpack
 import numpy as np
 import pytest
 
-from master.grading import FleetGrader, ImuPayloadError, parse_imu_payload
+from master.grading import (FAIL_CLEAR_REGRADES, FAIL_CONFIRM_REGRADES, FleetGrader, GradeHysteresis,
+                            ImuPayloadError, parse_imu_payload)
 from sim.imu_faults import simulate_vehicle
 
 
@@ -38,12 +40,98 @@ def test_malformed_imu_payloads_are_rejected(payload):
 
 
 def test_streamed_chunks_grade_the_faulty_unit():
-    v = simulate_vehicle(3, "gyro_scale", seed=4, duration_s=25.0, grade="tactical")
+    """Streamed as a slave does, asked every second as the worker does: the first regrades (10 and 15
+    s of a drive with little turning) fail every unit (gyro correlation without motion): inconclusive,
+    no vehicle degraded on them; the faulty unit is the one published "fail" afterwards."""
+    v = simulate_vehicle(3, "gyro_scale", seed=4, duration_s=35.0, grade="tactical")
     fg = FleetGrader(min_history_s=10.0, regrade_every_s=5.0)
-    for p in chunks(v, "car1"):
+    for k, p in enumerate(chunks(v, "car1")):
         fg.add_payload(p)
+        if k % 4 == 3:                                  # the worker asks every second (4 chunks of 0.25 s)
+            fg.grades()
     fg.add_payload(b"junk")
     g = fg.grades()["car1"]
     assert g["status"] == "graded" and fg.malformed == 1
-    assert g["units"][v.faulty] == "fail"
+    assert g["regrades"] == 5                           # at 10, 15, ... 30 s of data
+    assert all(h["raw"][v.faulty] == "fail" for h in g["history"])
+    assert g["units"][v.faulty] == "fail" and g["inconclusive_regrades"] >= 1
+    assert all(grade != "fail" for h in g["history"] for u, grade in h["published"].items() if u != v.faulty)
     assert all(grade != "fail" for u, grade in g["units"].items() if u != v.faulty)
+
+
+def test_hysteresis_transient_is_a_warning_persistent_is_a_failure():
+    h = GradeHysteresis(confirm=3, clear=3)
+    seq = ["fail", "pass", None, "fail", "fail", "warn", "fail", "fail", "fail", "pass", "pass", None, "fail",
+           "pass", "pass", "pass", "pass"]
+    out = [h.update({"u": g})["u"] for g in seq]
+    assert out == ["warn", "pass", None, "warn", "warn", "warn", "warn", "warn", "fail", "fail", "fail", "fail", "fail",
+                   "fail", "fail", "pass", "pass"]
+    assert h.transient == {"u": 5}
+    h2 = GradeHysteresis(confirm=3, clear=3)
+    h2.update({"a": "fail", "b": "pass"})
+    assert h2.warnings() == {"a": "transient fail (1 of 3 consecutive regrades)"}
+
+
+def test_every_unit_failing_together_is_inconclusive():
+    h = GradeHysteresis(confirm=2, clear=3)
+    allfail = {"a": "fail", "b": "fail", "c": "fail"}
+    for _ in range(4):                                   # any number of them: nobody degraded
+        assert set(h.update(allfail).values()) == {"warn"}
+    assert h.inconclusive_regrades == 4 and "inconclusive" in h.warnings()["a"]
+    assert h.update({"a": "pass", "b": "pass", "c": "fail"})["c"] == "warn"
+    assert h.update({"a": "pass", "b": "pass", "c": "fail"})["c"] == "fail"      # 2 conclusive in a row
+    assert h.update(allfail) == {"a": "warn", "b": "warn", "c": "fail"}          # keeps, neither clears
+    two = GradeHysteresis(confirm=2, clear=3)                                    # two units: no such rule
+    two.update({"a": "fail", "b": "fail"})
+    assert two.update({"a": "fail", "b": "fail"}) == {"a": "fail", "b": "fail"}
+    with pytest.raises(ValueError):
+        GradeHysteresis(confirm=0)
+    assert (FAIL_CONFIRM_REGRADES, FAIL_CLEAR_REGRADES) == (2, 3)
+
+
+class _ScriptedGrader:
+    """Stands in for a VehicleGrader: one scripted regrade per call of ``next_regrade``."""
+
+    def __init__(self, script):
+        self.script, self.k = script, 0
+
+    def next_regrade(self):
+        self.k += 1
+
+    def grades(self):
+        if self.k == 0:
+            return {"t_s": 0.0, "status": "collecting", "units": {u: None for u in self.script[0]},
+                    "rejected_samples": 0}
+        return {"t_s": 100.0 + 5 * self.k, "status": "graded", "units": self.script[self.k - 1],
+                "rejected_samples": 0}
+
+
+def test_one_filter_step_per_regrade_not_per_publication():
+    """The worker publishes every second; a regrade comes every 5 s of data: repeated publications of
+    one regrade must not count as consecutive regrades. A healthy vehicle whose three units all
+    fail at one regrade (the demo's false degradation) is never degraded."""
+    fg = FleetGrader()
+    healthy = _ScriptedGrader([{"imu1": "fail", "imu2": "fail", "imu3": "fail"}] + [{"imu1": "pass", "imu2": "pass",
+                                                                                     "imu3": "pass"}] * 4)
+    faulty = _ScriptedGrader([{"imu1": "warn", "imu2": "warn", "imu3": "fail"}] * 5)
+    for vid, g in (("t1", healthy), ("t2", faulty)):
+        fg.graders[vid] = g
+        fg.filters[vid] = GradeHysteresis()
+    degraded_seen = {"t1": False, "t2": False}
+    assert fg.grades()["t1"]["units"] == {"imu1": None, "imu2": None, "imu3": None}
+    for _ in range(5):
+        healthy.next_regrade()
+        faulty.next_regrade()
+        for _ in range(5):                              # five publications per regrade
+            out = fg.grades()
+            for vid in degraded_seen:
+                degraded_seen[vid] |= any(v == "fail" for v in out[vid]["units"].values())
+        if healthy.k == 1:
+            assert out["t1"]["warnings"] and out["t1"]["units"]["imu1"] == "warn"
+        if faulty.k < FAIL_CONFIRM_REGRADES:
+            assert out["t2"]["units"]["imu3"] == "warn"
+    assert degraded_seen == {"t1": False, "t2": True}
+    assert out["t1"]["regrades"] == 5 and out["t1"]["degraded_regrades"] == 0
+    assert out["t1"]["transient_fails"] == {"imu1": 1, "imu2": 1, "imu3": 1}
+    assert out["t2"]["degraded_regrades"] == 4 and out["t2"]["first_degraded_t_s"] == 110.0
+    assert [h["published"]["imu3"] for h in out["t2"]["history"]] == ["warn", "fail", "fail", "fail", "fail"]

@@ -83,10 +83,21 @@ def test_rejections_are_counted_and_do_not_disturb_other_targets(scenario):
 
 
 def test_fix_transitions_change_status_and_stop_outputs(scenario):
+    """A float spell then a single spell on the target: VALID through float, FIX_INVALID on single; on
+    CAN (decoded with cantools from the shipped DBC) and UDP every update says both vehicles' fix."""
+    import socket
+
+    import cantools
+
+    from v2xpos.output.can import DBC_PATH, FRAMES_PER_KINEMATIC_UPDATE, FRAMES_PER_STATUS_UPDATE
     sc = scenario
     bus_rx = can.Bus(channel="test-fix", interface="virtual")
     can_sink = CanSink(channel="test-fix", interface="virtual")
-    pipe = make_pipeline(sc, [can_sink])
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.settimeout(1.0)
+    udp_sink = UdpSink("127.0.0.1", sock.getsockname()[1])
+    pipe = make_pipeline(sc, [can_sink, udp_sink])
     t0 = sc.epoch_gps_s + 3.0
     sequence = [FixStatus.FIXED] * 5 + [FixStatus.FLOAT] * 5 + [FixStatus.SINGLE] * 5 + [FixStatus.FIXED] * 5
     statuses = []
@@ -95,23 +106,36 @@ def test_fix_transitions_change_status_and_stop_outputs(scenario):
         before = can_sink.frames
         r = pipe.handle(payload(sc, "t2", k + 1, t - 0.1, fix), key("t2"), truth_state(sc, "ego", t), t)
         statuses.append(r.status)
+        assert r.target_fix == fix and r.master_fix == FixStatus.FIXED
         if r.status == TargetStatus.VALID:
-            assert np.isfinite(r.rel_pos_body_m).all() and can_sink.frames - before == 5
+            assert np.isfinite(r.rel_pos_body_m).all() and can_sink.frames - before == FRAMES_PER_KINEMATIC_UPDATE
         else:
             assert r.fix_side & 2 and np.isnan(r.rel_pos_body_m).all() and np.isnan(r.range_m)
-            assert can_sink.frames - before == 1          # status frame only, no kinematics
+            assert can_sink.frames - before == FRAMES_PER_STATUS_UPDATE    # status + id, no kinematics
     assert statuses[:10] == [TargetStatus.VALID] * 10
     assert statuses[10:15] == [TargetStatus.FIX_INVALID] * 5
     assert statuses[15:] == [TargetStatus.VALID] * 5
     # master side losing RTK also gates the pair
     r = pipe.handle(payload(sc, "t2", 99, t0 + 0.3), key("t2"), truth_state(sc, "ego", t0 + 0.35, FixStatus.SINGLE),
                     t0 + 0.35)
-    assert r.status == TargetStatus.FIX_INVALID and r.fix_side & 1
+    assert r.status == TargetStatus.FIX_INVALID and r.fix_side & 1 and r.master_fix == FixStatus.SINGLE
     frames = []
     while (m := bus_rx.recv(timeout=0.0)) is not None:
         frames.append(m)
     assert len(frames) == can_sink.frames
+    db = cantools.database.load_file(str(DBC_PATH))
+    can_fix = [(str(d["T00_MasterFix"]), str(d["T00_TargetFix"]), str(d["T00_Status"]))
+               for d in (db.decode_message(f.arbitration_id, f.data) for f in frames if f.arbitration_id == 0x200)]
+    expect = ([("rtk_fixed", "rtk_fixed", "valid")] * 5 + [("rtk_fixed", "rtk_float", "valid")] * 5
+              + [("rtk_fixed", "single", "fix_invalid")] * 5 + [("rtk_fixed", "rtk_fixed", "valid")] * 5
+              + [("single", "rtk_fixed", "fix_invalid")])
+    assert can_fix == expect
+    udp = [parse_datagram(sock.recv(65536)).targets[0] for _ in range(len(sequence) + 1)]
+    assert [(int(u.master_fix), int(u.target_fix)) for u in udp] == \
+        [(int(FixStatus.FIXED), int(f)) for f in sequence] + [(int(FixStatus.SINGLE), int(FixStatus.FIXED))]
     can_sink.close()
+    udp_sink.close()
+    sock.close()
     bus_rx.shutdown()
 
 
@@ -254,5 +278,5 @@ def test_can_rate_limit_keeps_status_changes(scenario):
         fix = FixStatus.SINGLE if k == 5 else FixStatus.FIXED
         pipe.handle(payload(sc, "t2", k + 1, t - 0.1, fix), key("t2"), truth_state(sc, "ego", t), t)
     # valid at k = 0, 4, 8 (25 Hz), the FIX_INVALID at k = 5 and the VALID right after it (k = 6)
-    assert can_sink.frames == 5 * 4 + 1 and can_sink.skipped == 12 - 5
+    assert can_sink.frames == 9 * 4 + 2 and can_sink.skipped == 12 - 5
     can_sink.close()

@@ -1,4 +1,5 @@
-"""UDP output: loopback roundtrip through a real socket, refusal of remote destinations, parser errors."""
+"""UDP output: roundtrip through a real socket to a configured host (127.0.0.1), per-record time of
+validity and fix states, refusal of multicast / broadcast destinations, parser errors."""
 import math
 import socket
 import struct
@@ -6,8 +7,9 @@ import struct
 import numpy as np
 import pytest
 
-from v2xpos.output.udp import (HEADER, LaneRecord, ObjectRecord, UdpFormatError, UdpOutput, build_datagram,
-                               parse_datagram)
+from v2xpos.output.udp import (HEADER, TARGET, TARGET_V1, LaneRecord, ObjectRecord, UdpFormatError, UdpOutput,
+                               build_datagram, check_destination, parse_datagram)
+from v2xpos.types import FixStatus
 from v2xpos.wire import FixSide, RelativeResult, TargetStatus
 
 
@@ -56,20 +58,28 @@ def test_roundtrip_on_loopback(receiver):
     assert d.objects[0].kind == 1 and math.isnan(d.objects[1].ttc_s)
 
 
-@pytest.mark.parametrize("host", ["10.0.0.5", "192.168.1.20", "8.8.8.8", "example.com"])
-def test_remote_destinations_refused(host):
-    with pytest.raises(ValueError, match="not loopback"):
+@pytest.mark.parametrize("host, why", [("239.1.2.3", "multicast"), ("ff02::1", "multicast"),
+                                       ("255.255.255.255", "broadcast"), ("0.0.0.0", "unspecified"),
+                                       ("::", "unspecified"), ("", "empty")])
+def test_multicast_broadcast_and_unspecified_refused(host, why):
+    with pytest.raises(ValueError, match=why):
+        check_destination(host)
+    with pytest.raises(ValueError, match=why):
         UdpOutput(host, 40000)
 
 
-def test_multicast_refused_even_with_allow_remote():
-    with pytest.raises(ValueError, match="multicast"):
-        UdpOutput("239.1.2.3", 40000, allow_remote=True)
+@pytest.mark.parametrize("host", ["10.0.0.5", "192.168.1.20", "127.0.0.2", "localhost", "::1"])
+def test_unicast_destinations_accepted(host):
+    """Any configured unicast host (a socket is opened, nothing is sent in this test)."""
+    check_destination(host)
+    UdpOutput(host, 40000).close()
 
 
-def test_localhost_and_ipv4_loopback_allowed():
-    UdpOutput("localhost", 40000).close()
-    UdpOutput("127.0.0.2", 40000).close()
+def test_bad_port_and_unresolvable_name_refused():
+    with pytest.raises(ValueError, match="port"):
+        UdpOutput("127.0.0.1", 0)
+    with pytest.raises(ValueError, match="cannot resolve"):
+        UdpOutput("no-such-host.invalid", 40000)
 
 
 def test_parse_errors_say_what_and_where():
@@ -88,3 +98,55 @@ def test_parse_errors_say_what_and_where():
     with pytest.raises(UdpFormatError, match="unknown target status"):
         parse_datagram(bytes(bad_status))
     assert struct.unpack_from("<4s", good)[0] == b"V2XR"
+
+
+def test_records_carry_their_own_time_of_validity_fix_states_and_sigmas(receiver):
+    """Records of one datagram valid 50 ms apart keep their own times; a float spell on the target
+    shows as target_fix FLOAT (VALID) and SINGLE (FIX_INVALID) per record."""
+    port = receiver.getsockname()[1]
+    t0 = 1_400_000_000.0
+    results = [valid(seq=101, t_gps_s=t0, master_fix=FixStatus.FIXED, target_fix=FixStatus.FIXED,
+                     rel_yaw_sd_rad=0.004),
+               valid(seq=102, t_gps_s=t0 + 0.02, master_fix=FixStatus.FIXED, target_fix=FixStatus.FLOAT,
+                     rel_pos_sd_m=np.array([0.21, 0.18, 0.4]), rel_yaw_sd_rad=0.011),
+               RelativeResult(target_id="car-2", seq=103, t_gps_s=t0 + 0.05, status=TargetStatus.FIX_INVALID,
+                              fix_side=FixSide.SLAVE, master_fix=FixStatus.FIXED, target_fix=FixStatus.SINGLE),
+               valid("car-3", seq=104, t_gps_s=t0 + 0.05, status=TargetStatus.ATTITUDE_UNCERTAIN,
+                     master_fix=FixStatus.FLOAT, target_fix=FixStatus.FIXED, rel_yaw_sd_rad=0.3)]
+    with UdpOutput("127.0.0.1", port) as out:
+        out.send(results, seq=104, t_gps_s=t0 + 0.05)
+    d = parse_datagram(receiver.recv(65536))
+    assert d.version == 2 and len(d.targets) == 4
+    assert [r.t_gps_s for r in d.targets] == [t0, t0 + 0.02, t0 + 0.05, t0 + 0.05]
+    assert [r.seq for r in d.targets] == [101, 102, 103, 104]
+    assert [r.target_fix for r in d.targets] == [FixStatus.FIXED, FixStatus.FLOAT, FixStatus.SINGLE, FixStatus.FIXED]
+    assert [r.master_fix for r in d.targets] == [FixStatus.FIXED] * 3 + [FixStatus.FLOAT]
+    fl = d.targets[1]
+    np.testing.assert_allclose(fl.rel_pos_sd_m, [0.21, 0.18, 0.4], rtol=1e-6)
+    assert fl.rel_yaw_sd_rad == pytest.approx(0.011, rel=1e-6) and fl.range_sd_m == pytest.approx(0.011, rel=1e-6)
+    bad = d.targets[2]
+    assert bad.status == TargetStatus.FIX_INVALID and math.isnan(bad.rel_yaw_sd_rad) and math.isnan(bad.range_m)
+    unc = d.targets[3]   # kinematics with a status that says why it is not VALID
+    assert unc.status == TargetStatus.ATTITUDE_UNCERTAIN and unc.has_kinematics
+    assert unc.range_m == pytest.approx(1234.63) and unc.rel_yaw_sd_rad == pytest.approx(0.3, rel=1e-6)
+
+
+def test_version_1_datagrams_still_parse():
+    t = 1_400_000_000.5
+    rec = TARGET_V1.pack(b"car-2", 0, 0, 2, 0, 41, 0.1, 1.0, 2.0, 3.0, *([0.01] * 3), *([0.0] * 9), 3.74,
+                         *([0.0] * 8))
+    data = HEADER.pack(b"V2XR", 1, 0, 1, 0, 0, 7, t) + rec
+    d = parse_datagram(data)
+    r = d.targets[0]
+    assert d.version == 1 and r.t_gps_s == t and r.seq == 7 and r.source_seq == 41
+    assert r.target_kind == "pedestrian" and r.range_m == pytest.approx(3.74)
+    assert r.master_fix == FixStatus.NONE and math.isnan(r.rel_yaw_sd_rad)
+    assert TARGET.size == 184 and TARGET_V1.size == 160
+
+
+def test_unknown_fix_code_is_a_format_error():
+    data = bytearray(build_datagram([valid(master_fix=FixStatus.FIXED)], 1, 2.0))
+    data[HEADER.size + 35] = 9
+    with pytest.raises(UdpFormatError, match="master fix status 9") as info:
+        parse_datagram(bytes(data))
+    assert info.value.offset == HEADER.size + 35

@@ -100,14 +100,25 @@ def test_everything_recorded_rotated_and_readable(recorded_session):
     assert pipe.rejected[sec.REJECT_REPLAY] + pipe.rejected["out_of_order"] + pipe.rejected["duplicate"] >= 1
     statuses = {m.doc["status"] for m in by_topic[rec.TOPIC_RELATIVE]}
     assert {"valid", "fix_invalid", "timeout"} <= statuses
-    first = decode_relative(__import__("base64").b64decode(by_topic[rec.TOPIC_RELATIVE][0].doc["raw_b64"]))
-    assert first.target_id in ("car1", "car2")
-    # every file is a complete MCAP with JSON channels + jsonschema schemas (what Foxglove reads)
+    # the outputs are readable JSON, and their raw bytes (replay reference) decode to the same
+    raw = [decode_relative(__import__("base64").b64decode(m.doc["payload_b64"]))
+           for m in by_topic[rec.TOPIC_RAW_RELATIVE]]
+    assert [r.seq for r in raw] == [m.doc["seq"] for m in by_topic[rec.TOPIC_RELATIVE]]
+    first = by_topic[rec.TOPIC_RELATIVE][0].doc
+    assert first["target_id"] in ("car1", "car2") and first["target_id"] == raw[0].target_id
+    valid = next(m.doc for m in by_topic[rec.TOPIC_RELATIVE] if m.doc["status"] == "valid")
+    assert len(valid["rel_vel_body_mps"]) == 3 and len(valid["rel_roll_pitch_yaw_deg"]) == 3
+    # received states decoded (no base64 in the readable channel); malformed ones say why
+    rx = by_topic[rec.TOPIC_RX]
+    assert sum(m.doc["error"] is not None for m in rx) == 11
+    good = next(m.doc["message"] for m in rx if m.doc["message"] is not None)
+    assert good["vehicle_id"] in ("car1", "car2") and good["fix"] == "FIXED" and good["signed"]
+    # every file is a complete MCAP: JSON channels with jsonschema schemas and Foxglove's protobuf ones
     for f in files:
         with open(f, "rb") as fh:
             summary = make_reader(fh).get_summary()
-        assert {c.message_encoding for c in summary.channels.values()} == {"json"}
-        assert {s.encoding for s in summary.schemas.values()} == {"jsonschema"}
+        assert {c.message_encoding for c in summary.channels.values()} == {"json", "protobuf"}
+        assert {s.encoding for s in summary.schemas.values()} == {"jsonschema", "protobuf"}
     session = rec.read_session(files[-1])
     assert session["pipeline_config"]["timeout_s"] == pytest.approx(0.2)
     assert "car1" in json.dumps(session["authenticator"])
@@ -133,17 +144,45 @@ def test_replay_session_reproduces_outputs_exactly(recorded_session, monkeypatch
     assert not bad.identical and bad.mismatches
 
 
+def test_replay_follows_the_recorded_degraded_set(tmp_path):
+    """IMU grading flags a vehicle degraded between messages (the service sets the set): the
+    recording carries the change, so the replay reproduces the flagged outputs."""
+    pipe = MasterPipeline(PipelineConfig(fleet="demo", master_id="ego", known_vehicles=("car2", "car1")))
+    recorder = rec.McapRecorder(tmp_path / "d.mcap")
+    wrapped = rec.RecordingPipeline(pipe, recorder)
+    for k in range(120):
+        t = T0 + 0.01 * k
+        if k == 40:
+            pipe.degraded_vehicles.add("car1")
+        if k == 80:
+            pipe.degraded_vehicles.discard("car1")
+        for vid in ("car1", "car2"):
+            wrapped.handle(encode_state(_slave(vid, k, t - 0.005)), state_key("demo", vid), _nav(t), t + 0.002,
+                           1.7e9 + 0.01 * k)
+        if k % 10 == 0:
+            wrapped.tick(t + 0.003, t)
+    recorder.close()
+    outs = [m.doc for m in rec.read_recording(tmp_path / "d.mcap", topics=(rec.TOPIC_RELATIVE,))]
+    assert sum(d["degraded"] for d in outs) == 40
+    report = rs.replay_session(tmp_path / "d.mcap")
+    assert report.identical and report.matched == pipe.seq
+
+
 def test_recording_cut_short_is_read_up_to_the_damage(recorded_session, tmp_path):
     """A master killed mid-run leaves a file without summary: everything before the cut is kept."""
     path, pipe, recorder = recorded_session
     last = recorder.files[-1]
     data = last.read_bytes()
-    last.write_bytes(data[: int(len(data) * 0.6)])
+    # cut inside the messages (before the summary section, which repeats the schemas): the footer
+    # record (opcode, length, summary_start, summary_offset_start, crc) precedes the closing magic
+    summary_start = int.from_bytes(data[-8 - 20:-8 - 12], "little")
+    last.write_bytes(data[: int(summary_start * 0.6)])
     errors: list[str] = []
     msgs = list(rec.read_recording(path, errors=errors))
     assert errors and last.name in errors[0]
     n_rx = sum(1 for m in msgs if m.topic == rec.TOPIC_RX)
-    assert 0 < n_rx < recorder.recorded[rec.TOPIC_RX]
+    assert 0 < n_rx <= recorder.recorded[rec.TOPIC_RX]
+    assert len(msgs) < sum(recorder.recorded.values())      # the cut lost messages (of any topic)
     report = rs.replay_session(path)
     assert report.damaged and report.identical and report.matched == report.recorded_outputs > 0
 

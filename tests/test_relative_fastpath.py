@@ -31,8 +31,12 @@ def test_fast_path_equals_predict_then_transform():
         res = evaluate_target(master, target, point, timeout_s=1.0, future_tolerance_s=1.0)
         assert res.status == TargetStatus.VALID
         dt = master.t_gps_s - target.t_gps_s
-        ref = relative_kinematics(master, predict_state(target, dt), point)
+        predicted = predict_state(target, dt)
+        ref = relative_kinematics(master, predicted, point)
         ref.source_seq, ref.latency_s, ref.t_sent_wall_s = target.seq, dt, target.t_sent_wall_s
+        ref.master_fix, ref.target_fix = master.fix, target.fix
+        # both filters' yaw sd, the target's grown over the latency as predict_state grows it
+        ref.rel_yaw_sd_rad = float(np.hypot(master.att_sd_rad[2], predicted.att_sd_rad[2]))
         for name, value in res.__dict__.items():
             other = ref.__dict__[name]
             if isinstance(value, np.ndarray):
@@ -44,3 +48,22 @@ def test_fast_path_equals_predict_then_transform():
         assert res.target_id == "s" and res.target_kind == target.kind
         checked += 1
     assert checked == 400
+
+
+@pytest.mark.parametrize("master_fix, target_fix, status", [
+    (FixStatus.FIXED, FixStatus.FLOAT, TargetStatus.VALID),
+    (FixStatus.FIXED, FixStatus.SINGLE, TargetStatus.FIX_INVALID),
+    (FixStatus.DEAD_RECKONING, FixStatus.FIXED, TargetStatus.FIX_INVALID),
+])
+def test_both_fix_states_on_every_status(master_fix, target_fix, status):
+    rng = np.random.default_rng(3)
+    master, target = _state(rng, "m", Geometry()), _state(rng, "s", Geometry())
+    master.fix, target.fix = master_fix, target_fix
+    master.t_gps_s = target.t_gps_s + 0.05
+    res = evaluate_target(master, target, timeout_s=1.0)
+    assert res.status == status and res.master_fix == master_fix and res.target_fix == target_fix
+    assert np.isfinite(res.rel_yaw_sd_rad) == (status == TargetStatus.VALID)
+    master.t_gps_s = target.t_gps_s + 2.0                   # stale: TIMEOUT, still both fixes
+    late = evaluate_target(master, target, timeout_s=1.0)
+    assert late.status in (TargetStatus.TIMEOUT, TargetStatus.FIX_INVALID)
+    assert late.master_fix == master_fix and late.target_fix == target_fix

@@ -19,6 +19,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "slave": ("slave.service", "run a slave (target) service"),
     "keys": ("v2xpos.security", "generate vehicle signing keys and manage the master's trust list"),
     "replay-session": ("master.replay_session", "re-run the master pipeline from an MCAP recording"),
+    "monitor": ("v2xpos.monitor.command", "live table and web bird's-eye view of a running master"),
+    "emulate": ("v2xpos.devices.emulate", "serve a recording's byte streams as live devices (pseudo-terminals or TCP)"),
+    "simulate": ("sim.recordings", "write simulated recordings in the shared formats (convoy: leader + followers, truth)"),
 }
 
 BENCHES: dict[str, tuple[str, str]] = {
@@ -27,6 +30,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "soak": ("master.bench_soak", "long run: sent / received / recorded / lost, memory growth"),
     "trust": ("v2xpos.security_bench", "forged / replayed messages, fuzzing, fault scenarios"),
     "fuzz": ("v2xpos.fuzz", "fuzz the message decoder and dataset readers"),
+    "monitor": ("v2xpos.monitor.command", "monitor CPU and status-change delay at N targets x rate"),
     "calibration": ("sim.bench_calibration", "Monte-Carlo coverage of calibrate's estimates and sds (simulated drives)"),
 }
 

@@ -14,6 +14,7 @@ Public API (stable; composed by the master service)
   -> RelativeResult``
 * ``evaluate_target(master_state, slave_msg, master_point=None, timeout_s=0.2, ...)
   -> RelativeResult`` -- gate, staleness, compensation and transform in one call.
+* ``relative_yaw_sd(master_att_sd_rad, slave_att_sd_rad, dt_s, rate_sd_rps) -> float``
 
 ``master_state`` / ``slave_state`` may be a ``StateMessage`` or a ``NavState`` (both expose
 ``lla``, ``t_s``, ``v_ned_mps``, ``acc_body_mps2``, ``rate_body_rps``, ``rpy_rad``, ``pos_sd_m``,
@@ -46,7 +47,7 @@ from v2xpos.wire import FixSide, Geometry, RelativeResult, StateMessage, TargetS
 
 __all__ = ["TargetStatus", "FixSide", "RelativeResult", "DEFAULT_TIMEOUT_S",
            "DEFAULT_FUTURE_TOLERANCE_S", "gate_fix_status", "fix_failed_side", "check_latency",
-           "ctra_increments", "predict_state", "relative_kinematics", "evaluate_target"]
+           "ctra_increments", "predict_state", "relative_kinematics", "relative_yaw_sd", "evaluate_target"]
 
 DEFAULT_TIMEOUT_S = 0.200
 DEFAULT_FUTURE_TOLERANCE_S = 0.020
@@ -491,6 +492,21 @@ def _evaluate_compiled(*args: Any) -> RelativeResult:
     return evaluate_compiled(*args)
 
 
+def relative_yaw_sd(master_att_sd_rad: Any, slave_att_sd_rad: Any, dt_s: float = 0.0,
+                    rate_sd_rps: float = DEFAULT_RATE_SD_RPS) -> float:
+    """1-sigma of the relative yaw d_yaw = yaw_target - yaw_master [rad] (first version).
+
+    The two filters' yaw errors are taken as independent and the target's yaw is predicted over
+    ``dt_s`` with the rate noise of ``predict_state`` (var grows by (rate_sd_rps dt)^2):
+        sd = sqrt(sd_yaw_m^2 + sd_yaw_s^2 + (rate_sd_rps dt)^2).
+    Exact for level vehicles (d_yaw of operator T is the yaw difference when roll = pitch = 0);
+    the roll/pitch coupling at large tilt and any master-target error correlation are neglected.
+    """
+    m, s = float(master_att_sd_rad[2]), float(slave_att_sd_rad[2])
+    q = rate_sd_rps * dt_s
+    return math.sqrt(m * m + s * s + q * q)
+
+
 def evaluate_target(master_state: Any, slave_msg: StateMessage, master_point: Any = None,
                     timeout_s: float = DEFAULT_TIMEOUT_S,
                     future_tolerance_s: float = DEFAULT_FUTURE_TOLERANCE_S,
@@ -498,22 +514,25 @@ def evaluate_target(master_state: Any, slave_msg: StateMessage, master_point: An
                     rate_sd_rps: float = DEFAULT_RATE_SD_RPS) -> RelativeResult:
     """One target update: fix gate -> staleness -> CTRA compensation to the master time -> transform.
 
-    Returns a RelativeResult with target_id/kind/source_seq/latency_s/t_sent_wall_s filled; for
-    FIX_INVALID (with fix_side), TIMEOUT and FUTURE the kinematic fields are NaN (no output from
-    that message). ``compensate=False`` transforms the unpredicted message (for comparisons).
+    Returns a RelativeResult with target_id/kind/source_seq/latency_s/t_sent_wall_s filled, and on
+    every status ``master_fix`` / ``target_fix`` (the two states' fix status); for FIX_INVALID (with
+    fix_side), TIMEOUT and FUTURE the kinematic fields are NaN (no output from that message).
+    With kinematics, ``rel_yaw_sd_rad`` comes from ``relative_yaw_sd`` over the compensated latency.
+    ``compensate=False`` transforms the unpredicted message (for comparisons).
     The compensated path runs the compiled kernel ``v2xpos.relative_jit`` (same equations as
     ``predict_state`` + ``relative_kinematics``, agreement to ~1e-13 tested).
     The caller fills fleet, master_id, seq and degraded.
     """
     t_m = _t_of(master_state)
-    side = fix_failed_side(master_state.fix, slave_msg.fix)
+    master_fix, slave_fix = FixStatus(master_state.fix), FixStatus(slave_msg.fix)
+    side = fix_failed_side(master_fix, slave_fix)
     status, latency_s = check_latency(t_m, slave_msg.t_gps_s, timeout_s, future_tolerance_s)
     if side != FixSide.NONE:
         status = TargetStatus.FIX_INVALID
     if status != TargetStatus.VALID:
         return RelativeResult(target_id=slave_msg.vehicle_id, target_kind=slave_msg.kind, status=status,
                               fix_side=side, source_seq=slave_msg.seq, t_gps_s=t_m, latency_s=latency_s,
-                              t_sent_wall_s=slave_msg.t_sent_wall_s)
+                              t_sent_wall_s=slave_msg.t_sent_wall_s, master_fix=master_fix, target_fix=slave_fix)
     if compensate:
         res = _evaluate_compiled(master_state, slave_msg, latency_s, _point3(master_point), acc_sd_mps2,
                                  rate_sd_rps, t_m)
@@ -522,4 +541,8 @@ def evaluate_target(master_state: Any, slave_msg: StateMessage, master_point: An
     res.source_seq = slave_msg.seq
     res.latency_s = latency_s
     res.t_sent_wall_s = slave_msg.t_sent_wall_s
+    res.master_fix = master_fix
+    res.target_fix = slave_fix
+    res.rel_yaw_sd_rad = relative_yaw_sd(master_state.att_sd_rad, slave_msg.att_sd_rad,
+                                         latency_s if compensate else 0.0, rate_sd_rps)
     return res

@@ -9,9 +9,12 @@ Public API (stable)
 * ``Geometry`` -- target outline in its own body frame (points, polygon or circle).
 * ``StateMessage`` -- one vehicle/pedestrian state; ``encode_state(msg, sign=None) -> bytes``,
   ``decode_state(data) -> StateMessage``.
-* ``TargetStatus`` (VALID, FIX_INVALID, TIMEOUT, NO_DATA, FUTURE), ``FixSide`` (which side's fix
-  failed the gate) and ``RelativeResult`` -- what the master republishes;
-  ``encode_relative(res, sign=None) -> bytes``, ``decode_relative(data) -> RelativeResult``.
+* ``TargetStatus`` (VALID, FIX_INVALID, TIMEOUT, NO_DATA, FUTURE and the kinematic-but-not-valid
+  statuses of ``KINEMATIC_STATUSES``), ``FixSide`` (which side's fix failed the gate) and
+  ``RelativeResult`` -- what the master republishes; ``encode_relative(res, sign=None) -> bytes``
+  (always ``RELATIVE_SCHEMA_VERSION``), ``decode_relative(data) -> RelativeResult`` (versions in
+  ``RELATIVE_SCHEMA_VERSIONS``: 1 = before the vehicles' fix states and the yaw sigma, decoded with
+  ``master_fix``/``target_fix`` NONE and ``rel_yaw_sd_rad`` NaN).
 * Envelope helpers for signing: ``pack_envelope(body, sig, key_id)``, ``unpack_envelope(data)
   -> Envelope``.
 
@@ -42,6 +45,12 @@ import numpy as np
 from v2xpos.types import FixStatus, NavState
 
 SCHEMA_VERSION = 1
+"""Version of the StateMessage body (``ver``)."""
+RELATIVE_SCHEMA_VERSION = 2
+"""Version of the RelativeResult body the encoder writes: 2 adds ``mfix``/``tfix`` (both vehicles'
+fix status), ``kin.ys`` (relative yaw sigma) and kinematics on every status of KINEMATIC_STATUSES."""
+RELATIVE_SCHEMA_VERSIONS = (1, 2)
+"""RelativeResult body versions the decoder accepts (docs/protocol.md §3)."""
 ENVELOPE_VERSION = 1
 MAX_MESSAGE_BYTES = 8192
 MAX_GEOMETRY_POINTS = 64
@@ -240,7 +249,11 @@ class RelativeResult:
     ``lateral_m``, ``gap_m``: from the master measurement point to the target's nearest
     contact point / polygon edge / circle edge (horizontal); ``closing_speed_mps`` > 0 when the
     gap shrinks; ``ttc_s`` = gap / closing speed when closing, else None. Kinematic fields are NaN
-    when ``status`` is not VALID. ``latency_s`` = master time - target time of validity.
+    unless ``status`` is in KINEMATIC_STATUSES (only VALID may be used as a reference).
+    ``latency_s`` = master time - target time of validity. ``master_fix`` / ``target_fix``: fix
+    status of the master state and of the target message the result was computed from (on every
+    status; NONE when that side has no state yet). ``rel_yaw_sd_rad``: 1-sigma of the relative yaw
+    (``rel_rpy_rad[2]``), NaN without kinematics.
     """
     target_id: str = ""
     target_kind: str = "vehicle"
@@ -268,7 +281,7 @@ class RelativeResult:
     closing_speed_mps: float = math.nan
     ttc_s: float | None = None
     t_sent_wall_s: float | None = None
-    schema: int = SCHEMA_VERSION
+    schema: int = RELATIVE_SCHEMA_VERSION
     master_fix: FixStatus = FixStatus.NONE
     target_fix: FixStatus = FixStatus.NONE
     rel_yaw_sd_rad: float = math.nan
@@ -354,16 +367,17 @@ def encode_state(msg: StateMessage, sign: Signer | None = None) -> bytes:
 
 
 def encode_relative_body(res: RelativeResult) -> bytes:
-    """The msgpack body of a RelativeResult."""
-    body = {"T": "relative", "ver": int(res.schema), "fleet": res.fleet, "master": res.master_id,
+    """The msgpack body of a RelativeResult (schema ``RELATIVE_SCHEMA_VERSION``)."""
+    body = {"T": "relative", "ver": RELATIVE_SCHEMA_VERSION, "fleet": res.fleet, "master": res.master_id,
             "target": res.target_id, "kind": res.target_kind, "seq": int(res.seq),
             "src_seq": int(res.source_seq), "t": float(res.t_gps_s), "status": int(res.status),
-            "fix_side": int(res.fix_side), "degraded": bool(res.degraded)}
+            "fix_side": int(res.fix_side), "degraded": bool(res.degraded),
+            "mfix": int(res.master_fix), "tfix": int(res.target_fix)}
     if math.isfinite(res.latency_s):
         body["lat_s"] = float(res.latency_s)
     if res.t_sent_wall_s is not None:
         body["tw"] = float(res.t_sent_wall_s)
-    if res.status == TargetStatus.VALID:
+    if res.status in KINEMATIC_STATUSES:
         body["kin"] = {
             "p": _f3(res.rel_pos_body_m), "ps": _f3(res.rel_pos_sd_m), "v": _f3(res.rel_vel_body_mps),
             "a": _f3(res.rel_acc_body_mps2), "att": _f3(res.rel_rpy_rad), "rng": float(res.range_m),
@@ -371,7 +385,8 @@ def encode_relative_body(res: RelativeResult) -> bytes:
             "elv": float(res.elevation_rad), "lon_d": float(res.longitudinal_m),
             "lat_d": float(res.lateral_m), "gap": float(res.gap_m),
             "cls": float(res.closing_speed_mps),
-            "ttc": None if res.ttc_s is None else float(res.ttc_s)}
+            "ttc": None if res.ttc_s is None else float(res.ttc_s),
+            "ys": float(res.rel_yaw_sd_rad) if math.isfinite(res.rel_yaw_sd_rad) else None}
     return msgpack.packb(body, use_bin_type=True)
 
 
@@ -409,7 +424,7 @@ def unpack_envelope(data: bytes) -> Envelope:
     return Envelope(body, sig, key_id)
 
 
-def _unpack_body(body: bytes, expect_type: str) -> dict:
+def _unpack_body(body: bytes, expect_type: str, versions: tuple = (SCHEMA_VERSION,)) -> dict:
     try:
         m = msgpack.unpackb(body, raw=False, strict_map_key=True, max_array_len=1024, max_map_len=256)
     except Exception as exc:
@@ -422,7 +437,7 @@ def _unpack_body(body: bytes, expect_type: str) -> dict:
     ver = m.get("ver")
     if type(ver) is not int:
         raise WireError("missing or non-integer schema version", "ver")
-    if ver != SCHEMA_VERSION:
+    if ver not in versions:
         raise WireError(f"unknown schema version {ver}", "ver")
     return m
 
@@ -616,13 +631,24 @@ def decode_state(data: bytes) -> StateMessage:
     return msg
 
 
+def _fix_field(m: dict, key: str) -> FixStatus:
+    code = _uint(m, key, 255)
+    fix = _FIX_BY_CODE.get(code)
+    if fix is None:
+        raise WireError(f"unknown fix status {code}", key)
+    return fix
+
+
 def decode_relative_body(body: bytes) -> RelativeResult:
-    """Validated RelativeResult from its msgpack body."""
-    m = _unpack_body(body, "relative")
+    """Validated RelativeResult from its msgpack body (schema 1 or 2, see RELATIVE_SCHEMA_VERSIONS)."""
+    m = _unpack_body(body, "relative", RELATIVE_SCHEMA_VERSIONS)
+    ver = m["ver"]
     try:
         status = TargetStatus(_uint(m, "status", 255))
     except ValueError:
         raise WireError("unknown target status", "status") from None
+    if ver == 1 and status > TargetStatus.FUTURE:
+        raise WireError(f"status {int(status)} does not exist in schema 1", "status")
     side = _uint(m, "fix_side", 3)
     degraded = m.get("degraded", False)
     if type(degraded) is not bool:
@@ -635,17 +661,22 @@ def decode_relative_body(body: bytes) -> RelativeResult:
         degraded=degraded, fleet=_ident(m, "fleet"), master_id=_ident(m, "master"),
         seq=_uint(m, "seq"), source_seq=_uint(m, "src_seq"), t_gps_s=_num(m, "t", 0.0, MAX_T_GPS_S),
         latency_s=math.nan if m.get("lat_s") is None else _num(m, "lat_s", -1e6, 1e6),
-        t_sent_wall_s=_opt_num(m, "tw", 0.0, MAX_T_GPS_S), schema=m["ver"])
+        t_sent_wall_s=_opt_num(m, "tw", 0.0, MAX_T_GPS_S), schema=ver)
+    if ver >= 2:
+        res.master_fix = _fix_field(m, "mfix")
+        res.target_fix = _fix_field(m, "tfix")
     kin = m.get("kin")
-    if status == TargetStatus.VALID:
+    if status in KINEMATIC_STATUSES:
         if type(kin) is not dict:
-            raise WireError("VALID result without kinematics map", "kin")
+            raise WireError(f"{status.name} result without kinematics map", "kin")
         try:
             _decode_kinematics(kin, res)
+            if ver >= 2 and kin.get("ys") is not None:
+                res.rel_yaw_sd_rad = _num(kin, "ys", 0.0, MAX_SD)
         except WireError as err:
             raise WireError(err.reason, f"kin.{err.field}") from None
     elif kin is not None:
-        raise WireError("kinematics present on a non-VALID result", "kin")
+        raise WireError(f"kinematics present on a {status.name} result", "kin")
     return res
 
 

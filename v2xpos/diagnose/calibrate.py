@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from v2xpos.ins.replay import add_schedule_arguments, load_for_command
+from v2xpos.ins.replay import add_schedule_arguments, command_provenance, load_for_command
 from v2xpos.types import Dataset
 
 from . import identify, structure
@@ -716,6 +716,7 @@ def run(args: argparse.Namespace) -> int:
     schedule = OutageSchedule(args.outage_length, args.outage_every, args.outage_first)
     cal = calibrate_dataset(ds, schedule, progress=not args.no_progress, gn_iterations=args.iterations)
     out = to_json(cal)
+    out["provenance"] = command_provenance("calibrate", args)
     text = json.dumps(out, indent=2)
     if args.json == "-":
         print(text)

@@ -11,7 +11,8 @@ a ``McapRecorder`` in the same order. Log times are taken in the master when the
 Frames: ``uint32 little-endian length, msgpack array [op, ...]``; ops: ``open`` (path,
 max_bytes, chunk_size, compression), ``s`` (session), ``n`` (nav doc, log time), ``r``
 (payload, key, arrival, now, nav index), ``t`` (now, master time, log time), ``o`` (raw result
-bytes, readable fields, log time). On end of input the child closes the recorder and prints
+bytes, log time), ``d`` (degraded vehicle ids, log time), ``g`` (the site's lanes and objects).
+Decoding the messages to JSON and drawing them for Foxglove happen in the child. On end of input the child closes the recorder and prints
 ``{"recorded": {...}, "files": [...]}`` as one JSON line. The buffer is written when it holds
 ``FLUSH_BYTES`` or is ``FLUSH_INTERVAL_S`` old (checked at every call) and on ``flush``/``close``.
 If the child fails, the error is printed once, further records are counted in ``dropped`` and
@@ -30,7 +31,7 @@ from typing import Any, BinaryIO
 
 import msgpack
 
-from v2xpos.output.recorder import SCHEMAS, McapRecorder, nav_to_dict, result_fields
+from v2xpos.output.recorder import FOXGLOVE_TOPICS, SCHEMAS, McapRecorder, nav_to_dict
 from v2xpos.wire import RelativeResult, encode_relative
 
 _U32 = struct.Struct("<I")
@@ -50,7 +51,7 @@ class RecorderProcess:
         self.path = Path(path)
         self.proc = subprocess.Popen([sys.executable, "-m", "v2xpos.output.recorder_process"],
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, bufsize=0)
-        self.recorded: dict[str, int] = {t: 0 for t in SCHEMAS}
+        self.recorded: dict[str, int] = {t: 0 for t in [*SCHEMAS, *FOXGLOVE_TOPICS]}
         self.files: list[Path] = []
         self.dropped = 0
         self.failure = ""
@@ -106,12 +107,18 @@ class RecorderProcess:
                         t_now_gps_s: float, nav_index: int) -> None:
         self._frame(["r", bytes(payload), key, float(t_arrival_wall_s), float(t_now_gps_s), int(nav_index)])
 
-    def record_tick(self, t_now_gps_s: float, master_t_gps_s: float | None) -> None:
+    def record_tick(self, t_now_gps_s: float, master_t_gps_s: float | None, master_fix: int | None = None) -> None:
         self._frame(["t", float(t_now_gps_s), None if master_t_gps_s is None else float(master_t_gps_s),
-                     time.time_ns()])
+                     time.time_ns(), None if master_fix is None else int(master_fix)])
 
     def record_result(self, res: RelativeResult) -> None:
-        self._frame(["o", encode_relative(res), list(result_fields(res)), time.time_ns()])
+        self._frame(["o", encode_relative(res), time.time_ns()])
+
+    def record_degraded(self, vehicle_ids: list[str]) -> None:
+        self._frame(["d", list(vehicle_ids), time.time_ns()])
+
+    def write_scene_features(self, features: list[dict]) -> None:
+        self._frame(["g", features])
 
     def close(self) -> None:
         """Flush, end the child's input and take its figures (waits for it to finish writing)."""
@@ -166,11 +173,15 @@ def serve(inp: BinaryIO, out: BinaryIO) -> int:
             elif kind == "r":
                 rec.record_received(op[1], op[2], op[3], op[4], op[5])
             elif kind == "o":
-                rec.record_result_fields(op[1], *op[2], log_time_ns=op[3])
+                rec.record_result_bytes(op[1], log_time_ns=op[2])
+            elif kind == "d":
+                rec.record_degraded(op[1], op[2])
+            elif kind == "g":
+                rec.write_scene_features(op[1])
             elif kind == "n":
                 rec.record_nav_doc(op[1], op[2])
             elif kind == "t":
-                rec.record_tick(op[1], op[2], op[3])
+                rec.record_tick(op[1], op[2], op[3], op[4] if len(op) > 4 else None)
             elif kind == "s":
                 rec.write_session(op[1])
             else:

@@ -2,19 +2,24 @@
 
 Public API (stable)
 -------------------
-* ``UdpOutput(host="127.0.0.1", port=..., allow_remote=False)``: ``send(results, seq, t_gps_s,
-  lanes=None, objects=None) -> bytes sent``, ``datagrams_sent``, ``close()``. Destinations that are
-  not loopback are refused unless ``allow_remote=True``.
+* ``UdpOutput(host="127.0.0.1", port=...)``: ``send(results, seq, t_gps_s, lanes=None,
+  objects=None) -> bytes sent``, ``datagrams_sent``, ``close()``. Any unicast destination
+  (loopback or not, IPv4 or IPv6, or a host name resolving to one); multicast, broadcast and
+  unspecified addresses are refused (``check_destination(host)`` raises ValueError saying why).
 * ``build_datagram(results, seq, t_gps_s, lanes=None, objects=None) -> bytes`` and
-  ``parse_datagram(data) -> UdpDatagram`` (raises ``UdpFormatError(reason, offset)``).
+  ``parse_datagram(data) -> UdpDatagram`` (raises ``UdpFormatError(reason, offset)``); the parser
+  also reads version-1 datagrams (one header time for every record, no fix states).
 * ``LaneRecord``, ``ObjectRecord`` -- scene records; ``records_from_scene(scene_result)
   -> (lanes, objects)``.
 
-Layout (all little-endian; docs/protocol.md §6):
-header ``<4sBBHHHId`` (24 bytes): magic b"V2XR", version 1, flags 0, n_targets, n_lanes,
-n_objects, seq (u32), t_gps_s (f64); then n_targets target records, n_lanes lane records,
-n_objects object records (formats ``TARGET_FMT``, ``LANE_FMT``, ``OBJECT_FMT``).
-Target kinematics are NaN when status is not VALID; TTC NaN = none.
+Layout version 2 (all little-endian; docs/protocol.md §6):
+header ``<4sBBHHHId`` (24 bytes): magic b"V2XR", version 2, flags 0, n_targets, n_lanes,
+n_objects, seq (u32), t_gps_s (f64, the master time of the datagram's last result); then n_targets
+target records (``TARGET_FMT``, 184 bytes: each with its own time of validity ``t_gps_s``, master
+output sequence number, master and target fix status and sigmas), n_lanes lane records, n_objects
+object records (``LANE_FMT``, ``OBJECT_FMT``).
+Target kinematics are NaN unless the status carries kinematics (``wire.KINEMATIC_STATUSES``;
+only VALID may be used as a reference); TTC NaN = none.
 """
 from __future__ import annotations
 
@@ -27,20 +32,28 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from v2xpos.wire import FixSide, RelativeResult, TargetStatus
+from v2xpos.types import FixStatus
+from v2xpos.wire import KINEMATIC_STATUSES, FixSide, RelativeResult, TargetStatus
 
 MAGIC = b"V2XR"
-VERSION = 1
+VERSION = 2
+VERSIONS = (1, 2)
 HEADER_FMT = "<4sBBHHHId"
-TARGET_FMT = "<32sBBBBQf3d3f3f3f3fdffffffff"
+TARGET_FMT = "<32sBBBBB3xdQIf3d3f3f3f3fd9f4x"
+"""id, status, fix_side, flags, master_fix, target_fix, (pad), t_gps_s, source_seq, seq, latency_s,
+position (f64), position sd, velocity, acceleration, d_roll/d_pitch/d_yaw, range (f64), range sd,
+bearing, elevation, longitudinal, lateral, gap, closing speed, TTC, relative yaw sd, (pad)."""
+TARGET_V1_FMT = "<32sBBBBQf3d3f3f3f3fdffffffff"
 LANE_FMT = "<H2xff"
 OBJECT_FMT = "<HBxffff"
 HEADER = struct.Struct(HEADER_FMT)
 TARGET = struct.Struct(TARGET_FMT)
+TARGET_V1 = struct.Struct(TARGET_V1_FMT)
 LANE = struct.Struct(LANE_FMT)
 OBJECT = struct.Struct(OBJECT_FMT)
 MAX_DATAGRAM_BYTES = 65507
 FLAG_DEGRADED, FLAG_PEDESTRIAN = 1, 2
+_FIX_BY_CODE = {int(f): f for f in FixStatus}
 
 
 class UdpFormatError(ValueError):
@@ -72,9 +85,10 @@ class ObjectRecord:
 
 @dataclass
 class UdpDatagram:
-    """A parsed datagram."""
+    """A parsed datagram (header sequence number and time; ``version`` of its layout)."""
     seq: int
     t_gps_s: float
+    version: int = VERSION
     targets: list = field(default_factory=list)
     lanes: list = field(default_factory=list)
     objects: list = field(default_factory=list)
@@ -105,16 +119,19 @@ _NAN9 = [math.nan] * 9
 
 def _pack_target(r: RelativeResult) -> bytes:
     flags = (FLAG_DEGRADED if r.degraded else 0) | (FLAG_PEDESTRIAN if r.target_kind == "pedestrian" else 0)
-    if r.status == TargetStatus.VALID:
+    if r.status in KINEMATIC_STATUSES:
         p, ps, v = _vec(r.rel_pos_body_m), _vec(r.rel_pos_sd_m), _vec(r.rel_vel_body_mps)
         a, att = _vec(r.rel_acc_body_mps2), _vec(r.rel_rpy_rad)
         scal = (r.range_m, r.range_sd_m, r.bearing_rad, r.elevation_rad, r.longitudinal_m, r.lateral_m,
                 r.gap_m, r.closing_speed_mps, _nan(r.ttc_s))
+        yaw_sd = r.rel_yaw_sd_rad
     else:
         p = ps = v = a = att = _NAN3
         scal = _NAN9
-    return TARGET.pack(r.target_id.encode()[:32], int(r.status), int(r.fix_side), flags, 0,
-                       int(r.source_seq) & 0xFFFFFFFFFFFFFFFF, _nan(r.latency_s), *p, *ps, *v, *a, *att, *scal)
+        yaw_sd = math.nan
+    return TARGET.pack(r.target_id.encode()[:32], int(r.status), int(r.fix_side), flags, int(r.master_fix),
+                       int(r.target_fix), float(r.t_gps_s), int(r.source_seq) & 0xFFFFFFFFFFFFFFFF,
+                       int(r.seq) & 0xFFFFFFFF, _nan(r.latency_s), *p, *ps, *v, *a, *att, *scal, yaw_sd)
 
 
 def build_datagram(results: Sequence[RelativeResult], seq: int, t_gps_s: float,
@@ -134,41 +151,63 @@ def build_datagram(results: Sequence[RelativeResult], seq: int, t_gps_s: float,
     return data
 
 
+def _fix(code: int, offset: int, what: str) -> FixStatus:
+    fix = _FIX_BY_CODE.get(code)
+    if fix is None:
+        raise UdpFormatError(f"unknown {what} fix status {code}", offset)
+    return fix
+
+
+def _target_from_record(f: tuple, off: int, version: int, seq: int, t_header: float) -> RelativeResult:
+    try:
+        status = TargetStatus(f[1])
+    except ValueError:
+        raise UdpFormatError(f"unknown target status {f[1]}", off + 32) from None
+    try:
+        tid = f[0].rstrip(b"\0").decode()
+    except UnicodeDecodeError:
+        raise UdpFormatError("target id not utf-8", off) from None
+    if version == 1:
+        if status > TargetStatus.FUTURE:
+            raise UdpFormatError(f"status {f[1]} does not exist in version 1", off + 32)
+        master_fix = target_fix = FixStatus.NONE
+        t_rec, src_seq, rec_seq, latency, k, yaw_sd = t_header, f[5], seq, f[6], 7, math.nan
+    else:
+        master_fix, target_fix = _fix(f[4], off + 35, "master"), _fix(f[5], off + 36, "target")
+        t_rec, src_seq, rec_seq, latency, k, yaw_sd = f[6], f[7], f[8], f[9], 10, f[34]
+    vec = [np.array(f[k + 3 * i:k + 3 * i + 3], dtype=float) for i in range(5)]
+    (rng, rng_sd, brg, elv, lon, lat, gap, cls, ttc) = f[k + 15:k + 24]
+    return RelativeResult(
+        target_id=tid, target_kind="pedestrian" if f[3] & FLAG_PEDESTRIAN else "vehicle", status=status,
+        fix_side=FixSide(f[2] & 3), degraded=bool(f[3] & FLAG_DEGRADED), seq=rec_seq, source_seq=src_seq,
+        t_gps_s=t_rec, latency_s=latency, rel_pos_body_m=vec[0], rel_pos_sd_m=vec[1],
+        rel_vel_body_mps=vec[2], rel_acc_body_mps2=vec[3], rel_rpy_rad=vec[4], range_m=rng,
+        range_sd_m=rng_sd, bearing_rad=brg, elevation_rad=elv, longitudinal_m=lon, lateral_m=lat,
+        gap_m=gap, closing_speed_mps=cls, ttc_s=None if math.isnan(ttc) else ttc, schema=version,
+        master_fix=master_fix, target_fix=target_fix, rel_yaw_sd_rad=yaw_sd)
+
+
 def parse_datagram(data: bytes) -> UdpDatagram:
-    """Parse a datagram into RelativeResult / LaneRecord / ObjectRecord lists; UdpFormatError if bad."""
+    """Parse a datagram (version 1 or 2) into RelativeResult / LaneRecord / ObjectRecord lists;
+    UdpFormatError if bad. Each target's ``t_gps_s`` is its record's time of validity (version 1:
+    the header time), ``seq`` its master output sequence number (version 1: the header's)."""
     if len(data) < HEADER.size:
         raise UdpFormatError(f"shorter than the {HEADER.size}-byte header", 0)
     magic, version, _flags, nt, nl, no, seq, t = HEADER.unpack_from(data, 0)
     if magic != MAGIC:
         raise UdpFormatError(f"bad magic {magic!r}", 0)
-    if version != VERSION:
+    if version not in VERSIONS:
         raise UdpFormatError(f"unknown version {version}", 4)
-    expect = HEADER.size + nt * TARGET.size + nl * LANE.size + no * OBJECT.size
+    record = TARGET if version == 2 else TARGET_V1
+    expect = HEADER.size + nt * record.size + nl * LANE.size + no * OBJECT.size
     if len(data) != expect:
-        raise UdpFormatError(f"length {len(data)} != {expect} for {nt} targets, {nl} lanes, {no} objects", 6)
-    out = UdpDatagram(seq=seq, t_gps_s=t)
+        raise UdpFormatError(f"length {len(data)} != {expect} for {nt} targets, {nl} lanes, {no} objects "
+                             f"(version {version})", 6)
+    out = UdpDatagram(seq=seq, t_gps_s=t, version=version)
     off = HEADER.size
     for _ in range(nt):
-        f = TARGET.unpack_from(data, off)
-        try:
-            status = TargetStatus(f[1])
-        except ValueError:
-            raise UdpFormatError(f"unknown target status {f[1]}", off + 32) from None
-        try:
-            tid = f[0].rstrip(b"\0").decode()
-        except UnicodeDecodeError:
-            raise UdpFormatError("target id not utf-8", off) from None
-        k = 7
-        vec = [np.array(f[k + 3 * i:k + 3 * i + 3], dtype=float) for i in range(5)]
-        (rng, rng_sd, brg, elv, lon, lat, gap, cls, ttc) = f[k + 15:k + 24]
-        out.targets.append(RelativeResult(
-            target_id=tid, target_kind="pedestrian" if f[3] & FLAG_PEDESTRIAN else "vehicle", status=status,
-            fix_side=FixSide(f[2] & 3), degraded=bool(f[3] & FLAG_DEGRADED), seq=seq, source_seq=f[5],
-            t_gps_s=t, latency_s=f[6], rel_pos_body_m=vec[0], rel_pos_sd_m=vec[1],
-            rel_vel_body_mps=vec[2], rel_acc_body_mps2=vec[3], rel_rpy_rad=vec[4], range_m=rng,
-            range_sd_m=rng_sd, bearing_rad=brg, elevation_rad=elv, longitudinal_m=lon, lateral_m=lat,
-            gap_m=gap, closing_speed_mps=cls, ttc_s=None if math.isnan(ttc) else ttc))
-        off += TARGET.size
+        out.targets.append(_target_from_record(record.unpack_from(data, off), off, version, seq, t))
+        off += record.size
     for _ in range(nl):
         out.lanes.append(LaneRecord(*LANE.unpack_from(data, off)))
         off += LANE.size
@@ -178,32 +217,37 @@ def parse_datagram(data: bytes) -> UdpDatagram:
     return out
 
 
-def _is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
+def check_destination(host: str) -> None:
+    """Raise ValueError unless ``host`` is a unicast address (or a name, resolved when opening):
+    multicast, broadcast (255.255.255.255) and unspecified (0.0.0.0, ::) destinations are refused."""
+    if not isinstance(host, str) or not host.strip():
+        raise ValueError(f"UDP destination {host!r} is empty")
     try:
-        return ipaddress.ip_address(host).is_loopback
+        addr = ipaddress.ip_address(host)
     except ValueError:
-        return False
-
-
-def _is_multicast(host: str) -> bool:
-    try:
-        return ipaddress.ip_address(host).is_multicast
-    except ValueError:
-        return False
+        return                                  # a host name: checked again once resolved
+    if addr.is_multicast:
+        raise ValueError(f"UDP destination {host!r} is multicast; only unicast destinations are allowed")
+    if addr.is_unspecified:
+        raise ValueError(f"UDP destination {host!r} is the unspecified address; give the receiver's address")
+    if isinstance(addr, ipaddress.IPv4Address) and addr == ipaddress.IPv4Address("255.255.255.255"):
+        raise ValueError(f"UDP destination {host!r} is the broadcast address; only unicast destinations are allowed")
 
 
 class UdpOutput:
-    """Sends one datagram per master update to (host, port); loopback only unless allow_remote."""
+    """Sends one datagram per master update to a unicast (host, port) (see ``check_destination``)."""
 
-    def __init__(self, host: str = "127.0.0.1", port: int = 47001, allow_remote: bool = False):
-        if not allow_remote and not _is_loopback(host):
-            raise ValueError(f"UDP destination {host!r} is not loopback; pass allow_remote=True to send there")
-        if _is_multicast(host):
-            raise ValueError(f"UDP destination {host!r} is multicast; refused")
-        family = socket.AF_INET6 if ":" in host else socket.AF_INET
-        self.address = ("127.0.0.1" if host == "localhost" else host, int(port))
+    def __init__(self, host: str = "127.0.0.1", port: int = 47001):
+        check_destination(host)
+        if not 0 < int(port) < 65536:
+            raise ValueError(f"UDP port {port} outside 1..65535")
+        try:
+            infos = socket.getaddrinfo(host, int(port), type=socket.SOCK_DGRAM)
+        except socket.gaierror as exc:
+            raise ValueError(f"UDP destination {host!r}: cannot resolve ({exc.strerror})") from None
+        family, _, _, _, sockaddr = infos[0]
+        check_destination(sockaddr[0])
+        self.address = sockaddr
         self.sock = socket.socket(family, socket.SOCK_DGRAM)
         self.datagrams_sent = 0
         self.bytes_sent = 0

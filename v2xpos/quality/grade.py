@@ -59,7 +59,18 @@ def _finite(o):
     return o
 
 
-def _write_json(path: Path, obj: dict) -> None:
+def _write_json(path: Path, obj: dict, args: argparse.Namespace | None = None) -> None:
+    """The report as strict JSON, with a ``provenance`` object (``v2xpos.provenance``: the graded
+    recording's descriptor hash, the options, seeds of a simulation)."""
+    if args is not None:
+        from v2xpos.provenance import provenance
+        configs: dict = {"options": {k: (str(v) if isinstance(v, Path) else v) for k, v in sorted(vars(args).items())
+                                     if k not in ("path", "json", "plots")}}
+        if args.path:
+            p = Path(args.path)
+            configs["recording"] = p if p.is_file() else str(p)
+        seeds = {"seeds": list(range(args.seeds))} if args.simulate == "faults" else None
+        obj = {**obj, "provenance": provenance("grade", configs, seeds=seeds)}
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(_finite(obj), indent=1, default=_json_default, allow_nan=False))
     print(f"wrote {path}")
@@ -241,7 +252,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"{k:<16} {det:<24} {r['healthy_fail']}/{r['healthy_units']:<11} {r['healthy_warn']}")
         print(f"({time.perf_counter() - t0:.1f} s)")
         if args.json:
-            _write_json(args.json, {"seeds": args.seeds, "faults": res})
+            _write_json(args.json, {"seeds": args.seeds, "faults": res}, args)
         ok = all(r["healthy_fail"] == 0 for r in res.values()) and \
             all(r["detected"] == r["runs"] for k, r in res.items() if k != "none")
         return 0 if ok else 1
@@ -258,7 +269,7 @@ def run(args: argparse.Namespace) -> int:
             from .plots import plot_rate_check
             print(f"wrote {plot_rate_check(res['_results'], Path(args.plots) / 'rate_check.png')}")
         if args.json:
-            _write_json(args.json, {k: v for k, v in res.items() if not k.startswith("_")})
+            _write_json(args.json, {k: v for k, v in res.items() if not k.startswith("_")}, args)
         return 0
     if not args.path:
         print("v2xpos grade: give CONFIG_OR_DIR or --simulate", file=sys.stderr)
@@ -274,5 +285,5 @@ def run(args: argparse.Namespace) -> int:
         for p in plot_first_parameter(rep["_comparison"], rep["reference"], args.plots, cfg):
             print(f"wrote {p}")
     if args.json:
-        _write_json(args.json, public_report(rep))
+        _write_json(args.json, public_report(rep), args)
     return 0 if all(u["grade"] != "fail" for u in rep["units"]) else 1

@@ -1,0 +1,107 @@
+"""The monitor's page in a real browser during a demo: headless Chromium (Debian's ``chromium`` +
+``chromium-driver``, driven with selenium) loads the page served by ``v2xpos monitor --web`` while
+``sim.demo.run_demo`` runs master, slaves and a pedestrian as processes, and reads what it drew:
+the targets on the canvas (their ids, statuses, pixel positions and the colour of the pixel under
+each) and the table rows. Skipped, with the reason, only when Chromium or its driver is not
+installed (``make browser-deps`` installs them; ``.ci/run`` calls it)."""
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import tempfile
+import threading
+import time
+
+import pytest
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+DRIVER = shutil.which("chromedriver")
+pytestmark = [pytest.mark.slow,
+              pytest.mark.skipif(CHROMIUM is None or DRIVER is None,
+                                 reason="Chromium / chromedriver not installed (Debian: apt-get install chromium "
+                                        "chromium-driver; `make browser-deps`)")]
+
+
+def _browser(user_dir: str):
+    webdriver = pytest.importorskip("selenium.webdriver")
+    from selenium.webdriver.chrome.service import Service
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = CHROMIUM
+    for flag in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                 "--disable-component-update", "--disable-sync", "--no-first-run", f"--user-data-dir={user_dir}",
+                 "--window-size=1600,900"):
+        opts.add_argument(flag)
+    return webdriver.Chrome(service=Service(DRIVER), options=opts)
+
+
+def test_page_shows_the_demo_targets(tmp_path):
+    from sim.demo import run_demo
+    from sim.launcher import free_tcp_port
+    from v2xpos.link import LinkConfig
+    from v2xpos.monitor.attach import MasterMonitor
+    from v2xpos.monitor.web import WebServer
+
+    port = free_tcp_port()
+    box: dict = {}
+
+    def demo() -> None:
+        try:
+            box["report"] = run_demo(vehicles=3, duration_s=14.0, out=tmp_path / "demo", live=False, plots=False,
+                                     port=port, degradations=False, spikes=False)
+        except BaseException as exc:   # reported by the main thread
+            box["error"] = exc
+    th = threading.Thread(target=demo, daemon=True)
+    th.start()
+    mon = MasterMonitor(LinkConfig(mode="client", connect=[f"tcp/127.0.0.1:{port}"], connect_timeout_ms=120000),
+                        "demo", "ego")
+    mon.start()
+    web = WebServer(mon.snapshot).start()
+    driver = _browser(tempfile.mkdtemp(prefix="v2xpos-chromium-"))
+    try:
+        driver.get(web.url)
+        best = None
+        t_end = time.time() + 120.0
+        while time.time() < t_end and th.is_alive():
+            drawn = driver.execute_script("return window.v2xposRendered")
+            rows = driver.execute_script(
+                "return Array.from(document.querySelectorAll('#rows tr')).map("
+                "tr => [tr.dataset.target, tr.dataset.status, tr.children[5].textContent])")
+            valid = [d for d in drawn if d["status"] == "valid"]
+            if len(valid) >= 3:    # two vehicles and the pedestrian, all VALID on the canvas
+                best = (drawn, rows)
+                pixels = driver.execute_script(
+                    "const c = document.getElementById('view').getContext('2d');"
+                    "return window.v2xposRendered.map(d => Array.from("
+                    "c.getImageData(Math.round(d.px), Math.round(d.py), 1, 1).data))")
+                snap = mon.snapshot()
+                driver.save_screenshot(str(tmp_path / "monitor.png"))
+                if os.environ.get("V2XPOS_SCREENSHOT_DIR"):   # to look at it
+                    driver.save_screenshot(os.path.join(os.environ["V2XPOS_SCREENSHOT_DIR"], "monitor_demo.png"))
+                break
+            time.sleep(0.3)
+    finally:
+        driver.quit()
+        web.close()
+        mon.close()
+        th.join(timeout=120)
+    assert "error" not in box, box.get("error")
+    assert best is not None, "the page never showed three VALID targets during the demo"
+    drawn, rows = best
+    ids = {d["id"] for d in drawn}
+    assert len(ids) == 3 and "ego" not in ids
+    table_ids = {r[0] for r in rows}
+    assert ids <= table_ids
+    by_id = {r["id"]: r for r in snap["rows"]}
+    for d, px in zip(drawn, pixels):
+        want = tuple(int(d["color"][i:i + 2], 16) for i in (1, 3, 5))
+        assert tuple(px[:3]) == want, (d, px)          # the target's dot is drawn in its status colour
+        r = by_id[d["id"]]
+        assert 1.0 < r["range_m"] < 1000.0
+    # screen positions follow the master frame: further ahead is higher on the canvas
+    ahead = sorted((by_id[d["id"]]["x_m"], d["py"]) for d in drawn)
+    assert all(a[1] >= b[1] - 1e-6 for a, b in zip(ahead, ahead[1:]) if b[0] - a[0] > 1.0)
+    for tid, status, rng in rows:
+        if status == "valid":
+            assert math.isfinite(float(rng))
+    assert (tmp_path / "monitor.png").stat().st_size > 10_000

@@ -1,0 +1,361 @@
+"""``v2xpos emulate DATASET_TOML``: a recording's real bytes as live devices, for tests and bench
+trials without hardware.
+
+Each byte stream of the recording that has an RTKLIB TIMETAG file -- the IMU csv (``[imu] file`` +
+``timetag``), the raw u-blox stream (``[gnss] raw`` + ``raw_timetag``, or a ``[gnss]`` file of
+format ``ubx`` with its ``timetag``) -- is written into its own pseudo-terminal (``os.openpty``,
+raw mode; a ``device`` source opens the printed path like a serial port) or, with ``--tcp``, to
+the clients of a TCP listener on 127.0.0.1 (port from the OS). The bytes go out in the recorded
+chunks (one per TIMETAG record: the bytes that arrived between two records) at the recorded
+arrival times, shifted onto the host clock and divided by ``--speed``.
+
+Time. The recording's arrival times are GPS times in the past. The emulator fixes its timeline at
+start: recorded time T0 (the first arrival) is written at host time H0 (``--start-in`` seconds
+from now). A consumer must map its host clock onto the recording with
+``gps = emulation_speed * host_gps + host_time_offset_s``, the two numbers printed (the
+``clock`` table of the ``device`` source: ``host_time_offset_s``, ``emulation_speed``). They are
+for emulation only; a vehicle runs on the real host clock. The minimum NAV-PVT latency of the
+recording is printed too, as the ``latency_floor_s`` that makes the emulated receiver look
+synchronised (see ``v2xpos.sources.gnss_clock``).
+
+Why here (``v2xpos/devices``) and not a top-level ``bench/``: the emulator is the inverse of the
+transports (same TIMETAG semantics, same pty/TCP endpoints) and uses only the formats floor, so
+the library can ship it and the tests and the CLI import one module. Bytes due while no reader
+is attached are dropped and counted (``counts()``); a reader that is slow delays the writes (a
+pseudo-terminal holds about 4 kB), as a real port with flow control would.
+"""
+from __future__ import annotations
+
+import argparse
+import errno
+import json
+import math
+import os
+import select
+import signal
+import socket
+import sys
+import threading
+import time
+import tty
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from v2xpos import timebase
+
+
+@dataclass
+class EmulatedStream:
+    """One device: its name, format, recorded chunks (arrival GPS s, bytes) and where it is served."""
+    name: str
+    format: str
+    source: str
+    times_s: np.ndarray
+    chunks: list[bytes]
+    path: str = ""
+    address: str = ""
+    written: int = 0
+    dropped: int = 0
+    _master_fd: int = -1
+    _slave_fd: int = -1
+    _listener: socket.socket | None = None
+    _clients: list = field(default_factory=list)
+
+
+def timetag_chunks(data_path: str | Path, tag_path: str | Path) -> tuple[np.ndarray, list[bytes]]:
+    """The recorded chunks of a TIMETAG'd file: for each record, the bytes that arrived since the
+    previous record and its arrival time [GPS s]. Records that add no bytes are left out."""
+    from v2xpos.datasets.timetag import read_timetag
+    raw = Path(data_path).read_bytes()
+    tag, _ = read_timetag(tag_path)
+    offsets = np.minimum(tag.byte_offset, len(raw))
+    times, chunks = [], []
+    prev = 0
+    for t, off in zip(tag.t_s, offsets):
+        if off > prev:
+            times.append(float(t))
+            chunks.append(raw[prev:int(off)])
+            prev = int(off)
+    if prev < len(raw):                       # bytes after the last record: with the last one
+        times.append(float(tag.t_s[-1]) if len(tag.t_s) else 0.0)
+        chunks.append(raw[prev:])
+    return np.asarray(times), chunks
+
+
+def streams_of(toml_path: str | Path) -> list[EmulatedStream]:
+    """The TIMETAG'd byte streams a dataset descriptor names (see module docstring)."""
+    from v2xpos.datasets.loader import read_descriptor
+    toml_path = Path(toml_path)
+    desc = read_descriptor(toml_path)
+    base = toml_path.parent
+    out = []
+    imu = desc.get("imu", {})
+    if isinstance(imu, dict) and imu.get("file") and imu.get("timetag"):
+        t, c = timetag_chunks(base / imu["file"], base / imu["timetag"])
+        out.append(EmulatedStream("imu", imu.get("format", "csv_g_dps_ms"), str(base / imu["file"]), t, c))
+    gnss = desc.get("gnss", {})
+    if isinstance(gnss, dict):
+        if gnss.get("raw") and gnss.get("raw_timetag"):
+            t, c = timetag_chunks(base / gnss["raw"], base / gnss["raw_timetag"])
+            out.append(EmulatedStream("gnss", "ubx", str(base / gnss["raw"]), t, c))
+        elif gnss.get("format") == "ubx" and gnss.get("file") and gnss.get("timetag"):
+            t, c = timetag_chunks(base / gnss["file"], base / gnss["timetag"])
+            out.append(EmulatedStream("gnss", "ubx", str(base / gnss["file"]), t, c))
+    return out
+
+
+def min_nav_pvt_latency_s(stream: EmulatedStream, tag_path: str | Path | None) -> float | None:
+    """Smallest NAV-PVT latency of a recorded UBX stream [s] (``datasets.ubx``), or None."""
+    if stream.format != "ubx" or tag_path is None:
+        return None
+    from v2xpos.datasets.ubx import read_ubx
+    res = read_ubx(stream.source, tag_path)
+    lat = res.latency_s[np.isfinite(res.latency_s)]
+    return float(lat.min()) if lat.size else None
+
+
+class Emulator:
+    """Serve the streams of a recording (see module docstring).
+
+    ``Emulator(toml, speed=1.0, tcp=False, start_in_s=2.0, duration_s=None, only=None)``; after
+    construction ``devices()`` and ``timing()`` say where and when; ``run()`` plays (blocking) until
+    the end or ``stop()``.
+    """
+
+    def __init__(self, toml_path: str | Path, speed: float = 1.0, tcp: bool = False, start_in_s: float = 2.0,
+                 duration_s: float | None = None, only: list[str] | None = None, skip_s: float = 0.0):
+        if not speed > 0:
+            raise ValueError("speed must be > 0")
+        self.toml_path = Path(toml_path)
+        self.speed = float(speed)
+        self.tcp = tcp
+        self.streams = [s for s in streams_of(self.toml_path) if only is None or s.name in only]
+        if not self.streams:
+            raise ValueError(f"{self.toml_path}: no byte stream with a TIMETAG file to emulate")
+        self.t0_rec_s = min(float(s.times_s[0]) for s in self.streams if len(s.times_s)) + skip_s
+        self.t_end_rec_s = max(float(s.times_s[-1]) for s in self.streams if len(s.times_s))
+        if duration_s is not None:
+            self.t_end_rec_s = min(self.t_end_rec_s, self.t0_rec_s + duration_s)
+        self._stop = threading.Event()
+        self.block_timeout_s = 1.0
+        for s in self.streams:
+            self._open(s)
+        self.set_start(start_in_s)
+
+    def set_start(self, start_in_s: float) -> None:
+        """(Re)fix the timeline: the first recorded byte goes out ``start_in_s`` from now."""
+        self.h0_unix_s = time.time() + float(start_in_s)
+        self.host_time_offset_s = self.t0_rec_s - self.speed * float(timebase.unix_to_gps_seconds(self.h0_unix_s))
+
+    def _open(self, s: EmulatedStream) -> None:
+        if self.tcp:
+            ls = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            ls.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            ls.bind(("127.0.0.1", 0))
+            ls.listen(4)
+            ls.setblocking(False)
+            s._listener = ls
+            s.address = f"127.0.0.1:{ls.getsockname()[1]}"
+        else:
+            m, sl = os.openpty()
+            tty.setraw(sl)              # binary bytes pass unchanged (no echo, no CR/LF mapping)
+            os.set_blocking(m, False)
+            s.path = os.ttyname(sl)
+            os.close(sl)                # the master then polls POLLHUP until a reader opens the path
+            s._master_fd = m
+
+    def devices(self) -> dict:
+        """{name: {"format", "path" | "tcp", "source"}} of the served streams."""
+        out = {}
+        for s in self.streams:
+            d = {"format": s.format, "source": s.source}
+            if s.path:
+                d["port"] = s.path
+            if s.address:
+                d["tcp"] = s.address
+            out[s.name] = d
+        return out
+
+    def timing(self) -> dict:
+        """The numbers a consumer needs to put its host clock onto the recording (emulation only)."""
+        return {"host_time_offset_s": self.host_time_offset_s, "emulation_speed": self.speed,
+                "start_unix_s": self.h0_unix_s, "recording_start_gps_s": self.t0_rec_s,
+                "recording_end_gps_s": self.t_end_rec_s}
+
+    def _accept(self, s: EmulatedStream) -> None:
+        if s._listener is None:
+            return
+        while True:
+            try:
+                c, _ = s._listener.accept()
+            except (BlockingIOError, OSError):
+                return
+            c.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            c.setblocking(False)
+            s._clients.append(c)
+
+    def _write(self, s: EmulatedStream, data: bytes) -> None:
+        if s._master_fd >= 0:
+            self._discard_echo(s)
+            poller = select.poll()
+            poller.register(s._master_fd, select.POLLOUT)
+            view = memoryview(data)
+            while view:
+                ev = poller.poll(int(self.block_timeout_s * 1000))
+                if not ev or ev[0][1] & select.POLLHUP or not ev[0][1] & select.POLLOUT:
+                    s.dropped += len(view)        # no reader attached (or it stopped reading)
+                    return
+                try:
+                    n = os.write(s._master_fd, view)
+                except (BlockingIOError, InterruptedError):
+                    continue
+                except OSError as exc:
+                    if exc.errno == errno.EIO:
+                        s.dropped += len(view)
+                        return
+                    raise
+                s.written += n
+                view = view[n:]
+            return
+        self._accept(s)
+        if not s._clients:
+            s.dropped += len(data)
+            return
+        for c in list(s._clients):
+            try:
+                c.sendall(data)
+            except BlockingIOError:
+                s.dropped += len(data)
+            except OSError:
+                s._clients.remove(c)
+                c.close()
+        s.written += len(data)
+
+    @staticmethod
+    def _discard_echo(s: EmulatedStream) -> None:
+        """Drain what the reader wrote back into the pty (corrections into the 'receiver')."""
+        while True:
+            r, _, _ = select.select([s._master_fd], [], [], 0)
+            if not r:
+                return
+            try:
+                if not os.read(s._master_fd, 65536):
+                    return
+            except OSError:
+                return
+
+    def run(self) -> dict:
+        """Play until the end of the recording (or ``duration``) or ``stop()``; returns counts."""
+        events = []
+        for k, s in enumerate(self.streams):
+            for t, c in zip(s.times_s, s.chunks):
+                if self.t0_rec_s <= t <= self.t_end_rec_s:
+                    events.append((float(t), k, c))
+        events.sort(key=lambda e: (e[0], e[1]))
+        for t, k, c in events:
+            if self._stop.is_set():
+                break
+            wall = self.h0_unix_s + (t - self.t0_rec_s) / self.speed
+            delay = wall - time.time()
+            if delay > 0 and self._stop.wait(delay):
+                break
+            self._write(self.streams[k], c)
+        return self.counts()
+
+    def counts(self) -> dict:
+        return {s.name: {"written": s.written, "dropped": s.dropped} for s in self.streams}
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def close(self) -> None:
+        self.stop()
+        for s in self.streams:
+            for fd in (s._master_fd, s._slave_fd):
+                if fd >= 0:
+                    try:
+                        os.close(fd)
+                    except OSError:
+                        pass
+            s._master_fd = s._slave_fd = -1
+            for c in s._clients:
+                c.close()
+            if s._listener is not None:
+                s._listener.close()
+
+
+def source_snippet(emu: Emulator, latency_floor_s: float | None) -> str:
+    """A ``[source]`` table for a ``device`` slave on the emulated streams (TOML text)."""
+    devs = emu.devices()
+    lines = ["[source]", 'type = "device"']
+
+    def stream(d: dict) -> str:
+        where = f'port = "{d["port"]}"' if "port" in d else f'tcp = "{d["tcp"]}"'
+        return f'{{ format = "{d["format"]}", {where} }}'
+    if "gnss" in devs:
+        lines.append(f"gnss = {stream(devs['gnss'])}")
+    if "imu" in devs:
+        lines.append(f"imu = {stream(devs['imu'])}")
+    clock = [f"host_time_offset_s = {emu.host_time_offset_s!r}", f"emulation_speed = {emu.speed!r}"]
+    if latency_floor_s is not None:
+        clock.append(f"latency_floor_s = {latency_floor_s:.3f}")
+    lines.append("clock = { " + ", ".join(clock) + " }   # emulation only")
+    return "\n".join(lines)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("dataset", help="dataset.toml with TIMETAG'd byte streams (e.g. walk_0827, drive_0708)")
+    parser.add_argument("--speed", type=float, default=1.0, help="play faster than recorded (default 1)")
+    parser.add_argument("--tcp", action="store_true", help="serve TCP listeners on 127.0.0.1 instead of pseudo-terminals")
+    parser.add_argument("--start-in", type=float, default=2.0,
+                        help="seconds between printing the devices and the first byte (default 2)")
+    parser.add_argument("--duration", type=float, default=None, help="recorded seconds to play (default all)")
+    parser.add_argument("--skip", type=float, default=0.0, help="recorded seconds to skip at the start")
+    parser.add_argument("--only", action="append", choices=["gnss", "imu"], help="serve only this stream (repeatable)")
+    parser.add_argument("--json", action="store_true", help="print one JSON line (devices, timing) instead of text")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        emu = Emulator(args.dataset, speed=args.speed, tcp=args.tcp, start_in_s=args.start_in,
+                       duration_s=args.duration, only=args.only, skip_s=args.skip)
+    except (OSError, ValueError) as exc:
+        print(f"v2xpos emulate: {exc}", file=sys.stderr)
+        return 2
+    floor = None
+    try:
+        from v2xpos.datasets.loader import read_descriptor
+        g = read_descriptor(args.dataset).get("gnss", {})
+        tag = g.get("raw_timetag") or (g.get("timetag") if g.get("format") == "ubx" else None)
+        gs = [s for s in emu.streams if s.name == "gnss"]
+        if gs and tag:
+            floor = min_nav_pvt_latency_s(gs[0], Path(args.dataset).parent / tag)
+    except (OSError, ValueError):
+        floor = None
+    emu.set_start(args.start_in)
+    info = {"devices": emu.devices(), **emu.timing(), "latency_floor_s": floor}
+    if args.json:
+        print(json.dumps(info), flush=True)
+    else:
+        for name, d in emu.devices().items():
+            print(f"{name:>5}: {d.get('port') or d.get('tcp')}  ({d['format']}, {d['source']})")
+        print(f"host_time_offset_s = {emu.host_time_offset_s!r}   emulation_speed = {emu.speed!r}   "
+              f"(emulation only: gps = speed * host_gps + offset)")
+        if floor is not None:
+            print(f"latency_floor_s = {floor:.3f}   (smallest NAV-PVT latency of the recording)")
+        print(f"playing {emu.t_end_rec_s - emu.t0_rec_s:.1f} recorded s from {time.strftime('%H:%M:%S', time.localtime(emu.h0_unix_s))}"
+              f"\n\n# a device slave on these streams:\n{source_snippet(emu, floor)}\n", flush=True)
+
+    def on_signal(signum, frame):
+        emu.stop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, on_signal)
+    try:
+        counts = emu.run()
+    finally:
+        emu.close()
+    summary = {"done": True, "counts": counts}
+    print(json.dumps(summary) if args.json else f"done: {counts}", flush=True)
+    return 0

@@ -1,0 +1,150 @@
+"""One live device stream: a transport (serial / TCP), a framer and the decoders of its format,
+delivering records (``v2xpos.devices.records``) to a sink callable on the transport's thread.
+
+Formats:
+
+* ``ubx``: a u-blox receiver's port: UBX (NAV-PVT, NAV-RELPOSNED, ESF-MEAS/ESF-RAW) and the NMEA
+  sentences it interleaves. Positions come from NAV-PVT; NMEA positions are used only until the
+  first NAV-PVT (a receiver configured for NMEA output only still works), HDT always.
+* ``nmea``: any NMEA 0183 receiver (GGA/RMC/GST/HDT).
+* ``csv_g_dps_ms``: a line-based IMU in the recorded csv format.
+
+Transport spec (a table of the device source's config): ``port = "/dev/ttyACM0"`` with optional
+``baud`` (default 115200), or ``tcp = "host:port"``; optional ``record = "path"`` (bytes +
+TIMETAG, see ``transport``).
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+from v2xpos.devices.framing import NMEA, RTCM3, UBX, LineFramer, StreamFramer
+from v2xpos.devices.imu_lines import CsvImuDecoder
+from v2xpos.devices.nmea import NmeaDecoder
+from v2xpos.devices.records import GnssEpoch, ReceiverTime
+from v2xpos.devices.transport import SerialTransport, TcpTransport, Transport, parse_address
+from v2xpos.devices.ubx import UbxDecoder
+
+FORMATS = ("ubx", "nmea", "csv_g_dps_ms")
+STREAM_KEYS = ("format", "port", "baud", "tcp", "record", "esf_tick_s", "nmea_sd_by_fix_m", "nmea_vel_sd_mps")
+DEFAULT_BAUD = 115200
+
+
+class DeviceStream:
+    """Transport + framer + decoders of one device; ``sink(record)`` gets every decoded record."""
+
+    def __init__(self, name: str, fmt: str, transport: Transport | None, sink: Callable[[object], None],
+                 esf_tick_s: float = 1e-3, nmea_sd_by_fix_m: dict | None = None, nmea_vel_sd_mps: float = 0.1):
+        if fmt not in FORMATS:
+            raise ValueError(f"unknown stream format {fmt!r}; one of {FORMATS}")
+        self.name = name
+        self.format = fmt
+        self.sink = sink
+        self.transport = transport
+        self.ubx = UbxDecoder(f"{name} (UBX)", esf_tick_s=esf_tick_s) if fmt == "ubx" else None
+        self.nmea = NmeaDecoder(f"{name} (NMEA)", sd_by_fix_m=nmea_sd_by_fix_m, vel_sd_mps=nmea_vel_sd_mps) \
+            if fmt in ("ubx", "nmea") else None
+        self.imu = CsvImuDecoder(f"{name} (csv)") if fmt == "csv_g_dps_ms" else None
+        self.framer = LineFramer(name) if self.imu is not None else \
+            StreamFramer((UBX, NMEA, RTCM3) if fmt == "ubx" else (NMEA,), name)
+        self._nav_pvt_seen = False
+        self.records = 0
+
+    def feed(self, chunk: bytes, arrival_s: float) -> None:
+        """Frame and decode one chunk (called on the transport's thread, or directly in tests)."""
+        for frame in self.framer.feed(chunk, arrival_s):
+            if self.imu is not None:
+                recs = self.imu.decode(frame.raw, frame.arrival_s, frame.end_offset)
+            elif frame.protocol == UBX:
+                recs = self.ubx.decode(frame.raw, frame.arrival_s, frame.end_offset)
+                if recs and isinstance(recs[0], GnssEpoch):
+                    self._nav_pvt_seen = True
+            elif frame.protocol == NMEA:
+                recs = self.nmea.decode(frame.raw, frame.arrival_s, frame.end_offset)
+                if self._nav_pvt_seen:
+                    recs = [r for r in recs if not isinstance(r, (GnssEpoch, ReceiverTime))]
+            else:
+                recs = []                  # RTCM3 echoed by the receiver: framed and counted only
+            for r in recs:
+                self.records += 1
+                self.sink(r)
+
+    def start(self) -> None:
+        if self.transport is not None:
+            self.transport.start()
+
+    def write(self, data: bytes) -> int:
+        return self.transport.write(data) if self.transport is not None else 0
+
+    def close(self) -> None:
+        if self.transport is not None:
+            self.transport.close()
+
+    def stats(self) -> dict:
+        out = {"format": self.format, "records": self.records, "framing": self.framer.stats()}
+        if self.transport is not None:
+            out["transport"] = self.transport.stats()
+        for label, dec in (("ubx", self.ubx), ("nmea", self.nmea), ("imu_csv", self.imu)):
+            if dec is not None:
+                d = {"malformed": dec.issues.count, "malformed_examples": dec.issues.as_dict()["examples"]}
+                if hasattr(dec, "counts"):
+                    d["messages"] = dict(dec.counts)
+                if hasattr(dec, "samples"):
+                    d["samples"] = dec.samples
+                out[label] = d
+        out["malformed"] = self.framer.issues.count + sum(
+            dec.issues.count for dec in (self.ubx, self.nmea, self.imu) if dec is not None)
+        return out
+
+
+def open_stream(table: dict, name: str, where: str, now_gps: Callable[[], float],
+                sink: Callable[[object], None], resolve: Callable[[str], object] = lambda p: p) -> DeviceStream:
+    """A DeviceStream from a stream table (keys in ``STREAM_KEYS``); ValueError naming ``where`` and
+    the key. The transport is created but not started (``stream.start()``)."""
+    from v2xpos.datasets.calibration import did_you_mean
+    if not isinstance(table, dict):
+        raise ValueError(f"{where}: expected a table like {{ format = \"ubx\", port = \"/dev/ttyACM0\" }}")
+    for key in table:
+        if key not in STREAM_KEYS:
+            raise ValueError(f"{where}: unknown key {key!r}{did_you_mean(key, STREAM_KEYS)}; allowed {list(STREAM_KEYS)}")
+    fmt = table.get("format")
+    if fmt not in FORMATS:
+        raise ValueError(f"{where}.format: {fmt!r} is not one of {list(FORMATS)}{did_you_mean(str(fmt), FORMATS)}")
+    if ("port" in table) == ("tcp" in table):
+        raise ValueError(f"{where}: give exactly one of 'port' (serial device) or 'tcp' (\"host:port\")")
+    baud = table.get("baud", DEFAULT_BAUD)
+    if isinstance(baud, bool) or not isinstance(baud, int) or baud <= 0:
+        raise ValueError(f"{where}.baud: expected a positive integer, got {baud!r}")
+    record = table.get("record")
+    if record is not None and not isinstance(record, str):
+        raise ValueError(f"{where}.record: expected a file path")
+    tick = table.get("esf_tick_s", 1e-3)
+    if isinstance(tick, bool) or not isinstance(tick, (int, float)) or not tick > 0:
+        raise ValueError(f"{where}.esf_tick_s: expected a positive number of seconds, got {tick!r}")
+    sd_by_fix = table.get("nmea_sd_by_fix_m")
+    sd_map = None
+    if sd_by_fix is not None:
+        from v2xpos.types import FixStatus
+        if not isinstance(sd_by_fix, dict):
+            raise ValueError(f"{where}.nmea_sd_by_fix_m: expected a table like {{ FIXED = 0.02, FLOAT = 0.3 }}")
+        sd_map = {}
+        for k, v in sd_by_fix.items():
+            if k not in FixStatus.__members__:
+                raise ValueError(f"{where}.nmea_sd_by_fix_m: unknown fix {k!r}; one of {list(FixStatus.__members__)}")
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
+                raise ValueError(f"{where}.nmea_sd_by_fix_m.{k}: expected a positive number [m]")
+            sd_map[FixStatus[k]] = float(v)
+    vel_sd = table.get("nmea_vel_sd_mps", 0.1)
+    if isinstance(vel_sd, bool) or not isinstance(vel_sd, (int, float)) or not vel_sd > 0:
+        raise ValueError(f"{where}.nmea_vel_sd_mps: expected a positive number [m/s]")
+    stream = DeviceStream(name, fmt, None, sink, esf_tick_s=float(tick), nmea_sd_by_fix_m=sd_map,
+                          nmea_vel_sd_mps=float(vel_sd))
+    rec = str(resolve(record)) if record is not None else None
+    if "port" in table:
+        port = table["port"]
+        if not isinstance(port, str) or not port:
+            raise ValueError(f"{where}.port: expected a device path like \"/dev/ttyACM0\"")
+        stream.transport = SerialTransport(str(port), baud, name, now_gps, stream.feed, record=rec)
+    else:
+        host, port = parse_address(table["tcp"], f"{where}.tcp")
+        stream.transport = TcpTransport(host, port, name, now_gps, stream.feed, record=rec)
+    return stream

@@ -1,0 +1,152 @@
+// v2xpos monitor page: polls /api/state and draws the bird's-eye view (canvas) and the table.
+"use strict";
+const POLL_MS = 200;
+const COLORS = {
+  valid: "#1a9c3a", fix_invalid: "#f08c00", timeout: "#d62728", no_data: "#8c8c8c", future: "#8e44ad",
+  attitude_uncertain: "#c9a100", sigma_exceeded: "#e35d9c", clock_unsynced: "#2a7ab0", inconsistent: "#7f3f00",
+};
+const DEFAULT_OUTLINE = { vehicle: { kind: "polygon", points_m: [[3.5, -0.9], [3.5, 0.9], [-1.0, 0.9], [-1.0, -0.9]], radius_m: 0 },
+                          pedestrian: { kind: "circle", points_m: [], radius_m: 0.4 } };
+const canvas = document.getElementById("view");
+const ctx = canvas.getContext("2d");
+let halfRangeM = 30;           // metres from the master to the view's edge (changes with hysteresis)
+window.v2xposRendered = [];    // what the last draw put on the canvas (read by the browser test)
+window.v2xposVersion = -1;
+
+function colorOf(status) { return COLORS[status] || "#000000"; }
+
+function fmt(x, d) {
+  if (x === null || x === undefined || !isFinite(x)) return "-";
+  for (let k = d; k >= 0; k--) { const s = x.toFixed(k); if (s.length <= 7) return s; }
+  if (Math.abs(x) < 1e6) return (x / 1e3).toFixed(0) + "k";
+  return (x / 1e6).toFixed(0) + "M";
+}
+
+function legend() {
+  const el = document.getElementById("legend");
+  el.innerHTML = Object.entries(COLORS).map(([k, c]) => `<span><i style="background:${c}"></i>${k}</span>`).join("");
+}
+
+function chooseScale(rows) {
+  let need = 10;
+  for (const r of rows) {
+    if (r.x_m !== null && r.y_m !== null) need = Math.max(need, Math.abs(r.x_m) * 1.15 + 5, Math.abs(r.y_m) * 1.15 + 5);
+  }
+  const steps = [15, 30, 60, 120, 250, 500, 1000];
+  let want = steps.find(s => s >= need) || steps[steps.length - 1];
+  // grow at once, shrink only when everything fits in half of the view (no jumping back and forth)
+  if (want > halfRangeM || want * 2 <= halfRangeM) halfRangeM = want;
+}
+
+function toScreen(x, y) {
+  // master at the centre, x forward = up, y right = right
+  const s = Math.min(canvas.width, canvas.height) / (2 * halfRangeM);
+  return [canvas.width / 2 + y * s, canvas.height / 2 - x * s, s];
+}
+
+function drawGrid() {
+  ctx.fillStyle = "#ffffff"; ctx.fillRect(0, 0, canvas.width, canvas.height);
+  const step = halfRangeM <= 15 ? 5 : halfRangeM <= 60 ? 10 : halfRangeM <= 250 ? 50 : 100;
+  ctx.strokeStyle = "#e6e6e6"; ctx.lineWidth = 1; ctx.font = "10px sans-serif"; ctx.fillStyle = "#888";
+  for (let m = -Math.ceil(halfRangeM * 1.5 / step) * step; m <= halfRangeM * 1.5; m += step) {
+    let [sx] = toScreen(0, m); ctx.beginPath(); ctx.moveTo(sx, 0); ctx.lineTo(sx, canvas.height); ctx.stroke();
+    let [, sy] = toScreen(m, 0); ctx.beginPath(); ctx.moveTo(0, sy); ctx.lineTo(canvas.width, sy); ctx.stroke();
+    if (m !== 0) { ctx.fillText(`x ${m} m`, 4, sy - 2); ctx.fillText(`y ${m} m`, sx + 2, canvas.height - 18); }
+  }
+  ctx.fillText(`grid ${step} m`, 6, canvas.height - 6);
+}
+
+function drawLanes(lanes) {
+  ctx.save(); ctx.setLineDash([10, 8]); ctx.strokeStyle = "#5577aa"; ctx.lineWidth = 2;
+  lanes.forEach((l, i) => {
+    if (l.lateral_m === null) return;
+    const [sx] = toScreen(0, l.lateral_m);
+    ctx.beginPath(); ctx.moveTo(sx, 0); ctx.lineTo(sx, canvas.height); ctx.stroke();
+    ctx.fillStyle = "#5577aa"; ctx.fillText(`lane ${l.id}`, sx + 3, 12 + 12 * i);
+  });
+  ctx.restore();
+}
+
+function drawMaster(id) {
+  const [sx, sy, s] = toScreen(0, 0);
+  ctx.fillStyle = "#1f3b73"; ctx.beginPath();
+  ctx.moveTo(sx, sy - Math.max(10, 2.5 * s)); ctx.lineTo(sx - 7, sy + 7); ctx.lineTo(sx + 7, sy + 7); ctx.closePath(); ctx.fill();
+  ctx.fillText(id || "master", sx + 9, sy + 4);
+}
+
+function drawTrail(points, color) {
+  if (!points || points.length < 2) return;
+  ctx.save(); ctx.globalAlpha = 0.45; ctx.strokeStyle = color; ctx.lineWidth = 1.5; ctx.beginPath();
+  points.forEach(([x, y], i) => { const [sx, sy] = toScreen(x, y); if (i) ctx.lineTo(sx, sy); else ctx.moveTo(sx, sy); });
+  ctx.stroke(); ctx.restore();
+}
+
+function drawTarget(r) {
+  const color = colorOf(r.status);
+  const g = r.geometry || DEFAULT_OUTLINE[r.kind] || DEFAULT_OUTLINE.vehicle;
+  const yaw = (r.rel_yaw_deg === null ? 0 : r.rel_yaw_deg) * Math.PI / 180;
+  const c = Math.cos(yaw), s = Math.sin(yaw);
+  const [cx, cy, scale] = toScreen(r.x_m, r.y_m);
+  ctx.save(); ctx.fillStyle = color; ctx.strokeStyle = color; ctx.lineWidth = 2;
+  if (g.kind === "circle" || !g.points_m.length) {
+    ctx.beginPath(); ctx.arc(cx, cy, Math.max(4, (g.radius_m || 0.4) * scale), 0, 2 * Math.PI); ctx.fill();
+  } else {
+    ctx.globalAlpha = 0.85; ctx.beginPath();
+    g.points_m.forEach(([px, py], i) => {
+      const [sx, sy] = toScreen(r.x_m + c * px - s * py, r.y_m + s * px + c * py);
+      if (i) ctx.lineTo(sx, sy); else ctx.moveTo(sx, sy);
+    });
+    ctx.closePath(); ctx.fill(); ctx.globalAlpha = 1; ctx.stroke();
+    ctx.beginPath(); ctx.arc(cx, cy, 4, 0, 2 * Math.PI); ctx.fill();   // reference point
+  }
+  ctx.fillStyle = "#000"; ctx.font = "11px sans-serif";
+  ctx.fillText(`${r.id} ${r.status}${r.range_m !== null ? " " + r.range_m.toFixed(1) + " m" : ""}`, cx + 8, cy - 8);
+  ctx.restore();
+  return { id: r.id, status: r.status, color: color, px: cx, py: cy };
+}
+
+function drawView(snap) {
+  chooseScale(snap.rows);
+  drawGrid();
+  drawLanes(snap.lanes || []);
+  for (const r of snap.rows) drawTrail(snap.trails[r.id], colorOf(r.status));
+  drawMaster(snap.master.id);
+  const drawn = [];
+  for (const r of snap.rows.slice().reverse()) {   // worst drawn last, on top
+    if (r.x_m === null || r.y_m === null) continue;
+    drawn.push(drawTarget(r));
+  }
+  window.v2xposRendered = drawn;
+}
+
+function cell(text, cls, style) { return `<td${cls ? ` class="${cls}"` : ""}${style ? ` style="${style}"` : ""}>${text}</td>`; }
+function esc(t) { return String(t === null || t === undefined || t === "" ? "-" : t).replace(/[&<>"]/g, ch => ({"&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;"})[ch]); }
+
+function drawTable(snap) {
+  const html = snap.rows.map(r => `<tr data-target="${esc(r.id)}" data-status="${esc(r.status)}">` +
+    cell(esc(r.id), "l") + cell(esc(r.kind), "l") +
+    cell(esc(r.status.toUpperCase() + (r.degraded ? " DEGRADED" : "")), "l", `color:${colorOf(r.status)};font-weight:bold`) +
+    cell(esc(r.reason), "l") + cell(`${esc(r.master_fix)}/${esc(r.target_fix)}`, "l") +
+    cell(fmt(r.range_m, 2)) + cell(fmt(r.x_m, 2)) + cell(fmt(r.y_m, 2)) + cell(fmt(r.rel_yaw_deg, 1)) +
+    cell(fmt(r.sigma_h_m, 3)) + cell(fmt(r.age_ms, 1)) + cell(fmt(r.ttc_s, 1)) + cell(esc(r.imu), "l") + "</tr>").join("");
+  document.getElementById("rows").innerHTML = html;
+  const m = snap.master;
+  document.getElementById("master").textContent =
+    `master ${m.id || "?"}  fix ${m.fix || "-"}  t ${fmt(m.t_rel_s, 1)} s  processed ${m.processed || 0}  ` +
+    `pipeline p99 ${fmt(m.pipeline_ms_p99, 2)} ms  e2e p99 ${fmt(m.e2e_ms_p99, 2)} ms  targets ${snap.rows.length}`;
+}
+
+async function poll() {
+  try {
+    const r = await fetch("/api/state", { cache: "no-store" });
+    const snap = await r.json();
+    if (snap && snap.version !== window.v2xposVersion) {
+      drawView(snap); drawTable(snap);
+      window.v2xposVersion = snap.version;
+    }
+  } catch (e) { document.getElementById("master").textContent = "monitor not reachable: " + e; }
+  setTimeout(poll, POLL_MS);
+}
+legend();
+drawGrid();
+poll();

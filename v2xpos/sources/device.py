@@ -1,0 +1,312 @@
+"""The ``device`` source: a vehicle's live receiver and IMU through the GNSS/INS filter, on GPS time
+from the host clock.
+
+Config (the ``[source]`` table; paths relative to the config file)::
+
+    [source]
+    type = "device"
+    platform = "car"                       # car | pedestrian | generic
+    gnss = { format = "ubx", port = "/dev/ttyACM0", baud = 115200 }   # or { format = "nmea", tcp = "127.0.0.1:5000" }
+    imu = { format = "csv_g_dps_ms", port = "/dev/ttyUSB0", baud = 115200 }   # or imu = "receiver" (ESF of an F9R)
+    imu_to_body = [[-1, 0, 0], [0, 1, 0], [0, 0, -1]]   # v_body = imu_to_body @ v_imu (rotation)
+    lever_arm_m = [0.0, 0.0, -0.3]         # antenna - IMU in body axes (x fwd, y right, z down) [m]
+    lever_arm_sd_m = 0.02
+    reorder_window_s = 0.1                 # see "Time order" below
+    clock = { max_offset_s = 0.02, latency_floor_s = 0.025 }   # v2xpos.sources.gnss_clock
+    [source.calibration]                    # optional, the [calibration] table of v2xpos.datasets.calibration
+
+The filter configuration is ``v2xpos.ins.calibrated.ins_config`` of the declared platform, mounting
+and lever arm and the calibration table (the same function ``v2xpos replay`` uses).
+
+Each stream table is ``v2xpos.devices.stream`` (``format``, ``port``/``baud`` or ``tcp``,
+``record``...). Unknown keys are rejected naming the table and the key.
+
+Data path: every stream is read on its own thread (``v2xpos.devices.transport``), framed, decoded
+(pyubx2 / pynmeagps / the csv decoder) and stamped with the host's GPS arrival time; the records
+wait in a queue until the service calls ``advance(t)``. IMU counters are mapped to GPS time by
+the online lower-envelope model of their arrival stamps (``v2xpos.devices.clock_model``), as the
+recorded reader maps a TIMETAG'd csv; receiver time statements go to the ``HostGnssClock``.
+
+Time order. The filter needs its inputs in time order, and they arrive out of order: an IMU line
+within ~10 ms of its sample, a NAV-PVT 20-80 ms after its epoch. ``advance(t)`` processes IMU
+samples up to ``max(latest GNSS epoch time, t - reorder_window_s)`` and inserts each GNSS epoch
+between the IMU samples exactly where ``v2xpos replay`` inserts it (after the samples stamped
+<= t_gnss - imu_time_offset - gnss_latency). The states therefore lag real time by about the
+window; a GNSS epoch that arrives later than the window is applied at once (the filter propagates
+it with its velocity over the gap) and counted as ``gnss_late``. States are returned one per IMU
+sample once the filter is aligned, with strictly increasing times.
+
+Heading from NAV-RELPOSNED / HDT is decoded and reported in ``status()``; ``v2xpos.ins.InsFilter``
+has no heading update yet, so it does not enter the solution.
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+
+from v2xpos.datasets.calibration import CalibrationError, did_you_mean, parse_calibration
+from v2xpos.devices.clock_model import OnlineLowerEnvelope
+from v2xpos.devices.records import GnssEpoch, HeadingObs, ImuRecord, ReceiverTime
+from v2xpos.devices.stream import DeviceStream, open_stream
+from v2xpos.sources.base import SessionClock, SourceContext, SourceError, VehicleSource
+from v2xpos.sources.gnss_clock import HostGnssClock, clock_from_config
+from v2xpos.types import FixStatus, NavState
+
+SOURCE_KEYS = ("gnss", "imu", "platform", "imu_to_body", "lever_arm_m", "lever_arm_sd_m", "reorder_window_s",
+               "clock", "calibration", "imu_clock_min_span_s")
+PLATFORMS = ("car", "pedestrian", "generic")
+GNSS_WITHOUT_IMU_S = 1.0
+"""A GNSS epoch still waiting for IMU samples this long after its time is applied anyway."""
+
+
+def _matrix(value, shape: tuple, where: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise SourceError(f"{where}: not numeric") from None
+    if arr.shape != shape or not np.all(np.isfinite(arr)):
+        raise SourceError(f"{where}: expected a finite array of shape {shape}, got {value!r}")
+    return arr
+
+
+class DeviceSource(VehicleSource):
+    """Live streams through ``v2xpos.ins.InsFilter`` (see module docstring)."""
+
+    name = "device"
+
+    def __init__(self, gnss: DeviceStream, imu: DeviceStream | None, ins_config, clock: HostGnssClock,
+                 reorder_window_s: float = 0.1, imu_clock_min_span_s: float = 5.0, calibration=None):
+        from v2xpos.ins import InsFilter
+        self.gnss_stream = gnss
+        self.imu_stream = imu
+        self.imu_source_name = imu.name if imu is not None else gnss.name
+        self.cfg = ins_config
+        self.kind = "pedestrian" if ins_config.platform == "pedestrian" else "vehicle"
+        self.filter = InsFilter(ins_config)
+        self.clock = clock
+        self.reorder_window_s = float(reorder_window_s)
+        self.imu_clock = OnlineLowerEnvelope(min_span_s=imu_clock_min_span_s)
+        self.calibration = calibration
+        self.inbox: deque = deque()
+        self.pending_imu: deque[ImuRecord] = deque()
+        self.pending_gnss: list[GnssEpoch] = []
+        self.gnss_watermark_s = -math.inf
+        self.last_imu_t_s = -math.inf
+        self.last_out_t_s = -math.inf
+        self.last_gnss: GnssEpoch | None = None
+        self.last_heading: HeadingObs | None = None
+        self.counts = {"imu_samples": 0, "gnss_epochs": 0, "gnss_used": 0, "gnss_late": 0, "gnss_without_imu": 0,
+                       "gnss_out_of_order": 0, "imu_non_monotonic": 0, "states": 0, "states_non_monotonic": 0,
+                       "headings": 0, "ignored_imu_records": 0}
+        self._closed = False
+        self._started = False
+
+    # ------------------------------------------------------------------ plumbing
+    def sink_for(self, stream_name: str):
+        """The callable a stream hands its records to (runs on the stream's thread)."""
+        append = self.inbox.append
+        return lambda rec: append((stream_name, rec))
+
+    def start(self) -> None:
+        """Open the ports and start the reader threads (idempotent; ``from_config`` calls it)."""
+        if self._started:
+            return
+        self._started = True
+        self.gnss_stream.start()
+        if self.imu_stream is not None:
+            self.imu_stream.start()
+
+    def make_clock(self, ctx: SourceContext | None = None) -> SessionClock:
+        return self.clock
+
+    def warm_up(self) -> None:
+        """Compile the filter's jitted kernels (or load their cache) on a throw-away filter with
+        synthetic samples at rest, before real time starts."""
+        from v2xpos.ins import InsFilter
+        f = InsFilter(self.cfg)
+        lla = np.array([math.radians(45.0), math.radians(7.0), 300.0])
+        f.initialize(0.0, lla, np.zeros(3), np.zeros(3))
+        g_imu = self.cfg.imu_to_body.T @ np.array([0.0, 0.0, -9.80665])
+        for k in range(1, 31):
+            f.process_imu(k * 0.01, g_imu, np.zeros(3))
+        f.update_gnss(0.3, lla, np.full(3, 0.02), FixStatus.FIXED, vel_ned_mps=np.zeros(3),
+                      vel_sd_ned_mps=np.full(3, 0.05))
+        f.nav_state()
+
+    # ------------------------------------------------------------------ records -> filter
+    def _drain(self) -> None:
+        inbox = self.inbox
+        while inbox:
+            stream_name, rec = inbox.popleft()
+            if isinstance(rec, ImuRecord):
+                if stream_name != self.imu_source_name:
+                    self.counts["ignored_imu_records"] += 1
+                    continue
+                if self.imu_clock.add(rec.counter_s, rec.arrival_s):
+                    self.pending_imu.append(rec)
+            elif isinstance(rec, GnssEpoch):
+                self.counts["gnss_epochs"] += 1
+                self.last_gnss = rec
+                if rec.t_s <= self.gnss_watermark_s:
+                    self.counts["gnss_out_of_order"] += 1
+                    continue
+                self.gnss_watermark_s = rec.t_s
+                self.pending_gnss.append(rec)
+            elif isinstance(rec, ReceiverTime):
+                self.clock.observe(rec.t_s, rec.arrival_s, rec.gps_minus_utc_s, rec.message)
+            elif isinstance(rec, HeadingObs):
+                self.counts["headings"] += 1
+                self.last_heading = rec
+
+    def _apply_gnss(self, g: GnssEpoch) -> None:
+        self.filter.update_gnss(g.t_s, g.lla, g.sd_ned_m, g.fix, vel_ned_mps=g.vel_ned_mps,
+                                vel_sd_ned_mps=g.vel_sd_ned_mps)
+        self.counts["gnss_used"] += 1
+
+    def _gnss_threshold(self, g: GnssEpoch) -> float:
+        """IMU stamps up to this go into the filter before the epoch (as ``v2xpos replay`` does)."""
+        fx = self.filter.fx
+        return g.t_s - fx.imu_time_offset_s - fx.gnss_latency_s
+
+    def advance(self, t_gps_s: float) -> list[NavState]:
+        self._drain()
+        out: list[NavState] = []
+        horizon = min(t_gps_s, max(self.gnss_watermark_s, t_gps_s - self.reorder_window_s))
+        pg = self.pending_gnss
+        # epochs that arrived after the IMU beyond them was processed: apply now (late)
+        while pg and self._gnss_threshold(pg[0]) < self.last_imu_t_s:
+            self.counts["gnss_late"] += 1
+            self._apply_gnss(pg.pop(0))
+        f = self.filter
+        while self.pending_imu:
+            rec = self.pending_imu[0]
+            t_k = self.imu_clock.to_gps(rec.counter_s)
+            if t_k > horizon:
+                break
+            self.pending_imu.popleft()
+            while pg and self._gnss_threshold(pg[0]) < t_k:
+                self._apply_gnss(pg.pop(0))
+            if t_k <= self.last_imu_t_s:
+                self.counts["imu_non_monotonic"] += 1
+                continue
+            self.last_imu_t_s = t_k
+            f.process_imu(t_k, rec.acc_mps2, rec.gyro_rps)
+            self.counts["imu_samples"] += 1
+            if f.initialized:
+                nav = f.nav_state()
+                if nav.t_s <= self.last_out_t_s:   # the estimated IMU time offset moved the label back
+                    self.counts["states_non_monotonic"] += 1
+                    continue
+                self.last_out_t_s = nav.t_s
+                out.append(nav)
+        while pg and pg[0].t_s <= t_gps_s - GNSS_WITHOUT_IMU_S and not self.pending_imu:
+            self.counts["gnss_without_imu"] += 1
+            self._apply_gnss(pg.pop(0))
+        self.counts["states"] += len(out)
+        return out
+
+    # ------------------------------------------------------------------ receiver
+    def write_corrections(self, data: bytes) -> int:
+        """Write RTCM3 bytes into the GNSS receiver's port (the same port it reports on)."""
+        return self.gnss_stream.write(data)
+
+    def status(self) -> dict:
+        f = self.filter
+        out = {"source": self.name, "counts": dict(self.counts), "filter_counts": dict(f.counts),
+               "initialized": bool(f.initialized), "pending": {"imu": len(self.pending_imu),
+                                                               "gnss": len(self.pending_gnss), "inbox": len(self.inbox)},
+               "reorder_window_s": self.reorder_window_s, "imu_clock": self.imu_clock.status(),
+               "streams": {"gnss": self.gnss_stream.stats()}}
+        if self.imu_stream is not None:
+            out["streams"]["imu"] = self.imu_stream.stats()
+        g = self.last_gnss
+        if g is not None:
+            out["gnss"] = {"t_s": g.t_s, "fix": FixStatus(g.fix).name, "num_sv": g.num_sv, "message": g.message,
+                           "sd_ned_m": [float(x) for x in g.sd_ned_m], "latency_s": g.arrival_s - g.t_s}
+        h = self.last_heading
+        if h is not None:
+            out["heading"] = {"t_s": h.t_s, "heading_deg": math.degrees(h.heading_rad),
+                              "sd_deg": math.degrees(h.heading_sd_rad), "baseline_m": h.baseline_m,
+                              "message": h.message, "used_by_filter": False}
+        if self.calibration is not None:
+            out["calibration"] = {"source": self.calibration.source, "date": self.calibration.date,
+                                  "effects": sorted(self.calibration.effects)}
+        out["clock"] = self.clock.status()
+        return out
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self.gnss_stream.close()
+        if self.imu_stream is not None:
+            self.imu_stream.close()
+
+
+def from_config(table: dict, where: str, ctx: SourceContext) -> DeviceSource:
+    """The ``device`` source from its ``[source]`` table (``type`` already removed); the ports are
+    opened and their reader threads started. SourceError naming ``where`` and the key."""
+    from v2xpos.ins.calibrated import ins_config
+    if not isinstance(table, dict):
+        raise SourceError(f"{where}: expected a table")
+    for key in table:
+        if key not in SOURCE_KEYS:
+            raise SourceError(f"{where}: unknown key {key!r}{did_you_mean(key, SOURCE_KEYS)}; "
+                              f"allowed {list(SOURCE_KEYS)}")
+    if "gnss" not in table:
+        raise SourceError(f"{where}.gnss: missing; e.g. gnss = {{ format = \"ubx\", port = \"/dev/ttyACM0\" }}")
+    if "imu" not in table:
+        raise SourceError(f"{where}.imu: missing; a stream table, or \"receiver\" for a receiver's ESF IMU")
+    platform = table.get("platform", "car")
+    if platform not in PLATFORMS:
+        raise SourceError(f"{where}.platform: {platform!r} is not one of {list(PLATFORMS)}"
+                          f"{did_you_mean(str(platform), PLATFORMS)}")
+    imu_to_body = _matrix(table.get("imu_to_body", np.eye(3).tolist()), (3, 3), f"{where}.imu_to_body")
+    if not np.allclose(imu_to_body @ imu_to_body.T, np.eye(3), atol=1e-6) or np.linalg.det(imu_to_body) < 0:
+        raise SourceError(f"{where}.imu_to_body: not a rotation matrix (orthonormal, determinant +1)")
+    lever = _matrix(table.get("lever_arm_m", [0.0, 0.0, 0.0]), (3,), f"{where}.lever_arm_m")
+    lever_sd = table.get("lever_arm_sd_m", 0.1)
+    window = table.get("reorder_window_s", 0.1)
+    span = table.get("imu_clock_min_span_s", 5.0)
+    for key, v in (("lever_arm_sd_m", lever_sd), ("reorder_window_s", window), ("imu_clock_min_span_s", span)):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+            raise SourceError(f"{where}.{key}: expected a number >= 0, got {v!r}")
+    calibration = None
+    if "calibration" in table:
+        try:
+            calibration = parse_calibration(table["calibration"], f"{where}.calibration")
+        except CalibrationError as exc:
+            raise SourceError(str(exc)) from None
+    try:
+        clock = clock_from_config(table.get("clock"), f"{where}.clock")
+    except ValueError as exc:
+        raise SourceError(str(exc)) from None
+    cfg = ins_config(platform, imu_to_body, lever, float(lever_sd), calibration)
+
+    holder: dict = {}
+
+    def sink(name):
+        return lambda rec: holder["source"].inbox.append((name, rec))
+
+    resolve = getattr(ctx, "resolve", lambda p: Path(p))
+    try:
+        gnss = open_stream(table["gnss"], "gnss", f"{where}.gnss", clock.host_gps_s, sink("gnss"), resolve)
+        imu_t = table["imu"]
+        if imu_t == "receiver":
+            if gnss.format != "ubx":
+                raise ValueError(f"{where}.imu: \"receiver\" needs a gnss stream of format \"ubx\" (ESF messages)")
+            imu = None
+        else:
+            imu = open_stream(imu_t, "imu", f"{where}.imu", clock.host_gps_s, sink("imu"), resolve)
+            if imu.format != "csv_g_dps_ms" and imu.format != "ubx":
+                raise ValueError(f"{where}.imu.format: an IMU stream is \"csv_g_dps_ms\" or \"ubx\" (ESF)")
+    except ValueError as exc:
+        raise SourceError(str(exc)) from None
+    src = DeviceSource(gnss, imu, cfg, clock, reorder_window_s=float(window), imu_clock_min_span_s=float(span),
+                       calibration=calibration)
+    holder["source"] = src
+    src.start()
+    return src
