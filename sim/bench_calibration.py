@@ -124,13 +124,18 @@ def simulated_run(seed: int, duration_s: float = 200.0):
     return ds, truth.to_vector(), f"seed {seed}, {name}"
 
 
-def truth_from_effects_json(path: Path, ds) -> np.ndarray:
-    """The parameter vector of a convoy_dev-kind ``truth_effects.json`` (vehicle B at the top level):
-    late stamps -> negative IMU offset, IMU-axis gyro scale -> vehicle axes, lever arm minus the
-    declared one."""
+def truth_from_effects_json(path: Path, ds, vehicle: str = "B") -> np.ndarray:
+    """The parameter vector of a convoy_dev-kind ``truth_effects.json`` for ``vehicle`` (B at the top
+    level; every vehicle under "vehicles" when the generator wrote them): late stamps -> negative
+    IMU offset (``imu_time_late_s``, the logger's own delay included, when given), IMU-axis gyro
+    scale -> vehicle axes, lever arm minus the declared one."""
     d = json.loads(Path(path).read_text())
+    if vehicle in d.get("vehicles", {}):
+        d = d["vehicles"][vehicle]
+    elif vehicle != d.get("vehicle", "B"):
+        d = {}
     th = np.zeros(N_PARAMS)
-    th[P_TIME_OFFSET] = -float(d.get("imu_stamp_extra_delay_s", 0.0))
+    th[P_TIME_OFFSET] = -float(d.get("imu_time_late_s", d.get("imu_stamp_extra_delay_s", 0.0)))
     th[P_MISALIGN] = np.radians(np.asarray(d.get("imu_misalignment_deg", [0, 0, 0]), float))
     B = np.abs(np.asarray(ds.imu_to_body, float))
     th[P_GYRO_SCALE] = B @ np.asarray(d.get("gyro_scale", [0, 0, 0]), float)
@@ -204,7 +209,8 @@ def add_bench_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--first-seed", type=int, default=0)
     parser.add_argument("--duration", type=float, default=200.0, help="drive length [s] (default 200)")
     parser.add_argument("--recordings", nargs="*", default=None,
-                        help="convoy_dev-kind folders (B/dataset.toml + truth_effects.json) instead of simulated runs")
+                        help="convoy_dev-kind folders (A/, B/ dataset.toml + truth_effects.json) instead of simulated runs")
+    parser.add_argument("--vehicles", default="A,B", help="vehicles of each recording folder to fit (default A,B)")
     parser.add_argument("--out", default="out/bench_calibration",
                         help="folder for runs.jsonl (one line per run; runs already there are reused) and coverage.json")
     parser.add_argument("--fresh", action="store_true", help="ignore runs already in --out")
@@ -223,7 +229,9 @@ def run_bench(args: argparse.Namespace) -> int:
     jobs = []
     if args.recordings:
         for d in args.recordings:
-            jobs.append(("recording", str(Path(d).resolve())))
+            for v in args.vehicles.split(","):
+                if (Path(d) / v / "dataset.toml").is_file():
+                    jobs.append(("recording", f"{Path(d).resolve()}:{v}"))
     else:
         jobs = [("sim", f"sim:{s}:{args.duration:g}") for s in range(args.first_seed, args.first_seed + args.seeds)]
     runs = []
@@ -236,8 +244,9 @@ def run_bench(args: argparse.Namespace) -> int:
             ds, truth, desc = simulated_run(seed, args.duration)
         else:
             from v2xpos.datasets import load_dataset
-            ds = load_dataset(Path(key) / "B" / "dataset.toml")
-            truth, desc = truth_from_effects_json(Path(key) / "truth_effects.json", ds), key
+            folder, vehicle = key.rsplit(":", 1)
+            ds = load_dataset(Path(folder) / vehicle / "dataset.toml")
+            truth, desc = truth_from_effects_json(Path(folder) / "truth_effects.json", ds, vehicle), key
         print(f"[{len(runs) + 1}/{len(jobs)}] {desc} ...", file=sys.stderr, flush=True)
         r = fit_run(ds)
         r.update(id=key, desc=desc, truth=np.asarray(truth, float).tolist())

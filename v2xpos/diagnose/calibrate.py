@@ -481,8 +481,11 @@ class Estimator:
         theta = theta_start.copy()
         for k in range(iterations):
             if self.tune_predictor and k == 0:
-                # the predictor is tuned once, at the starting point, and then held: the weights and
-                # gains of every later replay are those of one filter, so that costs stay comparable
+                # the predictor is tuned once, at the starting point, and then held: every later
+                # replay (Jacobian, refinement, elimination) runs the same filter, so that costs and
+                # weights stay comparable. (Re-tuning at every iterate was tried: on convoy_dev B it
+                # inflated the lever-arm and time-offset sds 2-3 times and the elimination dropped
+                # them; 2026-11-24, docs/calibration.md.)
                 self.tune(theta, iterations=2)
             rows0 = self.linearize(theta, keep_weights=k > 0)
             c0 = float(np.nansum(_align(self.base_rows, rows0) ** 2))
