@@ -380,16 +380,16 @@ class Estimator:
 
     def tune(self, theta: np.ndarray, iterations: int = 2) -> dict:
         """Make the fit replays' filter match the recording (``tuning``): IMU white noise from the
-        samples, then the GNSS and NHC measurement noise rescaled, per row kind, until the filter's
-        innovation covariances match its innovations (``iterations`` replays at theta)."""
+        samples, then the GNSS position and velocity noise rescaled until the filter's innovation
+        covariances match its innovations (``iterations`` replays at theta); the vehicle
+        constraints keep their declared noise (``tuning`` module docstring)."""
         from v2xpos.ins.filter import InsConfig
         from .tuning import imu_noise_density, innovation_scale, rescaled_config
         gyro, accel = imu_noise_density(self.ds.imu)
         if np.isfinite(gyro) and np.isfinite(accel) and gyro > 0 and accel > 0:
             self.config.update(gyro_noise_rps_rthz=gyro, accel_noise_mps2_rthz=accel)
         d = InsConfig()
-        base = {k: getattr(d, k) for k in ("gnss_pos_sd_floor_m", "gnss_vel_sd_scale", "gnss_vel_sd_floor_mps",
-                                           "nhc_sd_mps", "nhc_sd_per_yaw_rate_m")}
+        base = {k: getattr(d, k) for k in ("gnss_pos_sd_floor_m", "gnss_vel_sd_scale", "gnss_vel_sd_floor_mps")}
         history = []
         for k in range(iterations):
             out = self._replay(self.ds, theta, f"tuning {k + 1}")

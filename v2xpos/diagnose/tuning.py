@@ -59,12 +59,11 @@ def innovation_scale(log: ResidualLog) -> dict[str, float]:
     """Root mean square of the whitened accepted innovations (innovation / sqrt(diag S)) per row
     kind: 1 for a filter whose measurement model matches its innovations."""
     out = {}
-    for kind, cols in (("gnss_pos", (0, 1, 2)), ("gnss_vel", (0, 1, 2))):
-        name = kind if kind.startswith("gnss") else "nhc"
-        if name not in log:
+    for kind in ("gnss_pos", "gnss_vel"):
+        if kind not in log:
             continue
-        s = log[name]
-        w = s.innovation[:, cols] / np.where(s.sd[:, cols] > 0, s.sd[:, cols], np.nan)
+        s = log[kind]
+        w = s.innovation / np.where(s.sd > 0, s.sd, np.nan)
         w = w[s.accepted]
         w = w[np.isfinite(w)]
         if len(w) >= 20:
@@ -73,8 +72,8 @@ def innovation_scale(log: ResidualLog) -> dict[str, float]:
 
 
 def rescaled_config(config: dict, base: dict, factors: dict[str, float]) -> dict:
-    """``config`` with the measurement noise of each row kind multiplied by its factor (the
-    covariance by factor^2); ``base`` holds the InsConfig defaults of the fields touched."""
+    """``config`` with the GNSS position / velocity noise multiplied by its factor (the covariance by
+    factor^2: the fix scales and the floors); ``base`` holds the InsConfig defaults of the fields."""
     c = dict(config)
     f = factors
     if "gnss_pos" in f:
@@ -84,11 +83,4 @@ def rescaled_config(config: dict, base: dict, factors: dict[str, float]) -> dict
     if "gnss_vel" in f:
         c["gnss_vel_sd_scale"] = c.get("gnss_vel_sd_scale", base["gnss_vel_sd_scale"]) * f["gnss_vel"]
         c["gnss_vel_sd_floor_mps"] = c.get("gnss_vel_sd_floor_mps", base["gnss_vel_sd_floor_mps"]) * f["gnss_vel"]
-    lat, vert = c.get("nhc_sd_mps", base["nhc_sd_mps"])
-    if "nhc_lat" in f:
-        lat *= f["nhc_lat"]
-        c["nhc_sd_per_yaw_rate_m"] = c.get("nhc_sd_per_yaw_rate_m", base["nhc_sd_per_yaw_rate_m"]) * f["nhc_lat"]
-    if "nhc_vert" in f:
-        vert *= f["nhc_vert"]
-    c["nhc_sd_mps"] = (float(lat), float(vert))
     return c
