@@ -636,8 +636,9 @@ def calibrate_dataset(ds: Dataset, schedule: OutageSchedule, progress: bool = Tr
         f2 = identify.fit(b, systematic_sd=est.systematic_sd())
         sig = EffectSet.from_vector(np.where(f.significant, f.theta, 0.0))
         source = str(getattr(ds, "source", "") or ds.name)
+        from .tuning import imu_noise_density
         table = calibration_table(f.theta, f.sd, f.significant, f.determined, est.prior_sd, ds.lever_arm_sd_m,
-                                  source=source)
+                                  source=source, imu_noise=(*imu_noise_density(ds.imu), len(ds.imu.t_s)))
         after = metrics_replay(with_calibration(ds, table), schedule, bar, "after: the calibrated vehicle")
         online = agreement(f, est.online(), est.online_t_end_s)
         base_fit = est._replay(ds, np.zeros(N_PARAMS), "declared model (report)")

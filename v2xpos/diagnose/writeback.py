@@ -62,8 +62,12 @@ def software_version() -> str:
 
 def calibration_table(theta: np.ndarray, sd: np.ndarray, significant: np.ndarray, determined: np.ndarray,
                       prior_sd: np.ndarray, declared_lever_sd_m: float, source: str,
-                      date: str | None = None, software: str | None = None) -> CalibrationTable:
-    """The ``[calibration]`` table of a fit (parameter vectors in the ``inject.P_*`` layout)."""
+                      date: str | None = None, software: str | None = None,
+                      imu_noise: tuple[float, float, int] | None = None) -> CalibrationTable:
+    """The ``[calibration]`` table of a fit (parameter vectors in the ``inject.P_*`` layout).
+    ``imu_noise``: (gyro [rad/s/sqrt(Hz)], accelerometer [m/s^2/sqrt(Hz)], samples) measured from
+    the recording (``tuning.imu_noise_density``), written as the vehicle's IMU noise with the sd of
+    a variance estimate from that many samples (relative sd of the density 1/sqrt(2 n))."""
     theta, sd, prior_sd = (np.asarray(x, float) for x in (theta, sd, prior_sd))
     sig, det = np.asarray(significant, bool), np.asarray(determined, bool)
     value = np.where(sig, theta, 0.0)
@@ -78,6 +82,13 @@ def calibration_table(theta: np.ndarray, sd: np.ndarray, significant: np.ndarray
                                                    tuple(float(x) * k for x in out_sd[sl]))
         else:
             table.effects[name] = CalibrationEntry(float(value[sl]) * k, float(out_sd[sl]) * k)
+    if imu_noise is not None:
+        g, a, n = imu_noise
+        rel = 1.0 / np.sqrt(2.0 * max(int(n), 1))
+        if np.isfinite(g) and g > 0:
+            table.effects["imu_gyro_noise_rps_rthz"] = CalibrationEntry(float(g), float(g * rel))
+        if np.isfinite(a) and a > 0:
+            table.effects["imu_accel_noise_mps2_rthz"] = CalibrationEntry(float(a), float(a * rel))
     return table
 
 
