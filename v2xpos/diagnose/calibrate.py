@@ -258,6 +258,7 @@ class Progress:
 
     def close(self) -> None:
         if self.bar is not None:
+            self.bar.total = self.bar.n
             self.bar.set_postfix_str("done", refresh=True)
             self.bar.close()
 
