@@ -85,7 +85,10 @@ class MasterService:
         self.start_file = start_file
         start = float(cfg.source.start_unix_s if start_unix_s is None else start_unix_s)
         self.start = start if start > 0 else time.time() + WARMUP_S
-        self.sc = build(cfg.source.scenario, **cfg.source.params)
+        try:
+            self.sc = build(cfg.source.scenario, **cfg.source.params)
+        except ValueError as exc:  # unknown scenario or parameter (did you mean)
+            raise ConfigError(f"{cfg.path}: [source.params]: {exc}") from None
         actor_id = cfg.source.actor or cfg.master_id
         if actor_id not in self.sc.actors:
             raise ConfigError(f"{cfg.path}: [source].actor {actor_id!r} not in scenario actors {sorted(self.sc.actors)}")

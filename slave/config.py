@@ -35,11 +35,11 @@ Every error names the file and the key.
 """
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from v2xpos.compat import tomllib
 from v2xpos.link import LinkConfig
 
 
@@ -75,9 +75,13 @@ def take(table: dict, key: str, kind: type | tuple, default: Any, where: str) ->
 
 
 def check_keys(table: dict, allowed: set, where: str) -> None:
-    unknown = set(table) - allowed
+    """ConfigError naming ``where`` and the unknown keys, with a "did you mean" for a near miss."""
+    unknown = sorted((str(k) for k in set(table) - set(allowed)))
     if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {sorted(unknown)}; allowed {sorted(allowed)}")
+        from v2xpos.datasets.calibration import did_you_mean
+        hint = "".join(did_you_mean(k, allowed).replace(" (did you mean", f" ({k!r}: did you mean")
+                       for k in unknown[:3])
+        raise ConfigError(f"{where}: unknown key(s) {unknown}{hint}; allowed {sorted(allowed)}")
 
 
 @dataclass

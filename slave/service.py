@@ -54,7 +54,10 @@ def run_slave(cfg: SlaveConfig, start_unix_s: float | None = None, stop: _Stop |
     start = float(cfg.source.start_unix_s if start_unix_s is None else start_unix_s)
     if start <= 0:
         start = time.time() + WARMUP_S
-    sc = build(cfg.source.scenario, **cfg.source.params)
+    try:
+        sc = build(cfg.source.scenario, **cfg.source.params)
+    except ValueError as exc:  # unknown scenario or parameter (did you mean)
+        raise ConfigError(f"{cfg.path}: [source.params]: {exc}") from None
     actor_id = cfg.source.actor or cfg.vehicle_id
     if cfg.source.type == "dataset":
         from sim.scenarios import Actor

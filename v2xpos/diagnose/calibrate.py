@@ -21,7 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from v2xpos.ins.replay import add_schedule_arguments, command_provenance, load_for_command
+from v2xpos.ins.replay import (add_input_arguments, add_schedule_arguments, check_only, command_provenance,
+                                  load_for_command)
 from v2xpos.types import Dataset
 
 from . import identify, structure
@@ -719,17 +720,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="write a dataset descriptor: the input's declared tables (paths relative to OUT) "
                              "and a [calibration] table with the effects found")
     add_schedule_arguments(parser)
+    add_input_arguments(parser)
     parser.add_argument("--iterations", type=int, default=2, help="Gauss-Newton iterations (default 2)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
 def run(args: argparse.Namespace) -> int:
-    ds = load_for_command(args.dataset, "calibrate")
+    """``v2xpos calibrate``: 2 (with the file and key named) when the inputs cannot be used; the
+    input warnings go into the JSON (``input_checks``)."""
+    ds = load_for_command(args.dataset, "calibrate", args.min_overlap)
     if ds is None:
         return 2
+    if args.check:
+        return check_only(ds, "calibrate", args.json)
     schedule = OutageSchedule(args.outage_length, args.outage_every, args.outage_first)
     cal = calibrate_dataset(ds, schedule, progress=not args.no_progress, gn_iterations=args.iterations)
     out = to_json(cal)
+    out["input_checks"] = ds.notes.get("input_check", {})
+    out["warnings"] = len(out["input_checks"].get("warnings", []))
     out["provenance"] = command_provenance("calibrate", args)
     text = json.dumps(out, indent=2)
     if args.json == "-":
