@@ -45,6 +45,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "fuzz": ("v2xpos.fuzz", "fuzz the message decoder and dataset readers"),
     "monitor": ("v2xpos.monitor.command", "monitor CPU and status-change delay at N targets x rate"),
     "corpus": ("v2xpos.corpus", "broken inputs through replay/calibrate/grade/config loading: tracebacks, silent exits"),
+    "calibration": ("sim.bench_calibration", "Monte-Carlo coverage of calibrate's estimates and sds (simulated drives)"),
 }
 
 
