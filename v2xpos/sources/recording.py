@@ -19,7 +19,6 @@ is shifted onto another epoch.
 """
 from __future__ import annotations
 
-import logging
 import math
 import sys
 from pathlib import Path
@@ -30,7 +29,6 @@ from v2xpos.types import FixStatus, NavState
 from .base import SessionClock, SourceContext, SourceError, VehicleSource
 from .clock import ReplayClock
 
-log = logging.getLogger(__name__)
 
 KEYS = ("dataset", "speed", "sync", "wait_for", "wait_timeout_s", "outline_m")
 
@@ -84,13 +82,11 @@ def from_config(table: dict, where: str, ctx: SourceContext) -> "RecordingSource
 
 def ins_config_for(ds) -> "object":
     """The filter configuration of a recording: its declared mounting and lever arm, the platform's
-    vehicle constraints (car: NHC/ZUPT; pedestrian, generic: none)."""
-    from v2xpos.ins import InsConfig
-    plat = ds.platform if ds.platform in ("car", "pedestrian") else "generic"
-    if ds.calibration is not None and ds.calibration.effects:
-        log.warning("%s: [calibration] table present but not applied by the recording source yet", ds.source)
-    return InsConfig(platform=plat, imu_to_body=ds.imu_to_body, lever_arm_m=ds.lever_arm_m,
-                     lever_arm_sd_m=ds.lever_arm_sd_m)
+    vehicle constraints (car: NHC/ZUPT; pedestrian, generic: none) and its ``[calibration]`` table
+    when it has one (``v2xpos.ins.calibrated.dataset_ins_config``: the same function ``v2xpos
+    replay`` and the device source use, so a calibrated vehicle is the same filter everywhere)."""
+    from v2xpos.ins.calibrated import dataset_ins_config
+    return dataset_ins_config(ds)
 
 
 class RecordingSource(VehicleSource):
