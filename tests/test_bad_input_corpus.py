@@ -1,4 +1,4 @@
-"""The bad-input corpus (``v2xpos.corpus``, also ``v2xpos bench corpus``): >= 500 deliberately broken
+"""The bad-input corpus (``bench.corpus``, also ``v2xpos bench corpus``): >= 500 deliberately broken
 inputs -- mutated ``dataset.toml`` (misspelt, missing, mistyped, misplaced keys; wrong matrices and
 vectors; unknown formats; missing files; broken TOML; a bad ``[calibration]``), IMU csv (truncated,
 cut in half, garbage lines, empty, header only, non-UTF-8, gaps, wrong units), ``.pos`` (headers
@@ -27,7 +27,7 @@ from pathlib import Path
 
 import pytest
 
-from v2xpos import corpus as corpus_mod
+from bench import corpus as corpus_mod
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / ".." / "shared" / "data"

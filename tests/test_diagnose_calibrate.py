@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from sim.calibration_drive import simulated_recording
 from v2xpos.diagnose import calibrate as C
 from v2xpos.diagnose import identify
 from v2xpos.diagnose.inject import (N_PARAMS, PARAM_NAMES, P_ACCEL_SCALE, P_CLOCK_DRIFT, P_GNSS_LATENCY, P_GYRO_SCALE,
-                                    P_LEVER_ARM, P_MISALIGN, P_TIME_OFFSET, EffectSet, inject,
-                                    simulated_recording)
+                                    P_LEVER_ARM, P_MISALIGN, P_TIME_OFFSET, EffectSet, inject)
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 DRIVE = DATA / "drive_0708" / "dataset.toml"

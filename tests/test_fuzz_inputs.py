@@ -12,7 +12,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from v2xpos import fuzz
+from bench import fuzz
 from v2xpos.wire import WireError, decode_state, encode_state, pack_envelope
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
