@@ -30,7 +30,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "slave": ("slave.service", "run a slave (target) service"),
     "keys": ("v2xpos.commands.keys", "generate vehicle signing keys and manage the master's trust list"),
     "replay-session": ("master.replay_session", "re-run the master pipeline from an MCAP recording"),
-    "convoy": ("v2xpos.commands.convoy", "run master and slaves on recorded drives as processes; write results.csv"),
+    "convoy": ("master.convoy", "run master and slaves on recorded drives as processes; write results.csv"),
     "monitor": ("v2xpos.monitor.command", "live table and web bird's-eye view of a running master"),
     "emulate": ("v2xpos.devices.emulate", "serve a recording's byte streams as live devices (pseudo-terminals or TCP)"),
     "simulate": ("sim.recordings", "write simulated recordings in the shared formats (convoy: leader + followers, truth)"),
