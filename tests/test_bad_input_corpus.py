@@ -28,15 +28,15 @@ from pathlib import Path
 import pytest
 
 from bench import corpus as corpus_mod
+from tests.shared_data import SHARED_DATA, require_shared
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT / ".." / "shared" / "data"
+DATA = SHARED_DATA
 
 
 def _require_data() -> None:
     for p in (DATA / "drive_0708" / "imu_1934.csv", DATA / "quadrotor_mimu" / "path_1" / "IMU_1.csv"):
-        if not p.exists():
-            pytest.skip(f"shared data not found: {p}")
+        require_shared(p)
 
 
 @pytest.fixture(scope="module")
