@@ -1,8 +1,8 @@
 """Live IMU grading for the master: a worker process started by the master grades every vehicle's
-IMU units from the streamed samples.
+IMU units from the streamed samples (``FleetGrader``: one ``VehicleGrader`` per vehicle).
 
-Slaves publish their IMU units' raw samples on ``v2xpos/<fleet>/vehicle/<id>/imu`` (payload below);
-the worker keeps one ``v2xpos.quality.VehicleGrader`` per vehicle (units in their own axes, declared
+Slaves publish their IMU units' raw samples on ``v2xpos/<fleet>/vehicle/<id>/imu``
+(``v2xpos.wire.encode_imu_payload``); the worker keeps one ``v2xpos.quality.VehicleGrader`` per vehicle (units in their own axes, declared
 mountings), regrades every ``regrade_every_s`` of new data, and publishes the grades as JSON on
 ``v2xpos/<fleet>/master/<id>/grades``. The master subscribes to that key, marks the results of a
 vehicle with a failing unit ``degraded`` and shows ``imu_grades`` in its status and report.

@@ -51,7 +51,7 @@ def test_corpus_bases_are_clean(built):
     corpus, work = built
     from v2xpos.datasets import load_dataset
     from v2xpos.datasets.checks import check_dataset
-    from v2xpos.quality.grade import prepare_recording
+    from v2xpos.quality.recording import prepare_recording
     chk = check_dataset(load_dataset(corpus.base["dataset"]))
     assert chk.findings == [], chk.findings
     assert prepare_recording(corpus.base["grade"])["coverage"]["warnings"] == []

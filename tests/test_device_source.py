@@ -26,7 +26,7 @@ from tests.shared_data import SHARED_DATA, needs_shared
 WALK = SHARED_DATA / "walk_0827"
 needs_walk = needs_shared(WALK / "gnss_1730.ubx")
 WALK_IMU_TO_BODY = [[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]
-RMS_BOUND_M = 0.05          # issue 14: a device slave on emulated walk_0827 vs v2xpos replay
+RMS_BOUND_M = 0.05          # a device slave on emulated walk_0827 vs v2xpos replay, horizontal
 
 
 def walk_ubx_descriptor(tmp: Path) -> Path:

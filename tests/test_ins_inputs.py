@@ -1,4 +1,4 @@
-"""Malformed inputs are counted and skipped, never fatal; seed 001 stop calibration; CLI."""
+"""Malformed inputs are counted and skipped, never fatal; the stop calibration; CLI."""
 import argparse
 import json
 

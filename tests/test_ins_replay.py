@@ -1,4 +1,4 @@
-"""Replays of the measured recordings in ../shared/data through the EKF (issue 2 targets)."""
+"""Replays of the measured recordings in ../shared/data through the EKF: the accuracy targets of the README."""
 import json
 
 import numpy as np

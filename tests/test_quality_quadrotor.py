@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from v2xpos.cli import main
-from v2xpos.quality.grade import grade_recording
+from v2xpos.quality.recording import grade_recording
 from tests.shared_data import SHARED_DATA, require_shared
 
 DATA = SHARED_DATA / "quadrotor_mimu"
