@@ -11,8 +11,8 @@ import pytest
 from scipy.interpolate import CubicSpline
 
 from sim import recording_formats as fmt
-from sim.recordings import (Effects, apply_overrides, axis_mountings, draw_params, generate_convoy, relative_truth,
-                            simulate, write)
+from sim.recording_params import Effects, axis_mountings, draw_params
+from sim.recordings import apply_overrides, generate_convoy, relative_truth, simulate, write
 from v2xpos import geo, timebase
 from v2xpos.datasets.imu_csv import read_imu_csv
 from v2xpos.datasets.loader import load_dataset
