@@ -756,6 +756,13 @@ def encode_imu_payload(fleet: str, vehicle_id: str, units: dict, mounting_xyz_de
                          use_bin_type=True)
 
 
+def _imu_numbers(value: Any, error: str) -> np.ndarray:
+    try:
+        return np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ImuPayloadError(error) from None
+
+
 def decode_imu_payload(data: bytes) -> ImuPayload:
     """Validated IMU-stream payload; ``ImuPayloadError`` for anything else (never another exception):
     not msgpack, another type or version, no vehicle id, 0 or more than ``MAX_IMU_UNITS`` units, rows
@@ -771,10 +778,7 @@ def decode_imu_payload(data: bytes) -> ImuPayload:
         raise ImuPayloadError("missing id or units")
     samples = {}
     for uid, rows in units.items():
-        try:
-            a = np.asarray(rows, dtype=float)
-        except (TypeError, ValueError):
-            raise ImuPayloadError(f"unit {uid!r}: rows are not numbers") from None
+        a = _imu_numbers(rows, f"unit {uid!r}: rows are not numbers")
         if a.ndim != 2 or a.shape[1] != 7 or not np.isfinite(a).all():
             raise ImuPayloadError(f"unit {uid!r}: rows must be finite [t, ax, ay, az, gx, gy, gz]")
         samples[str(uid)] = (a[:, 0], a[:, 1:4], a[:, 4:7])
@@ -783,10 +787,7 @@ def decode_imu_payload(data: bytes) -> ImuPayload:
         raise ImuPayloadError("mounting_xyz_deg is not a map")
     angles = {}
     for uid, v in mounting.items():
-        try:
-            a = np.asarray(v, dtype=float)
-        except (TypeError, ValueError):
-            raise ImuPayloadError(f"mounting_xyz_deg[{uid!r}]: not numbers") from None
+        a = _imu_numbers(v, f"mounting_xyz_deg[{uid!r}]: not numbers")
         if a.shape != (3,) or not np.isfinite(a).all() or np.abs(a).max() > 360.0:
             raise ImuPayloadError(f"mounting_xyz_deg[{uid!r}]: need 3 finite angles in [-360, 360] deg")
         angles[str(uid)] = a.tolist()
