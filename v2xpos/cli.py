@@ -31,8 +31,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "keys": ("v2xpos.commands.keys", "generate vehicle signing keys and manage the master's trust list"),
     "replay-session": ("master.replay_session", "re-run the master pipeline from an MCAP recording"),
     "convoy": ("master.convoy", "run master and slaves on recorded drives as processes; write results.csv"),
-    "monitor": ("v2xpos.monitor.command", "live table and web bird's-eye view of a running master"),
-    "emulate": ("v2xpos.devices.emulate", "serve a recording's byte streams as live devices (pseudo-terminals or TCP)"),
+    "monitor": ("v2xpos.commands.monitor", "live table and web bird's-eye view of a running master"),
+    "emulate": ("v2xpos.commands.emulate", "serve a recording's byte streams as live devices (pseudo-terminals or TCP)"),
     "simulate": ("sim.recordings", "write simulated recordings in the shared formats (convoy: leader + followers, truth)"),
 }
 
@@ -43,7 +43,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "trust": ("bench.trust", "forged / replayed messages, fuzzing, fault scenarios"),
     "grading": ("bench.grading", "IMU grading on simulated vehicles: fault sweep, lidar rate check"),
     "fuzz": ("bench.fuzz", "fuzz the message decoder and dataset readers"),
-    "monitor": ("v2xpos.monitor.command", "monitor CPU and status-change delay at N targets x rate"),
+    "monitor": ("bench.monitor", "monitor CPU and status-change delay at N targets x rate"),
     "corpus": ("bench.corpus", "broken inputs through replay/calibrate/grade/config loading: tracebacks, silent exits"),
     "calibration": ("bench.calibration", "Monte-Carlo coverage of calibrate's estimates and sds (simulated drives)"),
 }
