@@ -190,7 +190,8 @@ class FleetGrader:
 
 def run_worker(endpoint: str, fleet: str, master_id: str, period_s: float = 1.0,
                stop: threading.Event | None = None) -> int:
-    from v2xpos.link import Link, LinkConfig, grades_key
+    from v2xpos.link import Link, LinkConfig
+    from v2xpos.wire import grades_key
     from v2xpos.wire import imu_key
     stop = stop or threading.Event()
     parent = os.getppid()

@@ -16,8 +16,8 @@ from pyrtcm import RTCMReader
 from pyrtcm.rtcmhelpers import calc_crc24q
 
 from v2xpos.devices.rtcm import NtripClient, RtcmChecker, rtcm_message_type
-from v2xpos.sources.corrections import (CorrectionRelay, CorrectionSink, corrections_key,
-                                        parse_corrections)
+from v2xpos.sources.corrections import CorrectionRelay, CorrectionSink, parse_corrections
+from v2xpos.wire import corrections_key
 
 
 # ------------------------------------------------------------------ RTCM3 frames built by hand

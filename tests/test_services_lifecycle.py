@@ -133,7 +133,8 @@ def test_master_stops_in_every_phase(tmp_path, sig):
     s.wait_for_line("waiting for ['B']")
     rc, dt, out, err = s.stop(sig)
     _check(rc, dt, err)
-    from v2xpos.link import Link, LinkConfig, status_key
+    from v2xpos.link import Link, LinkConfig
+    from v2xpos.wire import status_key
     s = Service("master", master_cfg(port, a, []), tmp_path)        # running
     client = None
     try:

@@ -3,8 +3,12 @@
 Public API (stable)
 -------------------
 * ``SCHEMA_VERSION``, ``ENVELOPE_VERSION``, ``MAX_MESSAGE_BYTES``, ``MAX_GEOMETRY_POINTS``
-* key expressions: ``state_key(fleet, vehicle_id)``, ``relative_key(fleet, master_id)``,
-  ``imu_key(fleet, vehicle_id)``, ``STATE_KEY_ALL(fleet)`` (``v2xpos/<fleet>/vehicle/*/state``)
+* key expressions, every one the project uses: ``state_key(fleet, vehicle_id)``,
+  ``STATE_KEY_ALL(fleet)`` (``v2xpos/<fleet>/vehicle/*/state``), ``relative_key(fleet, master_id)``,
+  ``imu_key(fleet, vehicle_id)``, ``status_key`` and ``grades_key``
+  (fleet, master_id), ``clock_key(fleet)`` and ``ready_key(fleet, vehicle_id)`` (session clock),
+  ``corrections_key(fleet)``
+* the IMU stream of the grading: ``encode_imu_payload``, ``decode_imu_payload`` -> ``ImuPayload``
 * ``WireError(reason, field)`` -- every malformed input raises this, never anything else.
 * ``Geometry`` -- target outline in its own body frame (points, polygon or circle).
 * ``StateMessage`` -- one vehicle/pedestrian state; ``encode_state(msg, sign=None) -> bytes``,
@@ -95,6 +99,31 @@ def relative_key(fleet: str, master_id: str) -> str:
 def imu_key(fleet: str, vehicle_id: str) -> str:
     """Zenoh key expression for IMU samples used by IMU grading."""
     return f"v2xpos/{fleet}/vehicle/{vehicle_id}/imu"
+
+
+def status_key(fleet: str, master_id: str) -> str:
+    """Key on which a master publishes its periodic status (JSON, for monitors and the demo table)."""
+    return f"v2xpos/{fleet}/master/{master_id}/status"
+
+
+def grades_key(fleet: str, master_id: str) -> str:
+    """Key on which a master publishes IMU grades (JSON)."""
+    return f"v2xpos/{fleet}/master/{master_id}/grades"
+
+
+def clock_key(fleet: str) -> str:
+    """Key of the session clock published by a recording master."""
+    return f"v2xpos/{fleet}/session/clock"
+
+
+def ready_key(fleet: str, vehicle_id: str) -> str:
+    """Key on which a recording slave says it is ready for the session clock."""
+    return f"v2xpos/{fleet}/session/ready/{vehicle_id}"
+
+
+def corrections_key(fleet: str) -> str:
+    """Zenoh key of a fleet's GNSS correction stream."""
+    return f"v2xpos/{fleet}/corrections"
 
 
 class WireError(ValueError):
