@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from sim.launcher import free_tcp_port
+from v2xpos.launch import free_tcp_port
 from v2xpos.link import Link, LinkConfig, loopback_endpoint
 from v2xpos.wire import STATE_KEY_ALL, state_key, status_key
 
