@@ -9,7 +9,7 @@ Floors, bottom to top:
 2 estimation, relative kinematics, link, security, outputs (ins/, relative*, link, tls, security,
   verify_worker, output/)
 3 vehicle sources and clocks, quality, diagnose, tools on the library (sources/, quality/,
-  diagnose/, config, launch, monitor/, commands/)
+  diagnose/, config, launch, stop_signals, monitor/, commands/)
 4 services (master/, slave/)
 5 simulation and benches (sim/, bench/)
 6 the CLI (v2xpos.cli, which imports the commands by name at run time)
@@ -35,7 +35,7 @@ FLOORS: dict[str, int] = {
     "v2xpos.ins": 2, "v2xpos.relative": 2, "v2xpos.relative_jit": 2, "v2xpos.link": 2, "v2xpos.tls": 2,
     "v2xpos.security": 2, "v2xpos.verify_worker": 2, "v2xpos.output": 2,
     "v2xpos.sources": 3, "v2xpos.quality": 3, "v2xpos.diagnose": 3, "v2xpos.config": 3,
-    "v2xpos.launch": 3, "v2xpos.monitor": 3, "v2xpos.commands": 3,
+    "v2xpos.launch": 3, "v2xpos.stop_signals": 3, "v2xpos.monitor": 3, "v2xpos.commands": 3,
     "master": 4, "slave": 4,
     "sim": 5, "bench": 5,
     "v2xpos.cli": 6, "v2xpos.__main__": 6,
@@ -94,9 +94,11 @@ def imports_of(module: str) -> list[tuple[str, int]]:
 
 
 def floor_of(module: str) -> int:
+    """The floor of ``module`` or of its nearest package in FLOORS; a module directly under
+    ``v2xpos`` must be listed itself (the package's own floor is only its ``__init__``)."""
     name = module
     while name:
-        if name in FLOORS:
+        if name in FLOORS and (name != "v2xpos" or module == "v2xpos"):
             return FLOORS[name]
         name = name.rpartition(".")[0]
     raise KeyError(module)
