@@ -22,7 +22,7 @@ EXIT_INTERNAL = 3
 EXIT_INTERRUPTED = 130
 
 COMMANDS: dict[str, tuple[str, str]] = {
-    "replay": ("v2xpos.ins.replay", "replay a recorded drive through the GNSS/INS EKF with simulated outages"),
+    "replay": ("v2xpos.ins.replay_command", "replay a recorded drive through the GNSS/INS EKF with simulated outages"),
     "calibrate": ("v2xpos.diagnose.calibrate", "find missing model effects from residuals, estimate them, report before/after"),
     "grade": ("v2xpos.quality.grade", "grade the IMU units of a multi-IMU recording"),
     "demo": ("sim.demo", "run master, slaves and a pedestrian as processes on loopback; write a report"),
@@ -37,7 +37,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 BENCHES: dict[str, tuple[str, str]] = {
-    "replay": ("v2xpos.ins.replay", "EKF replay throughput [IMU samples/s]"),
+    "replay": ("bench.replay", "EKF replay throughput [IMU samples/s]"),
     "fanin": ("bench.fanin", "slaves at 100 Hz one master core sustains with e2e p99 <= 10 ms"),
     "soak": ("bench.soak", "long run: sent / received / recorded / lost, memory growth"),
     "trust": ("v2xpos.security_bench", "forged / replayed messages, fuzzing, fault scenarios"),

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from v2xpos.ins.replay import (add_input_arguments, add_schedule_arguments, check_only, command_provenance,
+from v2xpos.ins.replay_command import (add_input_arguments, add_schedule_arguments, check_only, command_provenance,
                                   load_for_command)
 from v2xpos.types import Dataset
 
