@@ -10,7 +10,7 @@ from sim.sensors import ImuErrorModel, simulate_imu
 from sim.trajectory import Segment, generate, static
 from v2xpos import geo
 from v2xpos.ins import InsConfig, InsFilter, StaticCalibrationConfig, StaticCalibrator
-from v2xpos.ins import replay as replay_cmd
+from v2xpos.ins import replay_command as replay_cmd
 from v2xpos.types import FixStatus
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
