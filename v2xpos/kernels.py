@@ -9,7 +9,10 @@ its counterpart there. Conventions are theirs: ``C_ab`` takes vectors from b to 
 
 Representation: 3x3 matrices are row-major flat arrays of 9 (``M[3 i + j]``), 3-vectors are three
 scalars or tuples, so that the kernels allocate little and inline well. All functions are
-``njit(cache=True)``: compiled on first use, then loaded from numba's on-disk cache.
+``njit(cache=True)``: compiled on first use, then loaded from numba's on-disk cache. Numba checks a
+cached function against its own source file only: after editing this module, delete the caches of
+its callers too (``__pycache__/*.nbi``, ``*.nbc`` beside ``ins/mechanization.py`` and
+``relative_jit.py``), or they keep the old code compiled in.
 
 Sources: NIMA TR8350.2 (WGS84, Somigliana gravity eq. 4-1, free-air correction eq. 4-3); Groves,
 *Principles of GNSS, Inertial, and Multisensor Integrated Navigation Systems*, 2nd ed. (2013),
