@@ -237,7 +237,7 @@ class MasterService:
             await asyncio.sleep(period)
             if self.nav is not None:
                 with self.lock:
-                    self.pipeline.tick(self.gps_now(), float(self.nav.t_s))
+                    self.pipeline.tick(self.gps_now(), float(self.nav.t_s), self.nav.fix)
 
     def status(self, window: int | None = 2000) -> dict:
         """Summary for monitors; percentiles over the last ``window`` messages (None = all)."""

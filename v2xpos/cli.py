@@ -17,6 +17,8 @@ import os
 import sys
 import traceback
 
+from v2xpos import stop_signals
+
 EXIT_INPUT = 2
 EXIT_INTERNAL = 3
 EXIT_INTERRUPTED = 130
@@ -35,6 +37,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "emulate": ("v2xpos.devices.emulate", "serve a recording's byte streams as live devices (pseudo-terminals or TCP)"),
     "simulate": ("sim.recordings", "write simulated recordings in the shared formats (convoy: leader + followers, truth)"),
 }
+
+STOPS_CLEANLY = {"master.service", "slave.service"}
+"""Services that stop cleanly on a signal, also while their modules load (``v2xpos.stop_signals``)."""
 
 BENCHES: dict[str, tuple[str, str]] = {
     "replay": ("bench.replay", "EKF replay throughput [IMU samples/s]"),
@@ -64,6 +69,8 @@ def _dispatch(table: dict, argv: list[str], prog: str, entry: str) -> int:
     if name not in table:
         print(f"{prog}: unknown command {name!r}\n\n{_usage(table, prog)}", file=sys.stderr)
         return 2
+    if table[name][0] in STOPS_CLEANLY:
+        stop_signals.exit_until_handled(name)
     module = importlib.import_module(table[name][0])
     parser = argparse.ArgumentParser(prog=f"{prog} {name}", description=table[name][1])
     getattr(module, f"add_{entry}arguments")(parser)
