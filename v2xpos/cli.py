@@ -24,8 +24,8 @@ EXIT_INTERNAL = 3
 EXIT_INTERRUPTED = 130
 
 COMMANDS: dict[str, tuple[str, str]] = {
-    "replay": ("v2xpos.ins.replay_command", "replay a recorded drive through the GNSS/INS EKF with simulated outages"),
-    "calibrate": ("v2xpos.diagnose.calibrate_command", "find missing model effects from residuals, estimate them, report before/after"),
+    "replay": ("v2xpos.commands.replay", "replay a recorded drive through the GNSS/INS EKF with simulated outages"),
+    "calibrate": ("v2xpos.commands.calibrate", "find missing model effects from residuals, estimate them, report before/after"),
     "grade": ("v2xpos.commands.grade", "grade the IMU units of a multi-IMU recording"),
     "demo": ("sim.demo", "run master, slaves and a pedestrian as processes on loopback; write a report"),
     "master": ("master.service", "run the master (hunter) service"),

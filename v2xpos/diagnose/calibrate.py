@@ -13,7 +13,7 @@ Pipeline (docs/calibration.md gives the reasoning):
 
 Before and after are ``v2xpos replay``'s own metrics (``metrics_replay``); the fit replays run the
 same replay engine (``runner``). The estimator is ``estimator.Estimator``, its data vector
-``rows.residual_rows``; the command line is ``calibrate_command``.
+``rows.residual_rows``; the command line is ``v2xpos.commands.calibrate``.
 """
 from __future__ import annotations
 

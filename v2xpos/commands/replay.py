@@ -4,7 +4,7 @@
 Inputs are checked before the run (``load_for_command``: descriptor, files, and the plausibility
 checks of ``v2xpos.datasets.checks``): an error stops the command with exit code 2 and a message
 naming the file and the key; warnings are printed and carried in the summary (``input_checks``).
-The metrics are those of ``replay_metrics``.
+The replay is ``v2xpos.ins.replay.replay``, its metrics those of ``v2xpos.ins.replay_metrics``.
 """
 from __future__ import annotations
 
@@ -15,9 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from v2xpos.ins.replay import OutageSchedule, replay
 from v2xpos.types import Dataset
-
-from .replay import OutageSchedule, replay
 
 
 def add_schedule_arguments(parser: argparse.ArgumentParser) -> None:
@@ -136,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
     sched = schedule_from_args(args)
     writer = None
     if args.solution:
-        from .solution import SolutionWriter
+        from v2xpos.ins.solution import SolutionWriter
         if args.solution_hz is not None and not args.solution_hz > 0:
             print("v2xpos replay: --solution-hz must be > 0", file=sys.stderr)
             return 2
@@ -176,7 +175,7 @@ def run(args: argparse.Namespace) -> int:
         Path(args.json).write_text(json.dumps({**res.summary, "provenance": command_provenance("replay", args)},
                                               indent=2))
     if args.plots:
-        from .replay_plots import write_plots
+        from v2xpos.ins.replay_plots import write_plots
         for p in write_plots(res, args.plots):
             print(f"{'plot':>20}: {p}")
     return 0

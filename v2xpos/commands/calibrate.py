@@ -1,5 +1,5 @@
 """``v2xpos calibrate``: options, input checks, the printed summary, the JSON, ``--write-dataset``
-and ``--plots`` around ``calibrate.calibrate_dataset``."""
+and ``--plots`` around ``v2xpos.diagnose.calibrate.calibrate_dataset``."""
 from __future__ import annotations
 
 import argparse
@@ -7,11 +7,10 @@ import json
 import sys
 from pathlib import Path
 
-from v2xpos.ins.replay_command import (add_input_arguments, add_schedule_arguments, check_only, command_provenance,
-                                       load_for_command)
-
-from .calibrate import calibrate_dataset, to_json
-from .runner import OutageSchedule
+from v2xpos.commands.replay import (add_input_arguments, add_schedule_arguments, check_only, command_provenance,
+                                    load_for_command)
+from v2xpos.diagnose.calibrate import calibrate_dataset, to_json
+from v2xpos.ins.replay import OutageSchedule
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -47,17 +46,17 @@ def run(args: argparse.Namespace) -> int:
     elif args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(text + "\n")
-    from .summary import summary_text
+    from v2xpos.diagnose.summary import summary_text
     print(summary_text(cal), file=sys.stderr if args.json == "-" else sys.stdout)
     if args.write_dataset:
-        from .writeback import write_dataset
+        from v2xpos.diagnose.writeback import write_dataset
         if ds.source is None:
             print("v2xpos calibrate: --write-dataset needs a dataset loaded from a descriptor (.toml)", file=sys.stderr)
             return 2
         path = write_dataset(ds.source, args.write_dataset, cal.table)
         print(f"calibrated dataset: {path}", file=sys.stderr if args.json == "-" else sys.stdout)
     if args.plots:
-        from .report import write_report
+        from v2xpos.diagnose.report import write_report
         path = write_report(cal, Path(args.plots))
         print(f"report: {path}", file=sys.stderr)
     return 0
