@@ -147,13 +147,19 @@ def cross_into(a, b, out):
 
 # ----------------------------------------------------------------------------- SO(3)
 @njit(cache=True)
-def so3_poly(x, y, z, c0, c1, c2):
-    """c0 I + c1 K + c2 K^2, flat, with K = [phi x], phi = (x, y, z), and
+def so3_poly_into(x, y, z, c0, c1, c2, M):
+    """M (flat, 9) = c0 I + c1 K + c2 K^2 with K = [phi x], phi = (x, y, z), and
     K^2 = phi phi^T - |phi|^2 I."""
-    M = np.empty(9)
     M[0], M[1], M[2] = c0 - c2 * (y * y + z * z), -c1 * z + c2 * x * y, c1 * y + c2 * x * z
     M[3], M[4], M[5] = c1 * z + c2 * x * y, c0 - c2 * (x * x + z * z), -c1 * x + c2 * y * z
     M[6], M[7], M[8] = -c1 * y + c2 * x * z, c1 * x + c2 * y * z, c0 - c2 * (x * x + y * y)
+
+
+@njit(cache=True)
+def so3_poly(x, y, z, c0, c1, c2):
+    """c0 I + c1 K + c2 K^2 as a new flat array (``so3_poly_into``)."""
+    M = np.empty(9)
+    so3_poly_into(x, y, z, c0, c1, c2, M)
     return M
 
 
@@ -167,10 +173,19 @@ def exp_coefficients(a2):
 
 
 @njit(cache=True)
-def exp_so3(x, y, z):
-    """exp([phi x]), flat, phi = (x, y, z) [rad] (rotation.exp_so3)."""
+def exp_so3_into(x, y, z, M):
+    """M (flat, 9) = exp([phi x]), phi = (x, y, z) [rad] (rotation.exp_so3); no allocation, for
+    per-sample loops."""
     s, c = exp_coefficients(x * x + y * y + z * z)
-    return so3_poly(x, y, z, 1.0, s, c)
+    so3_poly_into(x, y, z, 1.0, s, c, M)
+
+
+@njit(cache=True)
+def exp_so3(x, y, z):
+    """exp([phi x]) as a new flat array (``exp_so3_into``)."""
+    M = np.empty(9)
+    exp_so3_into(x, y, z, M)
+    return M
 
 
 @njit(cache=True)

@@ -32,7 +32,7 @@ import math
 import numpy as np
 from numba import njit
 
-from v2xpos.kernels import OMEGA_IE_RPS, cross_into, exp_so3, normal_gravity, radii
+from v2xpos.kernels import OMEGA_IE_RPS, cross_into, exp_so3_into, normal_gravity, radii
 
 # nav vector layout: lat_rad, lon_rad, h_m, vN, vE, vD [m/s]
 NAV_LAT, NAV_LON, NAV_H, NAV_VEL = 0, 1, 2, 3
@@ -79,6 +79,8 @@ def strapdown_batch(t_s, acc_mps2, gyro_rps, i0, i1, t_prev_s, nav, C_nb, corr, 
     fn = np.empty(3)
     vmid = np.empty(3)
     M = np.empty((3, 3))
+    Cb = np.empty(9)
+    Cn = np.empty(9)
     w = np.empty(3)
     f = np.empty(3)
     p_pos, p_vel, p_att, p_bg, p_ba, p_sg, p_sa = idx[0], idx[1], idx[2], idx[3], idx[4], idx[5], idx[6]
@@ -163,8 +165,8 @@ def strapdown_batch(t_s, acc_mps2, gyro_rps, i0, i1, t_prev_s, nav, C_nb, corr, 
         cross_into(mem[MEM_DTH:MEM_DTH + 3], dth, tmp2)
         for j in range(3):
             tmp[j] = dth[j] + tmp2[j] / 12.0
-        Cb = exp_so3(tmp[0], tmp[1], tmp[2])
-        Cn = exp_so3(-zeta[0], -zeta[1], -zeta[2])
+        exp_so3_into(tmp[0], tmp[1], tmp[2], Cb)
+        exp_so3_into(-zeta[0], -zeta[1], -zeta[2], Cn)
         for i in range(3):
             for j in range(3):
                 M[i, j] = C_nb[i, 0] * Cb[j] + C_nb[i, 1] * Cb[3 + j] + C_nb[i, 2] * Cb[6 + j]
