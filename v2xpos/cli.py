@@ -24,8 +24,8 @@ EXIT_INTERNAL = 3
 EXIT_INTERRUPTED = 130
 
 COMMANDS: dict[str, tuple[str, str]] = {
-    "replay": ("v2xpos.ins.replay", "replay a recorded drive through the GNSS/INS EKF with simulated outages"),
-    "calibrate": ("v2xpos.diagnose.calibrate", "find missing model effects from residuals, estimate them, report before/after"),
+    "replay": ("v2xpos.commands.replay", "replay a recorded drive through the GNSS/INS EKF with simulated outages"),
+    "calibrate": ("v2xpos.commands.calibrate", "find missing model effects from residuals, estimate them, report before/after"),
     "grade": ("v2xpos.commands.grade", "grade the IMU units of a multi-IMU recording"),
     "demo": ("sim.demo", "run master, slaves and a pedestrian as processes on loopback; write a report"),
     "master": ("master.service", "run the master (hunter) service"),
@@ -42,7 +42,7 @@ STOPS_CLEANLY = {"master.service", "slave.service"}
 """Services that stop cleanly on a signal, also while their modules load (``v2xpos.stop_signals``)."""
 
 BENCHES: dict[str, tuple[str, str]] = {
-    "replay": ("v2xpos.ins.replay", "EKF replay throughput [IMU samples/s]"),
+    "replay": ("bench.replay", "EKF replay throughput [IMU samples/s]"),
     "fanin": ("bench.fanin", "slaves at 100 Hz one master core sustains with e2e p99 <= 10 ms"),
     "soak": ("bench.soak", "long run: sent / received / recorded / lost, memory growth"),
     "trust": ("bench.trust", "forged / replayed messages, fuzzing, fault scenarios"),
