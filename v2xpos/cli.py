@@ -107,10 +107,23 @@ def run_command(argv: list[str]) -> int:
 def main(argv: list[str] | None = None) -> int:
     """Run one command; never lets an exception out as a traceback (see the module doc for the
     exit codes). ``V2XPOS_DEBUG=1`` adds the traceback of an unexpected error."""
+    as_program = argv is None
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0] == "--version":
         print(f"v2xpos {version()}")
         return 0
+    rc = _guarded(argv)
+    if as_program and argv and COMMANDS.get(argv[0], ("",))[0] in STOPS_CLEANLY:
+        # A service has closed its link, outputs and recorder and printed its counters. The
+        # interpreter's own shutdown with zenoh's native threads still running took 1-3 s on a
+        # loaded machine (past the 1 s a stop may take) and could abort: leave at once instead.
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(rc)
+    return rc
+
+
+def _guarded(argv: list[str]) -> int:
     prog = _prog(argv)
     try:
         return run_command(argv)
