@@ -449,7 +449,8 @@ def _interrupt(signum, frame) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    signal.signal(signal.SIGTERM, _interrupt)   # until the service installs its own handlers
+    if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:   # not already handled (v2xpos.stop_signals)
+        signal.signal(signal.SIGTERM, _interrupt)   # until the service installs its own handlers
     try:
         cfg = MasterConfig.load(args.config)
         svc = MasterService(cfg)
