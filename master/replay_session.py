@@ -124,7 +124,10 @@ def replay_session(path: str | Path, progress: bool = False) -> ReplayReport:
         elif rec.topic == TOPIC_TICK:
             report.ticks += 1
             clock.t_wall_s = rec.log_time_ns * 1e-9
-            pipe.tick(d["t_now_gps_s"], d["master_t_gps_s"])
+            if d.get("master_fix") is None:
+                pipe.tick(d["t_now_gps_s"], d["master_t_gps_s"])
+            else:
+                pipe.tick(d["t_now_gps_s"], d["master_t_gps_s"], d["master_fix"])
         elif rec.topic == TOPIC_DEGRADED:
             pipe.degraded_vehicles.clear()
             pipe.degraded_vehicles.update(d["vehicle_ids"])

@@ -223,15 +223,17 @@ def make_plots(sc, plan: FleetPlan, out: Path) -> list[Path]:
     ser = {vid: evaluate.series(sc, vid, r) for vid, r in rows.items() if vid in sc.actors}
     paths = []
     fig, ax = plt.subplots(figsize=(10, 5))
-    for vid, s in sorted(ser.items()):
-        ax.plot(s["t_rel_s"], s["err_m"] * 100, ".", ms=1.5, label=f"{vid} compensated")
-    for vid, s in sorted(ser.items()):
-        ax.plot(s["t_rel_s"], s["unc_err_m"] * 100, ",", alpha=0.4, label=f"{vid} uncompensated")
+    for k, (vid, s) in enumerate(sorted(ser.items())):
+        # one colour per target: compensated dots, uncompensated crosses (markers big enough to
+        # show in the legend, which is drawn with larger markers still)
+        ax.plot(s["t_rel_s"], s["err_m"] * 100, ".", ms=2, color=f"C{k}", label=f"{vid} compensated")
+        ax.plot(s["t_rel_s"], s["unc_err_m"] * 100, "x", ms=2, mew=0.5, alpha=0.5, color=f"C{k}",
+                label=f"{vid} uncompensated")
     ax.set_yscale("log")
     ax.set_xlabel("time since epoch [s]")
     ax.set_ylabel("relative position error [cm]")
-    ax.set_title("Relative position error vs truth (VALID results)")
-    ax.legend(fontsize=6, ncol=2)
+    ax.set_title("Relative position error vs truth (VALID results), with and without latency compensation")
+    ax.legend(fontsize=7, ncol=2, markerscale=4)
     ax.grid(True, which="both", alpha=0.3)
     paths.append(out / "rel_pos_error.png")
     fig.savefig(paths[-1], dpi=120)
@@ -264,17 +266,23 @@ def make_plots(sc, plan: FleetPlan, out: Path) -> list[Path]:
 
     fig, ax = plt.subplots(figsize=(10, 4))
     names = sorted(ser)
-    colors = {0: "tab:green", 1: "tab:orange", 2: "tab:red", 3: "tab:gray", 4: "tab:purple"}
+    from v2xpos.output.foxglove import STATUS_RGBA
+    from v2xpos.wire import TargetStatus
     for i, vid in enumerate(names):
         s = ser[vid]
-        for code, col in colors.items():
-            m = s["status"] == code
+        for st in TargetStatus:
+            m = s["status"] == int(st)
             if m.any():
-                ax.plot(s["t_rel_s"][m], np.full(m.sum(), i), "|", color=col, ms=8)
+                ax.plot(s["t_rel_s"][m], np.full(m.sum(), i), "|", color=STATUS_RGBA[st.name.lower()], ms=8,
+                        label=st.name.lower())
+    handles = {h.get_label(): h for h in ax.get_lines()}   # one legend entry per status seen
+    ax.legend(handles.values(), handles.keys(), fontsize=7, loc="upper right", ncol=3)
     ax.set_yticks(range(len(names)))
     ax.set_yticklabels(names)
+    ax.set_ylim(-0.7, len(names) - 0.3 + 0.8)
     ax.set_xlabel("time since epoch [s]")
-    ax.set_title("Target status (green valid, orange fix_invalid, red timeout, gray no_data, purple future)")
+    ax.set_ylabel("target")
+    ax.set_title("Target status of every result over time")
     paths.append(out / "status.png")
     fig.savefig(paths[-1], dpi=120)
     plt.close(fig)

@@ -1,6 +1,7 @@
 """The project's filter on a convoy recording, scored against its truth_rel files.
 
-Each vehicle's ``dataset.toml`` goes through the recording source (``slave.source.DatasetSource``:
+Each vehicle's ``dataset.toml`` goes through the project's recording source
+(``v2xpos.sources.recording.RecordingSource``, before it lands ``slave.source.DatasetSource``:
 ``load_dataset`` + ``v2xpos.ins.InsFilter`` with the declared mounting and lever arm, aligning
 itself from the data). At every truth_rel time T the last state of each vehicle at or before T is
 predicted to T (``v2xpos.relative.predict_state``, CTRA) and the slave is expressed in the
@@ -23,11 +24,11 @@ from v2xpos import timebase
 
 def nav_states(toml: str | Path) -> list:
     """Every NavState the project's recording source produces for one dataset, oldest first."""
-    try:
-        from slave.source import DatasetSource
-    except ImportError:                                     # pragma: no cover - after the sources move
-        from v2xpos.sources.recording import DatasetSource  # type: ignore[no-redef]
-    return DatasetSource(str(toml)).advance(1e12)
+    try:                    # the library's recording source (v2xpos.sources.recording) once it is on main
+        from v2xpos.sources.recording import RecordingSource as Source
+    except ImportError:     # until then the slave's
+        from slave.source import DatasetSource as Source  # type: ignore[no-redef]
+    return Source(str(toml)).advance(1e12)
 
 
 def _truth_speed(truth_csv: Path) -> tuple[np.ndarray, np.ndarray]:

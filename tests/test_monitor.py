@@ -64,11 +64,17 @@ def test_rows_sorted_worst_first_and_table_aligned():
     assert ids[3] == "t00"                            # then the shortest TTC
     by = {r["id"]: r for r in snap["rows"]}
     assert by["t30"]["reason"] == "silent 0.4 s"
-    assert by["t20"]["reason"] == "fix: target not RTK"
+    assert by["t20"]["reason"] == "fix: target FLOAT"
     assert by["t05"]["imu"] == "FAIL imu2" and "IMU degraded" in by["t05"]["reason"]
     assert by["t01"]["x_m"] == pytest.approx(16.0) and by["t01"]["sigma_h_m"] == pytest.approx(math.hypot(0.02, 0.02))
     assert by["t01"]["rel_yaw_deg"] == pytest.approx(math.degrees(0.05))
-    assert by["t01"]["master_fix"] == "FLOAT"         # from the status (results carry no fixes here)
+    assert (by["t01"]["master_fix"], by["t01"]["target_fix"]) == ("FIXED", "FIXED")   # from the result
+    legacy = result(2, TargetStatus.VALID, 3, 1e9)
+    legacy.master_fix = legacy.target_fix = FixStatus.NONE          # a master that sends no fixes
+    st2 = _state_with([legacy])
+    st2.on_status({"master_id": "ego", "master_fix": int(FixStatus.FLOAT), "targets": {}}, 100.0)
+    row = st2.refresh(100.1)["rows"][0]
+    assert (row["master_fix"], row["target_fix"]) == ("FLOAT", None)   # the master's from its status
     text = table.render(snap)
     lines = text.splitlines()
     header = lines[1]

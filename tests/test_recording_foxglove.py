@@ -56,45 +56,64 @@ def _rot(q) -> np.ndarray:
 
 
 def test_frame_tree_agrees_with_the_map(demo_recording):
-    """world -> ego -> target composed from /tf puts each target where its LocationFix says (the
-    transform is compensated to the master time, the fix is at the target's own time of validity:
-    the difference is the target's motion over the latency)."""
+    """The frame tree against the JSON channels and the map: world -> ego is the master state of
+    /v2xpos/master_nav written at the same instant (ENU at the first master state, body FRD); the
+    ego -> target transform composed with the master state the result was computed with (same GPS
+    time) lands where the target's LocationFix, moved on by its velocity over the result's latency,
+    says (the transform is compensated to the master time, the fix is at the target's own time of
+    validity, from /v2xpos/rx)."""
     from mcap.reader import make_reader
     from mcap_protobuf.decoder import DecoderFactory
     from v2xpos import geo
-    ego_tf, tgt_tf, fixes = {}, {}, {}
+    from v2xpos.rotation import dcm_from_euler
+    navs_by_log, navs_by_t, outs, ego_tf, tgt_tf, fixes, t_valid = {}, {}, {}, {}, {}, {}, {}
     with open(demo_recording, "rb") as fh:
-        _, _, first_nav = next(make_reader(fh).iter_messages(topics=["/v2xpos/master_nav"]))
-    origin = np.array(json.loads(first_nav.data)["lla"])     # world = ENU at the first master state
+        for _, ch, m in make_reader(fh).iter_messages(topics=["/v2xpos/master_nav", "/v2xpos/out/relative",
+                                                               "/v2xpos/rx"]):
+            d = json.loads(m.data)
+            if ch.topic == "/v2xpos/rx":
+                if d["message"] is not None and d["message"]["vehicle_id"] == "t1":
+                    t_valid[d["message"]["seq"]] = d["message"]["t_gps_s"]
+            elif ch.topic == "/v2xpos/master_nav":
+                navs_by_log[m.log_time] = d
+                navs_by_t[d["t_s"]] = d
+            elif d["target_id"] == "t1" and d["status"] == "valid":
+                outs[m.log_time] = d
+    origin = np.array(navs_by_log[min(navs_by_log)]["lla"])     # world = ENU at the first master state
     with open(demo_recording, "rb") as fh:
         reader = make_reader(fh, decoder_factories=[DecoderFactory()])
         for _, ch, msg, obj in reader.iter_decoded_messages(topics=["/tf", "/location/t1"]):
             if ch.topic == "/tf":
                 for tf in obj.transforms:
                     pair = (tf.parent_frame_id, tf.child_frame_id)
-                    t = tf.timestamp.seconds + tf.timestamp.nanos * 1e-9
-                    (ego_tf if pair == ("world", "ego") else tgt_tf if pair == ("ego", "t1") else {})[t] = tf
+                    (ego_tf if pair == ("world", "ego") else tgt_tf if pair == ("ego", "t1") else {})[msg.log_time] = tf
             else:
-                fixes[msg.log_time * 1e-9] = obj
-    assert ego_tf and tgt_tf and fixes
-    t_ego = np.array(sorted(ego_tf))
-    checked = 0
-    for t, tf in sorted(tgt_tf.items()):
-        k = int(np.argmin(np.abs(t_ego - t)))
-        if abs(t_ego[k] - t) > 0.02:
+                fixes[msg.log_time] = obj
+    assert len(ego_tf) > 20 and len(tgt_tf) > 20 and len(fixes) > 20
+    for t, tf in ego_tf.items():
+        nav = navs_by_log[t]
+        enu = geo.lla_to_enu(np.array(nav["lla"]), origin)
+        assert np.allclose([tf.translation.x, tf.translation.y, tf.translation.z], enu, atol=1e-6)
+        C = geo.NED_TO_ENU @ dcm_from_euler(*nav["rpy_rad"])
+        assert np.allclose(_rot(tf.rotation), C, atol=1e-9)
+    errors = []
+    for t, tf in tgt_tf.items():
+        out, fix = outs.get(t), fixes.get(t)
+        if out is None or fix is None or out["t_gps_s"] not in navs_by_t:
             continue
-        e = ego_tf[t_ego[k]]
-        p_world = np.array([e.translation.x, e.translation.y, e.translation.z]) + _rot(e.rotation) @ np.array(
-            [tf.translation.x, tf.translation.y, tf.translation.z])
-        t_fix = min(fixes, key=lambda s: abs(s - t))
-        if abs(t_fix - t) > 0.02:
-            continue
-        f = fixes[t_fix]
-        enu = geo.lla_to_enu(np.array([math.radians(f.latitude), math.radians(f.longitude), f.altitude]), origin)
-        speed = math.hypot(f.velocity.x, f.velocity.y)
-        assert np.linalg.norm(p_world[:2] - enu[:2]) < speed * 0.15 + 0.5, (t, p_world, enu)
-        checked += 1
-    assert checked > 20
+        nav = navs_by_t[out["t_gps_s"]]
+        C = geo.NED_TO_ENU @ dcm_from_euler(*nav["rpy_rad"])
+        rel = np.array([tf.translation.x, tf.translation.y, tf.translation.z])
+        assert np.allclose(rel, out["rel_pos_body_m"], atol=1e-9)
+        p_world = geo.lla_to_enu(np.array(nav["lla"]), origin) + C @ rel
+        enu = geo.lla_to_enu(np.array([math.radians(fix.latitude), math.radians(fix.longitude), fix.altitude]),
+                             origin)
+        dt = out["t_gps_s"] - t_valid[out["source_seq"]]    # the master's prediction interval
+        moved = enu[:2] + dt * np.array([fix.velocity.x, fix.velocity.y])
+        errors.append(np.linalg.norm(p_world[:2] - moved))
+    assert len(errors) > 20
+    # left: the target's acceleration and turn over the latency (compensated by the master, not here)
+    assert np.median(errors) < 0.1 and max(errors) < 0.5, (np.median(errors), max(errors))
 
 
 def _signed_session(path: Path) -> None:

@@ -3,7 +3,9 @@ reveals it; the error table before/after; estimates, sd, halves. PNG (matplotlib
 
 Residual <-> signal pairs (innovations z - h(x) resolved in the filter's body frame; Groves 2013
 ch. 14 for the GNSS/INS measurement models, Shin 2001 for NHC):
-* IMU time offset / GNSS latency: along-track velocity innovation ~ a_x dt.
+* IMU time offset: along-track velocity innovation ~ a_x dt.
+* GNSS latency: along-track position innovation ~ -speed x latency (the fix describes an earlier
+  antenna position).
 * IMU clock drift: the along-track slope above, per 60 s block, against time.
 * misalignment pitch / yaw: NHC vertical / lateral innovation ~ -speed * angle.
 * misalignment roll: block-mean vehicle roll (level-road assumption) against time.
@@ -39,7 +41,6 @@ def _pairs(log: ResidualLog) -> dict[str, tuple]:
         ax = s.acc_body_mps2[:, 0]
         yr = s.rate_body_rps[:, 2]
         out["imu_time_offset_s"] = (vb[:, 0], ax, "along-track vel. innovation [m/s]", "a_x [m/s^2]", s.t_s)
-        out["gnss_latency_s"] = out["imu_time_offset_s"]
         out["lever_arm_x_m"] = (vb[:, 1], yr, "lateral vel. innovation [m/s]", "yaw rate [rad/s]", s.t_s)
         out["lever_arm_y_m"] = (vb[:, 0], yr, "along-track vel. innovation [m/s]", "yaw rate [rad/s]", s.t_s)
         out["gyro_scale_z"] = (vb[:, 1], s.speed_mps * yr, "lateral vel. innovation [m/s]",
@@ -64,6 +65,11 @@ def _pairs(log: ResidualLog) -> dict[str, tuple]:
                                    "speed x yaw rate [m/s^2]", p.t_s)
             out["accel_scale_x"] = (pb[:, 0], p.f_body_mps2[:, 0], "along-track pos. innovation [m]", "f_x [m/s^2]", p.t_s)
             out["accel_scale_y"] = (pb[:, 1], p.f_body_mps2[:, 1], "lateral pos. innovation [m]", "f_y [m/s^2]", p.t_s)
+        if "gnss_vel" in log:
+            # a late GNSS position lags the antenna by speed x latency along track, while the IMU
+            # offset shows in the velocity innovations against acceleration (above); without
+            # receiver velocities both have this signature, and the latency gets no figure of its own
+            out["gnss_latency_s"] = (pb[:, 0], p.speed_mps, "along-track pos. innovation [m]", "speed [m/s]", p.t_s)
         out["lever_arm_z_m"] = (pb[:, 2], p.speed_mps, "vertical pos. innovation [m]", "speed [m/s]", p.t_s)
         out["misalign_roll_rad"] = (np.degrees(p.rpy_rad[:, 0]), p.t_s - p.t_s[0] if len(p) else p.t_s,
                                     "vehicle roll [deg]", "time [s]", p.t_s)
@@ -144,9 +150,11 @@ def write_report(cal, out_dir: Path) -> Path:
         fig, axes = plt.subplots(1, 2, figsize=(11, 4))
         for ax, pairs, title in ((axes[0], before, "declared model"), (axes[1], after, "calibrated model")):
             r, x, ylab, xlab, _t = pairs[name]
-            ax.plot(x, r, ".", ms=1.5, alpha=0.25, color="0.5")
+            ax.plot(x, r, ".", ms=1.5, alpha=0.25, color="0.5", label="innovations")
             xm, ym, ye = _binned(np.asarray(x), np.asarray(r))
-            ax.errorbar(xm, ym, yerr=ye, fmt="o-", color="C3" if title.startswith("declared") else "C2", ms=4)
+            ax.errorbar(xm, ym, yerr=ye, fmt="o-", color="C3" if title.startswith("declared") else "C2", ms=4,
+                        label="mean per quantile bin +- s.e.")
+            ax.legend(fontsize=7, markerscale=2, loc="best")
             c = structure.correlation(r, x)
             ax.set_title(f"{title}: r={c.detail['r']:+.2f}, p={c.p_value:.1e}", fontsize=9)
             ax.set_xlabel(xlab)

@@ -91,8 +91,16 @@ def _ned_error(lla_est: np.ndarray, lla_ref: np.ndarray) -> np.ndarray:
 
 
 def replay(dataset: Dataset, schedule: OutageSchedule | None = None, cfg: InsConfig | None = None,
-           progress: bool = True, keep_series: bool = True) -> ReplayResult:
-    """Run the filter over the whole dataset; see the module docstring for the metrics."""
+           progress: bool = True, keep_series: bool = True, solution=None,
+           solution_hz: float | None = None) -> ReplayResult:
+    """Run the filter over the whole dataset; see the module docstring for the metrics.
+
+    ``solution``: a ``v2xpos.ins.solution.SolutionWriter`` given one row per output epoch once the
+    filter is initialised: by default every GNSS epoch (after its update; in an outage without
+    it), which leaves the filter exactly as without output; with ``solution_hz`` every
+    1 / solution_hz s from the first GNSS epoch (after a GNSS update at the same instant) -- the IMU
+    batches are then also split at those times, which moves the result by numerical noise
+    (drive_0708 outage RMS 2.482 -> 2.480 m at 10 Hz)."""
     t_wall0 = time.perf_counter()
     t_cpu0 = time.process_time()
     schedule = schedule or OutageSchedule()
@@ -115,16 +123,22 @@ def replay(dataset: Dataset, schedule: OutageSchedule | None = None, cfg: InsCon
     # away by 25 deg on its highway segment: docs/ins.md); without it the alignment uses the course tracker
     vel, vel_sd = gn.vel_ned_mps, gn.vel_sd_ned_mps
 
-    # events: (time, kind, index); kinds: 0 gnss, 1 outage end evaluation, 2 wheel
+    # events: (time, kind, index); kinds: 0 gnss, 1 outage end evaluation, 2 wheel, 3 solution output
     ev_t = [np.asarray(gn.t_s, float), np.array([b for _, b in outages], float)]
     ev_k = [np.zeros(len(gn), int), np.ones(len(outages), int)]
     ev_i = [np.arange(len(gn)), np.arange(len(outages))]
+    if solution is not None and solution_hz and len(gn):
+        t_out = np.arange(float(gn.t_s[0]), float(max(gn.t_s[-1], t_imu[-1])), 1.0 / solution_hz)
+        ev_t.append(t_out)
+        ev_k.append(np.full(len(t_out), 3))
+        ev_i.append(np.arange(len(t_out)))
     if dataset.wheel is not None and cfg.platform == "car":
         ev_t.append(np.asarray(dataset.wheel.t_s, float))
         ev_k.append(np.full(len(dataset.wheel.t_s), 2))
         ev_i.append(np.arange(len(dataset.wheel.t_s)))
     ev_t, ev_k, ev_i = np.concatenate(ev_t), np.concatenate(ev_k), np.concatenate(ev_i)
-    order = np.lexsort((-ev_k, ev_t))   # outage evaluation before a GNSS epoch at the same time
+    # at the same time: outage evaluation, then the GNSS epoch, then the solution output
+    order = np.lexsort((np.where(ev_k == 3, 1, -ev_k), ev_t))
     out_starts = np.array([a for a, _ in outages]) if outages else np.zeros(0)
     out_ends = np.array([b for _, b in outages]) if outages else np.zeros(0)
 
@@ -166,6 +180,10 @@ def replay(dataset: Dataset, schedule: OutageSchedule | None = None, cfg: InsCon
                 if ref is not None:
                     ant = _predicted_antenna(f, t_ev)
                     outage_err.append(_ned_error(ant, ref))
+            continue
+        if kind == 3:
+            if f.initialized:
+                solution.write(f, not in_outage(t_ev))
             continue
         if kind == 2:   # used at the constraint rate: odometer errors are correlated at higher rates
             if t_ev >= wheel_next_t:
@@ -211,6 +229,8 @@ def replay(dataset: Dataset, schedule: OutageSchedule | None = None, cfg: InsCon
         if used:
             f.update_gnss(t_ev, gn.lla[idx], gn.sd_ned_m[idx], fix,
                           None if vel is None else vel[idx], None if vel_sd is None else vel_sd[idx])
+        if solution is not None and not solution_hz and f.initialized:
+            solution.write(f, used)
     if i_imu < n_imu:
         f.process_imu_batch(t_imu[i_imu:], acc[i_imu:], gyr[i_imu:])
         if bar is not None:
@@ -333,7 +353,7 @@ def write_plots(result: ReplayResult, out_dir: str | Path) -> list[Path]:
 
     res = [r for r in S["residuals"] if r.kind == "gnss_pos" and len(r.innovation) == 3]
     if res:
-        tt = np.array([r.t_s for r in res]) - t0
+        tt = np.array([r.t_s for r in res]) - t0   # same time axis as the other plots
         inn = np.array([r.innovation for r in res])
         nis = np.array([r.nis for r in res])
         acc = np.array([r.accepted for r in res])
@@ -342,29 +362,33 @@ def write_plots(result: ReplayResult, out_dir: str | Path) -> list[Path]:
             ax[0].plot(tt, inn[:, k], ".", ms=2, label=lab)
         ax[0].set_ylabel("position innovation [m]")
         ax[0].set_ylim(-1, 1)
-        ax[0].legend()
+        ax[0].legend(markerscale=5)
         ax[1].semilogy(tt[acc], nis[acc], ".", ms=2, label="accepted")
         ax[1].semilogy(tt[~acc], nis[~acc], "x", ms=3, color="C3", label="rejected")
-        ax[1].set_ylabel("NIS")
-        ax[1].set_xlabel("time [s]")
-        ax[1].legend()
+        ax[1].set_ylabel("NIS (chi-square, 3 dof)")
+        ax[1].set_xlabel("time since first GNSS epoch [s]")
+        ax[1].legend(markerscale=3)
+        ax[0].set_title(f"{name}: GNSS position innovations (z - h(x), NED) and their NIS")
         files.append(out / "innovations.png")
         fig.savefig(files[-1], dpi=110)
         plt.close(fig)
 
-    fig, ax = plt.subplots(4, 1, figsize=(10, 10), sharex=True)
-    ax[0].plot(t, np.degrees(S["bg"]) * 3600, lw=0.8)
-    ax[0].set_ylabel("gyro bias [deg/h]")
-    ax[1].plot(t, S["ba"], lw=0.8)
-    ax[1].set_ylabel("accel bias [m/s^2]")
-    ax[2].plot(t, S["dt"] * 1e3, lw=0.8, label="IMU time offset [ms]")
-    ax[2].plot(t, S["lever"] * 100, lw=0.8, label="lever arm [cm]")
-    ax[2].legend(fontsize=7)
-    ax[3].plot(t, np.degrees(S["mis"]), lw=0.8)
-    ax[3].set_ylabel("misalignment r/p/y [deg]")
-    ax[3].set_xlabel("time [s]")
-    for a in ax[:2]:
-        a.legend(list("xyz"), fontsize=7)
+    # one quantity (one unit) per panel, one labelled line per component
+    panels = (("gyro bias [deg/h]", np.degrees(S["bg"]) * 3600, ("x", "y", "z")),
+              ("accel bias [m/s^2]", S["ba"], ("x", "y", "z")),
+              ("IMU time offset [ms]", S["dt"].reshape(-1, 1) * 1e3, ("IMU time offset",)),
+              ("lever arm, body [cm]", S["lever"] * 100, ("x (forward)", "y (right)", "z (down)")),
+              ("misalignment [deg]", np.degrees(S["mis"]), ("roll", "pitch", "yaw")))
+    fig, ax = plt.subplots(len(panels), 1, figsize=(10, 12), sharex=True)
+    for a, (ylabel, values, names) in zip(ax, panels):
+        for k, lab in enumerate(names):
+            a.plot(t, values[:, k], lw=0.8, label=lab)
+        a.set_ylabel(ylabel)
+        a.legend(fontsize=7, loc="upper right")
+        a.grid(alpha=0.3)
+    ax[-1].set_xlabel("time since first GNSS epoch [s]")
+    ax[0].set_title(f"{name}: IMU bias and effect estimates (filter states)")
+    fig.tight_layout()
     files.append(out / "bias_estimates.png")
     fig.savefig(files[-1], dpi=110)
     plt.close(fig)
@@ -412,6 +436,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", help="write the summary JSON here")
     parser.add_argument("--plots", help="write PNG plots into this directory")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--solution", metavar="FILE",
+                        help="write the per-epoch solution (time, position, velocity, attitude, sigmas, fix, "
+                             "effect states) to FILE: .csv or .mcap")
+    parser.add_argument("--solution-hz", type=float, default=None,
+                        help="solution output rate [Hz] (default: every GNSS epoch, the filter's own epochs)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -420,7 +449,24 @@ def run(args: argparse.Namespace) -> int:
     if ds is None:
         return 2
     sched = schedule_from_args(args)
-    res = replay(ds, sched, progress=not args.no_progress)
+    writer = None
+    if args.solution:
+        from .solution import SolutionWriter
+        if args.solution_hz is not None and not args.solution_hz > 0:
+            print("v2xpos replay: --solution-hz must be > 0", file=sys.stderr)
+            return 2
+        try:
+            writer = SolutionWriter(args.solution)
+        except (OSError, ValueError) as exc:
+            print(f"v2xpos replay: {exc}", file=sys.stderr)
+            return 2
+    try:
+        res = replay(ds, sched, progress=not args.no_progress, solution=writer, solution_hz=args.solution_hz)
+    finally:
+        if writer is not None:
+            writer.close()
+    if writer is not None:
+        print(f"{'solution':>20}: {writer.rows} epochs -> {args.solution}")
     keys = ("dataset", "imu_samples", "gnss_epochs", "malformed_lines", "outage_count", "outage_h_rms_m",
             "outage_h_max_m", "outage_v_rms_m", "aided_h_rms_m", "aided_h_rms_steady_m", "wall_s",
             "imu_samples_per_s",

@@ -19,12 +19,14 @@ from v2xpos.wire import FixSide, RelativeResult, TargetStatus, encode_relative, 
 
 
 def result(i: int, status: TargetStatus, seq: int, t_gps_s: float) -> RelativeResult:
-    """Target ``t<i>``: 8 m further per index, alternating lanes; TTC grows with the index."""
+    """Target ``t<i>``: 8 m further per index, alternating lanes; TTC grows with the index; master
+    RTK fixed, the target fixed when VALID, float otherwise."""
     valid = status == TargetStatus.VALID
     x, y = 8.0 * (i + 1), 3.5 * (i % 3 - 1)
     r = RelativeResult(target_id=f"t{i:02d}", status=status, fleet="demo", master_id="ego", seq=seq,
                        source_seq=seq, t_gps_s=t_gps_s, latency_s=0.1,
-                       fix_side=FixSide.NONE if valid else FixSide.SLAVE)
+                       fix_side=FixSide.NONE if valid else FixSide.SLAVE, master_fix=FixStatus.FIXED,
+                       target_fix=FixStatus.FIXED if valid else FixStatus.FLOAT)
     if valid:
         r.rel_pos_body_m = np.array([x, y, 0.0])
         r.rel_pos_sd_m = np.array([0.02, 0.02, 0.03])

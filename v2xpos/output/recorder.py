@@ -51,6 +51,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
+import orjson
 from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
@@ -146,7 +147,8 @@ SCHEMAS: dict[str, tuple[str, dict]] = {
                                          **{k: _vec3(k) for k in _NAV_VECTORS}},
         "required": ["index", "t_s", "fix", *_NAV_VECTORS]}),
     TOPIC_TICK: ("v2xpos.Tick", {
-        "type": "object", "properties": {"t_now_gps_s": _NUM, "master_t_gps_s": _NUM_OR_NULL},
+        "type": "object", "properties": {"t_now_gps_s": _NUM, "master_t_gps_s": _NUM_OR_NULL,
+                                         "master_fix": {"type": ["integer", "null"]}},
         "required": ["t_now_gps_s", "master_t_gps_s"]}),
     TOPIC_DEGRADED: ("v2xpos.DegradedVehicles", {
         "type": "object", "properties": {"vehicle_ids": {"type": "array", "items": _STR}},
@@ -213,32 +215,35 @@ def state_doc(msg: Any) -> dict:
             "imu_quality": msg.imu_quality}
 
 
+_STATUS_NAME = {int(s): s.name.lower() for s in __import__("v2xpos.wire", fromlist=["TargetStatus"]).TargetStatus}
+_FIX_NAME = {int(f): f.name for f in FixStatus}
+_SIDES = {0: [], 1: ["master"], 2: ["slave"], 3: ["master", "slave"]}
+_DEG = 180.0 / math.pi
+
+
 def result_doc(res: RelativeResult) -> dict:
     """A RelativeResult as the ``/v2xpos/out/relative`` document (every field, names for codes,
-    degrees for angles, null for what is not computed)."""
-    deg = 180.0 / math.pi
+    degrees for angles; NaN -- not computed -- becomes null when written with ``orjson``)."""
     kin = res.has_kinematics
-    status = getattr(res.status, "name", None)
-    side = FixSide(int(res.fix_side))
+    deg = _DEG
+    a = res.rel_rpy_rad
     return {
         "target_id": res.target_id, "target_kind": res.target_kind,
-        "status": status.lower() if status else "unknown", "status_code": int(res.status),
-        "fix_side": [n for n, f in (("master", FixSide.MASTER), ("slave", FixSide.SLAVE)) if side & f],
-        "degraded": bool(res.degraded), "fleet": res.fleet, "master_id": res.master_id, "seq": int(res.seq),
-        "source_seq": int(res.source_seq), "t_gps_s": float(res.t_gps_s), "latency_s": _fin(res.latency_s),
-        "master_fix": FixStatus(res.master_fix).name, "target_fix": FixStatus(res.target_fix).name,
-        "rel_pos_body_m": _fin3(res.rel_pos_body_m) if kin else None,
-        "rel_pos_sd_m": _fin3(res.rel_pos_sd_m) if kin else None,
-        "rel_vel_body_mps": _fin3(res.rel_vel_body_mps) if kin else None,
-        "rel_acc_body_mps2": _fin3(res.rel_acc_body_mps2) if kin else None,
-        "rel_roll_pitch_yaw_deg": _fin3(res.rel_rpy_rad, deg) if kin else None,
-        "rel_yaw_sd_deg": None if _fin(res.rel_yaw_sd_rad) is None else res.rel_yaw_sd_rad * deg,
-        "range_m": _fin(res.range_m), "range_sd_m": _fin(res.range_sd_m),
-        "bearing_deg": None if _fin(res.bearing_rad) is None else res.bearing_rad * deg,
-        "elevation_deg": None if _fin(res.elevation_rad) is None else res.elevation_rad * deg,
-        "longitudinal_m": _fin(res.longitudinal_m), "lateral_m": _fin(res.lateral_m), "gap_m": _fin(res.gap_m),
-        "closing_speed_mps": _fin(res.closing_speed_mps), "ttc_s": _fin(res.ttc_s),
-        "t_sent_wall_s": _fin(res.t_sent_wall_s), "error": None}
+        "status": _STATUS_NAME.get(int(res.status), "unknown"), "status_code": int(res.status),
+        "fix_side": _SIDES.get(int(res.fix_side), []), "degraded": bool(res.degraded), "fleet": res.fleet,
+        "master_id": res.master_id, "seq": int(res.seq), "source_seq": int(res.source_seq),
+        "t_gps_s": float(res.t_gps_s), "latency_s": float(res.latency_s),
+        "master_fix": _FIX_NAME.get(int(res.master_fix), "NONE"), "target_fix": _FIX_NAME.get(int(res.target_fix), "NONE"),
+        "rel_pos_body_m": res.rel_pos_body_m.tolist() if kin else None,
+        "rel_pos_sd_m": res.rel_pos_sd_m.tolist() if kin else None,
+        "rel_vel_body_mps": res.rel_vel_body_mps.tolist() if kin else None,
+        "rel_acc_body_mps2": res.rel_acc_body_mps2.tolist() if kin else None,
+        "rel_roll_pitch_yaw_deg": [a[0] * deg, a[1] * deg, a[2] * deg] if kin else None,
+        "rel_yaw_sd_deg": res.rel_yaw_sd_rad * deg, "range_m": res.range_m, "range_sd_m": res.range_sd_m,
+        "bearing_deg": res.bearing_rad * deg, "elevation_deg": res.elevation_rad * deg,
+        "longitudinal_m": res.longitudinal_m, "lateral_m": res.lateral_m, "gap_m": res.gap_m,
+        "closing_speed_mps": res.closing_speed_mps, "ttc_s": res.ttc_s,
+        "t_sent_wall_s": res.t_sent_wall_s, "error": None}
 
 
 def scene_features(scene: Any) -> list[dict]:
@@ -342,7 +347,8 @@ class McapRecorder:
         self._fh.close()
 
     def _add(self, topic: str, doc: dict, log_time_ns: int, count: bool = True) -> None:
-        self._add_raw(topic, json.dumps(doc, separators=(",", ":")).encode(), log_time_ns, count)
+        # orjson: ~5x faster than json.dumps; NaN / inf become null (JSON has neither)
+        self._add_raw(topic, orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY), log_time_ns, count)
 
     def _add_raw(self, topic: str, data: bytes, log_time_ns: int, count: bool = True) -> None:
         """``count=False``: a copy repeated at the head of a rotated file, written with sequence 0
@@ -439,9 +445,11 @@ class McapRecorder:
             if msg is not None:
                 self._pending_state[msg.vehicle_id] = msg
 
-    def record_tick(self, t_now_gps_s: float, master_t_gps_s: float | None, log_time_ns: int | None = None) -> None:
+    def record_tick(self, t_now_gps_s: float, master_t_gps_s: float | None, log_time_ns: int | None = None,
+                    master_fix: int | None = None) -> None:
         doc = {"t_now_gps_s": float(t_now_gps_s),
-               "master_t_gps_s": None if master_t_gps_s is None else float(master_t_gps_s)}
+               "master_t_gps_s": None if master_t_gps_s is None else float(master_t_gps_s),
+               "master_fix": None if master_fix is None else int(master_fix)}
         with self._lock:
             self._add(TOPIC_TICK, doc, time.time_ns() if log_time_ns is None else log_time_ns)
 
@@ -487,7 +495,7 @@ class McapRecorder:
         if tid in self._targets:
             self._targets[tid]["status"] = doc["status"]
             self._targets[tid]["label"] = (f"{tid} {doc['status'].upper()}"
-                                           + (f" {doc['range_m']:.1f} m" if doc["range_m"] is not None else ""))
+                                           + (f" {doc['range_m']:.1f} m" if math.isfinite(doc["range_m"]) else ""))
         if res.has_kinematics and self._viz_due(f"tf/{tid}", t_ns):
             tf = fg.target_transform(t_ns, self.master_id, tid, res.rel_pos_body_m, res.rel_rpy_rad)
             self._add_raw(TOPIC_TF, fg.frame_transforms([tf]), t_ns)
@@ -579,10 +587,12 @@ class RecordingPipeline:
         self.recorder.record_received(payload, key, t_arrival_wall_s, t_now_gps_s, self._nav_index)
         return self._pipeline.handle(payload, key, master, t_now_gps_s, t_arrival_wall_s, signature_valid)
 
-    def tick(self, t_now_gps_s: float, master_t_gps_s: float | None = None):
+    def tick(self, t_now_gps_s: float, master_t_gps_s: float | None = None, master_fix: Any = None):
         self._check_degraded()
-        self.recorder.record_tick(t_now_gps_s, master_t_gps_s)
-        return self._pipeline.tick(t_now_gps_s, master_t_gps_s)
+        self.recorder.record_tick(t_now_gps_s, master_t_gps_s, master_fix=master_fix)
+        if master_fix is None:
+            return self._pipeline.tick(t_now_gps_s, master_t_gps_s)
+        return self._pipeline.tick(t_now_gps_s, master_t_gps_s, master_fix)
 
     def process_scene(self, scene: Any, master: Any):
         if not self._scene_sent:

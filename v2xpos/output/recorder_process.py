@@ -107,9 +107,9 @@ class RecorderProcess:
                         t_now_gps_s: float, nav_index: int) -> None:
         self._frame(["r", bytes(payload), key, float(t_arrival_wall_s), float(t_now_gps_s), int(nav_index)])
 
-    def record_tick(self, t_now_gps_s: float, master_t_gps_s: float | None) -> None:
+    def record_tick(self, t_now_gps_s: float, master_t_gps_s: float | None, master_fix: int | None = None) -> None:
         self._frame(["t", float(t_now_gps_s), None if master_t_gps_s is None else float(master_t_gps_s),
-                     time.time_ns()])
+                     time.time_ns(), None if master_fix is None else int(master_fix)])
 
     def record_result(self, res: RelativeResult) -> None:
         self._frame(["o", encode_relative(res), time.time_ns()])
@@ -181,7 +181,7 @@ def serve(inp: BinaryIO, out: BinaryIO) -> int:
             elif kind == "n":
                 rec.record_nav_doc(op[1], op[2])
             elif kind == "t":
-                rec.record_tick(op[1], op[2], op[3])
+                rec.record_tick(op[1], op[2], op[3], op[4] if len(op) > 4 else None)
             elif kind == "s":
                 rec.write_session(op[1])
             else:
