@@ -24,6 +24,9 @@ from . import ekf
 from .alignment import CoarseAligner, CourseTracker
 from .ekf import ATT, BA, BG, POS, VEL, StateLayout
 from .effects import DEFAULT_INITIAL_SD, DEFAULT_RANDOM_WALK, PLATFORM_EFFECTS, EffectValues
+from .consistency import INCONSISTENT, VERIFIED, ConsistencyMonitor
+from .noise import ImuNoiseMeter
+from .reported import correlations, reported_covariance, reported_jacobian
 from .mechanization import (COR_BA, COR_BG, COR_SA, COR_SG, MEM_F, MEM_SIZE, MEM_VALID, MEM_W, NAV_H, NAV_LAT,
                             NAV_LON, NAV_VEL, strapdown_batch)
 from .static_calibration import StaticBiasEstimate, StaticCalibrationConfig, StaticCalibrator
@@ -58,6 +61,13 @@ class InsConfig:
     accel_bias_tau_s: float = 600.0
     gyro_bias_init_sd_rps: float = 0.01
     accel_bias_init_sd_mps2: float = 0.2
+    imu_noise_from_data: bool = False             # white-noise densities measured from the samples (ImuNoiseMeter)
+    imu_noise_window_s: float = 10.0              # averaging time constant of that measurement
+    imu_noise_scale: float = 1.0                  # the filter's densities = this x the measured ones
+    # own consistency test (consistency.ConsistencyMonitor)
+    consistency_window_s: float = 5.0
+    consistency_false_alarm: float = 1e-4
+    verify_turn_deg: float = 45.0                 # turning that must pass the test before the solution is verified
     effect_initial_sd: dict = field(default_factory=dict)
     initial_time_offset_s: float = 0.0             # starting value of imu_time_offset (e.g. from calibrate)
     initial_misalignment_rad: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -149,6 +159,9 @@ class InsFilter:
         self.mem = np.zeros(MEM_SIZE)
         self.A = np.zeros((n, n))
         self.q_c = ekf.process_noise_density(self.layout, c)
+        self.noise_meter = ImuNoiseMeter(c.imu_noise_window_s, c.imu_noise_scale) if c.imu_noise_from_data else None
+        self.consistency = ConsistencyMonitor(c.consistency_window_s, c.consistency_false_alarm, c.verify_turn_deg)
+        self._t_motion_s: float | None = None
         self.kidx = self.layout.kernel_index()
         self.fx = EffectValues(c.lever_arm_m)
         self.fx.imu_time_offset_s = float(c.initial_time_offset_s)
@@ -289,6 +302,7 @@ class InsFilter:
         self._t_cov_s = self.t_stamp_s
         self.initialized = True
         self.heading_known = True
+        self.consistency.restart(float(t_s))
         self._v_prev_chunk = None
         self.acc_ned_mps2 = np.zeros(3)
 
@@ -370,6 +384,8 @@ class InsFilter:
             if i_dt >= 0 and i_dr >= 0 and dt > 0:
                 self.A[i_dt, i_dr] += dt
                 self.fx.imu_time_offset_s += self.fx.imu_clock_drift * dt
+            if self.noise_meter is not None:
+                self.noise_meter.apply(self.q_c, self.C_nb)
             t0 = perf_counter()
             self.P = ekf.propagate_covariance(self.P, self.A, self.q_c, max(dt, 0.0))
             self.stage_s["covariance"] += perf_counter() - t0
@@ -400,6 +416,8 @@ class InsFilter:
             return
         self._last_w_b = (self.mem[MEM_W:MEM_W + 3].copy() if self.initialized
                           else w[-1] - self.corr[COR_BG:COR_BG + 3])
+        if self.noise_meter is not None:
+            self.noise_meter.feed(t, w, f)
         f2 = np.einsum("ij,ij->i", f, f)
         row = self._win[self._win_pos]
         row[0] = len(t)
@@ -437,6 +455,11 @@ class InsFilter:
             self.initialized = False
             return
         self._flush_covariance()
+        t_end = float(self.t_s)
+        if self._t_motion_s is not None and self.heading_known:
+            yaw_rate = float(self.C_nb[2] @ self._last_w_b)
+            self.consistency.feed_motion(t_end, t_end - self._t_motion_s, yaw_rate, speed)
+        self._t_motion_s = t_end
         if est is not None:
             self.counts["static_calibrations"] += 1
             if self.cfg.apply_static_calibration:
@@ -491,6 +514,8 @@ class InsFilter:
         self.stage_s["kalman_updates"] += perf_counter() - t0
         res = UpdateResult(kind=kind, t_s=t_s, accepted=ok, nis=nis, innovation=-d,
                            innovation_sd=np.sqrt(np.abs(np.diag(S))), innovation_cov=S)
+        if kind.startswith("gnss"):
+            self.consistency.feed_update(kind, t_s, nis, len(d), -d, S, self.C_nb)
         if self.cfg.log_residuals and kind.startswith("gnss"):
             self.residuals.append(res)
         # every update (GNSS, NHC, ZUPT, ZARU, odometer) is offered to the hook with the filter,
@@ -695,6 +720,7 @@ class InsFilter:
         self.P[idx, idx] = np.r_[pos_sd ** 2, np.full(3, c.init_vel_sd_mps ** 2),
                                  max(c.init_yaw_sd_rad, self._course_sd_rad) ** 2]
         self.heading_known = True
+        self.consistency.restart(float(t_s))
         self.last_fix = fix
         self.last_gnss_t_s = t_s
         return UpdateResult("gnss_pos", t_s, False, np.nan, reason="heading set from the GNSS course")
@@ -840,18 +866,24 @@ class InsFilter:
     def nav_state(self) -> NavState:
         """Solution at the IMU point at the last processed IMU sample (vehicle axes when
         misalignment is estimated); rate and acceleration from ``kinematics_now`` (independent of
-        the covariance cadence ``cov_every``), standard deviations from the last covariance step."""
+        the covariance cadence ``cov_every``). Standard deviations (and the position's correlation
+        coefficients) are those of the reported quantities -- position and velocity at the time
+        label, vehicle attitude -- from the last covariance step (``reported``: J P J^T)."""
         Rm = self.misalignment_dcm()
         C_nv = self.C_nb @ Rm.T
         w_nb_b, a_n = self.kinematics_now()
-        sd = np.sqrt(np.abs(np.diag(self.P)))
+        J = reported_jacobian(self.layout, self.C_nb, self.fx.misalignment_rad, self.nav[3:6], a_n, w_nb_b)
+        cov = reported_covariance(self.P, J)
+        sd = np.sqrt(np.abs(np.diag(cov)))
         coasting = (self.t_s - self.last_gnss_t_s) > self.cfg.coast_after_s
         fix = FixStatus.DEAD_RECKONING if (coasting and self.initialized) else self.last_fix
         return NavState(t_s=float(self.t_s), lla=self.nav[:3].copy(), v_ned_mps=self.nav[3:6].copy(),
                         acc_body_mps2=C_nv.T @ a_n, rate_body_rps=Rm @ w_nb_b,
-                        rpy_rad=euler_from_dcm(C_nv), pos_sd_m=sd[POS:POS + 3].copy(),
-                        vel_sd_mps=sd[VEL:VEL + 3].copy(), att_sd_rad=sd[ATT:ATT + 3].copy(), fix=fix,
-                        attitude_ok=bool(self.heading_known))
+                        rpy_rad=euler_from_dcm(C_nv), pos_sd_m=sd[0:3].copy(),
+                        vel_sd_mps=sd[3:6].copy(), att_sd_rad=sd[6:9].copy(), fix=fix,
+                        attitude_ok=bool(self.heading_known), pos_corr=correlations(cov[0:3, 0:3]),
+                        consistent=self.consistency.state != INCONSISTENT,
+                        verified=self.consistency.state == VERIFIED)
 
     def antenna_lla(self) -> np.ndarray:
         """Current antenna position (lat, lon rad; h m) from the IMU point and the lever arm."""
