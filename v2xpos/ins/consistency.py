@@ -57,7 +57,7 @@ class ConsistencyMonitor:
 
     def __init__(self, window_s: float = 5.0, false_alarm: float = 1e-4, verify_turn_deg: float = 45.0,
                  min_speed_mps: float = 1.0, settle_s: float = 5.0, kinds: tuple = ("gnss_pos", "gnss_vel"),
-                 mean_z_limit: float = 5.0, mean_window_s: float | None = None):
+                 mean_z_limit: float = 3.0, mean_window_s: float | None = None):
         self.window_s = float(window_s)
         self.false_alarm = float(false_alarm)
         self.verify_turn_rad = math.radians(verify_turn_deg)
@@ -102,14 +102,15 @@ class ConsistencyMonitor:
         return c if not math.isfinite(nis) else min(nis, c)
 
     def feed_update(self, kind: str, t_s: float, nis: float, dof: int, innovation=None, S=None,
-                    C_nb=None) -> None:
+                    C_nb=None) -> bool:
         """One GNSS update (accepted or rejected by the gate): its NIS and, for the mean test, its
-        innovation (NED), innovation covariance S and the attitude C_nb."""
+        innovation (NED), innovation covariance S and the attitude C_nb. True when the test failed
+        at this update (the filter reacts: ``InsFilter._on_inconsistency``)."""
         if kind not in self._win:
-            return
+            return False
         self.t_last_gnss_s = float(t_s)
         if t_s < self.t_settled_s:
-            return
+            return False
         win, acc = self._win[kind], self._sum[kind]
         x = self._capped(float(nis), int(dof))
         win.append((float(t_s), x, int(dof)))
@@ -130,6 +131,27 @@ class ConsistencyMonitor:
             self.turn_since_fail_rad = 0.0
             self.failures += 1
             self.last_failure_t_s = float(t_s)
+        return bool(fail)
+
+    def variance_ratio(self, kind: str = "gnss_pos", min_dof: int = 30) -> float:
+        """max(1, windowed sum of NIS / its degrees of freedom) of ``kind``: the factor by which the
+        filter's covariance understates its innovations over the window (1 when it does not, or
+        with fewer than ``min_dof`` degrees of freedom). Its maximum-likelihood meaning: for
+        innovations with covariance k S, the estimate of k is NIS_sum / dof (covariance matching,
+        Mehra 1970, IEEE TAC 15(2)), floored at 1 so that a pessimistic filter is never shrunk."""
+        acc = self._sum.get(kind)
+        if acc is None or acc[1] < min_dof:
+            return 1.0
+        return max(1.0, acc[0] / acc[1])
+
+    def clear_windows(self) -> None:
+        """Forget the windowed sums (after the filter changed its model, e.g. widened an effect's
+        covariance: the innovations before it no longer describe the filter that follows)."""
+        for k in self.kinds:
+            self._win[k].clear()
+            self._sum[k] = [0.0, 0]
+            self._mwin[k].clear()
+            self._msum[k] = [0.0, 0.0, 0]
 
     def _mean_test(self, kind: str, t_s: float, innovation, S, C_nb) -> bool:
         """Window mean of the body-x / body-y normalised innovations (see module docstring)."""

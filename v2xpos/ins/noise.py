@@ -33,13 +33,29 @@ MIN_SAMPLES = 50
 """Second differences needed before the measured densities replace the configured ones."""
 
 
+def second_differences(x: np.ndarray) -> np.ndarray:
+    """d_k = x_{k+1} - 2 x_k + x_{k-1} along axis 0: for white noise of variance s^2 per sample,
+    E[d^2] = 6 s^2; the smooth motion of a vehicle adds (x'' dt^2)^2, negligible at IMU rates."""
+    x = np.asarray(x, float)
+    return x[2:] - 2.0 * x[1:-1] + x[:-2]
+
+
+def density_from_mean_square(mean_d2: np.ndarray | float, dt_s: float) -> np.ndarray | float:
+    """White-noise density s sqrt(dt) from the mean square of second differences (s^2 = E[d^2] / 6)."""
+    return np.sqrt(np.asarray(mean_d2, float) / 6.0 * dt_s)
+
+
 class ImuNoiseMeter:
     """Running white-noise densities of gyro [rad/s/sqrt(Hz)] and accelerometer [m/s^2/sqrt(Hz)]
     per body axis (see the module docstring)."""
 
-    def __init__(self, window_s: float = 10.0, scale: float = 1.0):
+    def __init__(self, window_s: float = 10.0, gyro_scale: float = 1.0, accel_scale: float = 1.0,
+                 gyro_max_rps_rthz: float = math.inf, accel_max_mps2_rthz: float = math.inf):
         self.window_s = float(window_s)
-        self.scale = float(scale)
+        self.gyro_scale = float(gyro_scale)
+        self.accel_scale = float(accel_scale)
+        self.gyro_max_rps_rthz = float(gyro_max_rps_rthz)
+        self.accel_max_mps2_rthz = float(accel_max_mps2_rthz)
         self._tail_t: np.ndarray | None = None
         self._tail: np.ndarray | None = None
         self._sum = np.zeros(6)       # decayed sums of d^2 (gyro xyz, accel xyz)
@@ -60,8 +76,7 @@ class ImuNoiseMeter:
             # equal spacing only: a gap or a jitter spike would read as noise
             h = np.median(dt)
             ok = (np.abs(dt[1:] - h) < 0.25 * h) & (np.abs(dt[:-1] - h) < 0.25 * h)
-            d2 = x[2:] - 2.0 * x[1:-1] + x[:-2]
-            d2 = d2[ok]
+            d2 = second_differences(x)[ok]
             if len(d2):
                 t_end = float(t[-1])
                 decay = 1.0 if self._t_last is None else math.exp(-max(t_end - self._t_last, 0.0) / self.window_s)
@@ -80,18 +95,21 @@ class ImuNoiseMeter:
         """(gyro, accel) white-noise densities per body axis; NaN before ``ready``."""
         if not self.ready:
             return np.full(3, np.nan), np.full(3, np.nan)
-        dt = self._sum_dt / self._n
-        n = np.sqrt(self._sum / self._n / 6.0 * dt)
+        n = density_from_mean_square(self._sum / self._n, self._sum_dt / self._n)
         return n[:3], n[3:]
 
     def apply(self, q_c: np.ndarray, C_nb: np.ndarray) -> None:
-        """Write the measured densities into the filter's continuous process noise ``q_c`` (in place:
-        attitude and velocity blocks, NED diagonal of the rotated per-axis noise); unchanged until
-        ``ready``."""
+        """Write the scaled measured densities, each at most the configured one, into the
+        filter's continuous process noise ``q_c`` (in place: attitude and velocity blocks, NED
+        diagonal of the rotated per-axis noise); unchanged until ``ready``. The cap is the rule of
+        ``v2xpos.diagnose.calibrate``: second differences weigh high-frequency vibration up to 16/6
+        times, so an estimate above the configured figure may be out-of-band vibration and the
+        configured figure stays."""
         if not self.ready:
             return
         g, a = self.densities()
-        g, a = g * self.scale, a * self.scale
+        g = np.minimum(g * self.gyro_scale, self.gyro_max_rps_rthz)
+        a = np.minimum(a * self.accel_scale, self.accel_max_mps2_rthz)
         C2 = C_nb * C_nb
         q_c[ATT:ATT + 3] = C2 @ (g * g)
         q_c[VEL:VEL + 3] = C2 @ (a * a)

@@ -84,7 +84,7 @@ def ins_config_for(ds) -> "object":
     if ds.calibration is not None and ds.calibration.effects:
         log.warning("%s: [calibration] table present but not applied by the recording source yet", ds.source)
     return InsConfig(platform=plat, imu_to_body=ds.imu_to_body, lever_arm_m=ds.lever_arm_m,
-                     lever_arm_sd_m=ds.lever_arm_sd_m)
+                     lever_arm_sd_m=ds.lever_arm_sd_m, imu_noise_from_data=True)
 
 
 class RecordingSource(VehicleSource):
