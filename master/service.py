@@ -152,7 +152,8 @@ class MasterService:
         pcfg = PipelineConfig(fleet=cfg.fleet, master_id=cfg.master_id, timeout_s=cfg.timeout_ms / 1e3,
                               measurement_point_m=cfg.measurement_point_m, known_vehicles=cfg.known_vehicles,
                               evaluate_uncompensated=cfg.evaluate_uncompensated,
-                              record=cfg.results_npz is not None)
+                              record=cfg.results_npz is not None, max_sigma_h_m=cfg.max_sigma_h_m,
+                              max_sigma_yaw_deg=cfg.max_sigma_yaw_deg, require_consistency=cfg.require_consistency)
         if cfg.results_csv:
             from v2xpos.output.results_csv import ResultsCsvWriter
             self.sinks.append(ResultsCsvWriter(cfg.results_csv))
@@ -237,7 +238,7 @@ class MasterService:
             await asyncio.sleep(period)
             if self.nav is not None:
                 with self.lock:
-                    self.pipeline.tick(self.gps_now(), float(self.nav.t_s))
+                    self.pipeline.tick(self.gps_now(), float(self.nav.t_s), self.nav.fix)
 
     def status(self, window: int | None = 2000) -> dict:
         """Summary for monitors; percentiles over the last ``window`` messages (None = all)."""
@@ -288,7 +289,7 @@ class MasterService:
             try:
                 res = fn(*args)
             except BaseException as exc:  # noqa: BLE001 -- handed to the awaiting task
-                loop.call_soon_threadsafe(lambda: fut.done() or fut.set_exception(exc))
+                loop.call_soon_threadsafe(lambda e=exc: fut.done() or fut.set_exception(e))
             else:
                 loop.call_soon_threadsafe(lambda: fut.done() or fut.set_result(res))
 
@@ -347,10 +348,10 @@ class MasterService:
         if not started:
             return self._early_exit()
         self.phase = "run"
-        self.t_start_gps_s = self.clock.now_gps_s()
+        self.t_start_gps_s = self.clock.session_start_gps_s()
         if self.cfg.duration_s is not None:
             self.end_gps = self.t_start_gps_s + self.cfg.duration_s
-        primed = self.source.prime(self.t_start_gps_s)
+        primed = self.source.prime(self.clock.now_gps_s())
         if primed is not None:
             self.nav = primed
         if self.cfg.dispatch == "inline":

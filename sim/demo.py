@@ -71,12 +71,16 @@ def run_demo(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 10
           f" router tcp/127.0.0.1:{plan.router_port}, duration {duration_s:.0f} s,"
           f" latency {latency_ms:.0f} ms, source {source}", file=log, flush=True)
     t_launch = time.time()
-    fleet.start()
-    start = release_when_ready(start_file, list(plan.configs), lead_s=STARTUP_LEAD_S, fleet=fleet)
-    print(f"demo: all processes ready after {start - STARTUP_LEAD_S - t_launch:.1f} s; scenario epoch at start stamp",
-          file=log, flush=True)
     table = None
+    interrupted = False
+    codes: dict = {}
+    fleet.start()
     try:
+        start = release_when_ready(start_file, list(plan.configs), lead_s=STARTUP_LEAD_S, fleet=fleet)
+        print(f"demo: watch it with `v2xpos monitor --connect tcp/127.0.0.1:{plan.router_port} --web`; "
+              f"recording {out / 'session.mcap'}", file=log, flush=True)
+        print(f"demo: all processes ready after {start - STARTUP_LEAD_S - t_launch:.1f} s; scenario epoch at start stamp",
+              file=log, flush=True)
         if live:
             from sim.live_table import LiveTable
             from v2xpos.link import LinkConfig
@@ -89,12 +93,27 @@ def run_demo(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 10
             if table is not None:
                 table.refresh()
         codes = fleet.stop()
+    except KeyboardInterrupt:
+        # Ctrl-C: stop the processes (they write what they recorded) and report that much
+        interrupted = True
+        print(f"demo: interrupted after {time.time() - t_launch:.1f} s: stopping the processes, "
+              "writing a partial report", file=log, flush=True)
+        codes = fleet.stop()
     finally:
         if table is not None:
             table.close()
         if fleet.running():
             fleet.stop()
-    report = make_report(sc, plan, duration_s, codes)
+    try:
+        report = make_report(sc, plan, duration_s, codes)
+    except Exception as exc:  # noqa: BLE001 -- a partial run may lack what a full report needs
+        if not interrupted:
+            raise
+        report = {"duration_s": duration_s, "exit_codes": codes, "targets": [],
+                  "report_error": f"{type(exc).__name__}: {exc}"}
+    report["partial"] = interrupted
+    if interrupted:
+        report["interrupted_after_s"] = time.time() - t_launch
     arguments = {"vehicles": vehicles, "duration_s": duration_s, "latency_ms": latency_ms, "jitter_ms": jitter_ms,
                  "seed": seed, "source": source, "pedestrian": pedestrian, "degradations": degradations,
                  "spikes": spikes, "rtk_vertical_factor": rtk_vertical_factor}
@@ -106,7 +125,11 @@ def run_demo(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 10
                                 "vertical": ego.gnss_sd_fixed_m * ego.gnss_vertical_factor}
     (out / "report.json").write_text(json.dumps(report, indent=1))
     if plots:
-        make_plots(sc, plan, out)
+        try:
+            make_plots(sc, plan, out)
+        except Exception:  # noqa: BLE001
+            if not interrupted:
+                raise
     return report
 
 
@@ -301,7 +324,11 @@ def run(args: argparse.Namespace) -> int:
     report = run_demo(args.vehicles, args.duration, args.latency_ms, args.jitter_ms, args.seed, args.out,
                       args.source, not args.no_pedestrian, not args.no_degradations, not args.no_spikes,
                       not args.no_live, args.port, rtk_vertical_factor=args.rtk_vertical_factor)
-    print(f"\nreport: {Path(args.out) / 'report.json'}")
+    partial = " (PARTIAL: interrupted)" if report.get("partial") else ""
+    print(f"\nreport: {Path(args.out) / 'report.json'}{partial}")
+    if "report_error" in report:
+        print(f"v2xpos demo: interrupted before results: {report['report_error']}", file=sys.stderr)
+        return 130
     for t in report["targets"]:
         def g(k, fmt=".3f"):
             return "-" if t.get(k) is None else format(t[k], fmt)
@@ -313,6 +340,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"  master pipeline p50/p99 = {ms(report['master_pipeline_ms_p50'])}/{ms(report['master_pipeline_ms_p99'])} ms; "
           f"e2e p50/p99 = {ms(report['e2e_ms_p50'])}/{ms(report['e2e_ms_p99'])} ms; CAN frames {report['can_frames']}, "
           f"UDP datagrams {report['udp_datagrams']}")
+    if report.get("partial"):
+        print(f"v2xpos demo: interrupted; partial report in {Path(args.out) / 'report.json'}", file=sys.stderr)
+        return 130
     bad = {k: v for k, v in report["exit_codes"].items() if v != 0}
     if bad:
         print(f"  processes with non-zero exit: {bad} (see {Path(args.out) / 'logs'})", file=sys.stderr)

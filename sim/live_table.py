@@ -21,6 +21,7 @@ from typing import TextIO
 import numpy as np
 
 from v2xpos.link import Link, LinkConfig, status_key
+from v2xpos.monitor.table import fit_number
 
 
 class LiveTable:
@@ -48,10 +49,13 @@ class LiveTable:
 
     def render(self, st: dict) -> str:
         def f(x, fmt):
+            # fitted to the column (v2xpos.monitor.table.fit_number): a TTC of 12436 s never
+            # widens it; one space keeps it apart from the column before
             width = int(fmt.split(".")[0]) if fmt[0].isdigit() else 0
-            if x is None or (isinstance(x, float) and not math.isfinite(x)):
-                return "-".rjust(width)
-            return format(x, fmt)
+            decimals = int(fmt.split(".")[1].rstrip("f")) if "." in fmt else 0
+            if width == 0:
+                return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else format(x, fmt)
+            return " " + fit_number(x, width - 1, decimals)
         lines = [f"master {st.get('master_id')}  t={st.get('t_rel_s', 0):6.1f} s  fix={st.get('master_fix')}  "
                  f"processed={st.get('processed')}  pipeline p50/p99={f(st.get('pipeline_ms_p50'), '.2f')}/"
                  f"{f(st.get('pipeline_ms_p99'), '.2f')} ms  e2e p99={f(st.get('e2e_ms_p99'), '.2f')} ms  "

@@ -160,7 +160,6 @@ def convoy(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 100.
     actors: dict[str, Actor] = {}
     ego_shift = (n_lane - 1) * headway_s
     body = Geometry.box(front_m=3.8, rear_m=1.0, half_width_m=0.9)
-    link = LinkImpairment(latency_ms=latency_ms, jitter_ms=jitter_ms)
 
     actors["ego"] = Actor("ego", "vehicle", "master", lead.shifted(ego_shift), body, imu_grade=imu_grade,
                           seed=seed * 1000 + 1)
@@ -249,10 +248,46 @@ def _lane_lines(lead: Trajectory, t0: float, total_s: float) -> dict[str, np.nda
 BUILDERS = {"convoy": convoy}
 
 
-def build(name: str = "convoy", **params) -> Scenario:
-    """Scenario by name with keyword parameters (the same in every process)."""
+class ScenarioError(ValueError):
+    """Unknown scenario, unknown parameter or a parameter of the wrong type (named in the message)."""
+
+
+def check_params(name: str, params: dict, where: str = "") -> None:
+    """ScenarioError unless every key of ``params`` is a parameter of scenario ``name`` with a
+    value of its default's type (ints for floats; any string or None where the default is None).
+    ``where`` (e.g. ``"slave.toml: [source.params]"``) prefixes the message."""
+    import inspect
+
+    from v2xpos.datasets.calibration import did_you_mean
+    prefix = f"{where}: " if where else ""
     if name not in BUILDERS:
-        raise ValueError(f"unknown scenario {name!r}; known: {sorted(BUILDERS)}")
+        raise ScenarioError(f"{prefix}unknown scenario {name!r}{did_you_mean(str(name), BUILDERS)}; "
+                            f"known: {sorted(BUILDERS)}")
+    sig = inspect.signature(BUILDERS[name]).parameters
+    for key, value in params.items():
+        if key not in sig:
+            raise ScenarioError(f"{prefix}scenario {name!r} has no parameter {key!r}{did_you_mean(str(key), sig)}; "
+                                f"parameters: {list(sig)}")
+        default = sig[key].default
+        if default is None or default is inspect.Parameter.empty:
+            ok = value is None or isinstance(value, str)
+        elif isinstance(default, bool):
+            ok = isinstance(value, bool)
+        elif isinstance(default, float):
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        else:
+            ok = isinstance(value, type(default)) and not isinstance(value, bool)
+        ok = ok or (value is None and "None" in str(sig[key].annotation))
+        if not ok:
+            raise ScenarioError(f"{prefix}scenario {name!r} parameter {key!r}: expected "
+                                f"{type(default).__name__ if default is not None else 'a string'}, "
+                                f"got {type(value).__name__} {value!r}")
+
+
+def build(name: str = "convoy", **params) -> Scenario:
+    """Scenario by name with keyword parameters (the same in every process); ScenarioError
+    (a ValueError) for an unknown scenario or parameter, with a "did you mean"."""
+    check_params(name, params)
     return BUILDERS[name](**params)
 
 

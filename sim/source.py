@@ -38,7 +38,7 @@ import time
 
 import numpy as np
 
-from sim.scenarios import Actor, Scenario, build
+from sim.scenarios import Actor, Scenario, build, check_params
 from sim.sensors import GnssErrorModel, ImuErrorModel, simulate_gnss, simulate_imu
 from v2xpos import geo
 from v2xpos.sources.base import SessionClock, SourceContext, SourceError, VehicleSource
@@ -326,8 +326,9 @@ class SimSource(VehicleSource):
 SIM_KEYS = ("factory", "scenario", "actor", "model", "params", "start_file", "start_unix_s")
 
 
-def from_config(table: dict, where: str, ctx: SourceContext) -> SimSource:
-    """``[source] type = "sim"`` (see the module docstring); errors name ``where`` and the key."""
+def check_table(table: dict, where: str) -> None:
+    """Validate a ``sim`` ``[source]`` table (keys, model, scenario parameters) without building the
+    scenario; SourceError naming ``where`` and the key."""
     from v2xpos.datasets.calibration import did_you_mean
     for key in table:
         if key not in SIM_KEYS:
@@ -338,16 +339,31 @@ def from_config(table: dict, where: str, ctx: SourceContext) -> SimSource:
     params = table.get("params", {})
     if not isinstance(params, dict):
         raise SourceError(f"{where}.params: expected a table of scenario parameters")
+    name = str(table.get("scenario", "convoy"))
     try:
-        sc = build(str(table.get("scenario", "convoy")), **params)
+        check_params(name, params, f"{where.rstrip(']')}.params]" if where.endswith("]") else f"{where}.params")
+    except ValueError as exc:
+        raise SourceError(str(exc)) from None
+    start_unix = table.get("start_unix_s", 0.0)
+    if isinstance(start_unix, bool) or not isinstance(start_unix, (int, float)):
+        raise SourceError(f"{where}.start_unix_s: expected a number, got {start_unix!r}")
+    for key in ("scenario", "actor", "start_file"):
+        if key in table and not isinstance(table[key], str):
+            raise SourceError(f"{where}.{key}: expected a string, got {table[key]!r}")
+
+
+def from_config(table: dict, where: str, ctx: SourceContext) -> SimSource:
+    """``[source] type = "sim"`` (see the module docstring); errors name ``where`` and the key."""
+    check_table(table, where)
+    name = str(table.get("scenario", "convoy"))
+    try:
+        sc = build(name, **table.get("params", {}))
     except (TypeError, ValueError) as exc:
-        raise SourceError(f"{where}.params: {exc}") from None
+        raise SourceError(str(exc)) from None
     actor_id = table.get("actor") or ctx.vehicle_id
     if actor_id not in sc.actors:
         raise SourceError(f"{where}.actor: {actor_id!r} not in scenario actors {sorted(sc.actors)}")
     start_file = table.get("start_file")
     start_unix = table.get("start_unix_s", 0.0)
-    if isinstance(start_unix, bool) or not isinstance(start_unix, (int, float)):
-        raise SourceError(f"{where}.start_unix_s: expected a number, got {start_unix!r}")
-    return SimSource(sc, sc.actors[actor_id], model, None if start_file is None else str(ctx.resolve(start_file)),
+    return SimSource(sc, sc.actors[actor_id], table.get("model", "ins"), None if start_file is None else str(ctx.resolve(start_file)),
                      float(start_unix))

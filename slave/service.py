@@ -127,7 +127,7 @@ def _loop(cfg: SlaveConfig, source, clock, link: Link, signer, stop: _Stop, coun
     imp = cfg.impairment
     delay_rng = np.random.default_rng(imp.seed)
     t_start = clock.now_gps_s()
-    end_gps = t_start + cfg.duration_s if cfg.duration_s is not None else math.inf
+    end_gps = clock.session_start_gps_s() + cfg.duration_s if cfg.duration_s is not None else math.inf
     source.prime(t_start)
     queue: deque = deque()
     seq = 0

@@ -48,6 +48,15 @@ def test_calibration_sets_mounting_lever_arm_and_effect_states():
     assert np.allclose(cfg2.effect_initial_sd["lever_arm"], [0.02, 0.03, 0.1])
 
 
+def test_measured_imu_noise_replaces_the_default():
+    t = _table()
+    t.effects["imu_gyro_noise_rps_rthz"] = CalibrationEntry(8.7e-5, 1e-6)
+    t.effects["imu_accel_noise_mps2_rthz"] = CalibrationEntry(1.0e-3, 1e-5)
+    cfg = ins_config("car", B, LEVER, 0.05, t)
+    assert cfg.gyro_noise_rps_rthz == 8.7e-5 and cfg.accel_noise_mps2_rthz == 1.0e-3
+    assert ins_config("car", B, LEVER, 0.05, _table()).gyro_noise_rps_rthz == ins_config("car", B, LEVER, 0.05).gyro_noise_rps_rthz
+
+
 def test_generic_platform_gets_timing_states_for_a_clock_drift():
     cfg = ins_config("generic", np.eye(3), np.zeros(3), 0.1, _table())
     assert "imu_clock_drift" in cfg.effects and "imu_time_offset" in cfg.effects

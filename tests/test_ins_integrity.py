@@ -121,7 +121,8 @@ def test_reported_vehicle_yaw_sd_uses_the_misalignment_correlation():
 
 def test_a_failed_test_reopens_the_horizontal_lever_arm():
     from v2xpos.ins.filter import InsConfig, InsFilter
-    flt = InsFilter(InsConfig(platform="car", lever_arm_sd_m=0.02, undeclared_lever_arm_sd_m=0.5))
+    flt = InsFilter(InsConfig(platform="car", lever_arm_sd_m=0.02, undeclared_lever_arm_sd_m=0.5,
+                              reopen_on_inconsistency=True))
     i = flt.layout.at("lever_arm")
     before = np.diag(flt.P)[i:i + 3].copy()
     flt._on_inconsistency()

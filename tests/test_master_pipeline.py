@@ -280,3 +280,34 @@ def test_can_rate_limit_keeps_status_changes(scenario):
     # valid at k = 0, 4, 8 (25 Hz), the FIX_INVALID at k = 5 and the VALID right after it (k = 6)
     assert can_sink.frames == 9 * 4 + 2 and can_sink.skipped == 12 - 5
     can_sink.close()
+
+
+def test_clock_out_of_bound_or_attitude_pending_is_never_valid(scenario):
+    """Either vehicle's clock beyond its bound of GNSS time (slave: the message's ``time_ok``;
+    master: ``master_time_ok`` from its own clock) gives CLOCK_UNSYNCED, an undetermined attitude
+    on either side ATTITUDE_UNCERTAIN; both recover to VALID when the cause goes."""
+    import dataclasses
+    sc = scenario
+    pipe = make_pipeline(sc)
+    t0 = sc.epoch_gps_s + 4.0
+
+    def msg_bytes(seq: int, t_s: float, **flags) -> bytes:
+        msg = StateMessage.from_nav_state(truth_state(sc, "t2", t_s), FLEET, "t2", seq,
+                                          geometry=sc.actors["t2"].geometry, kind=sc.actors["t2"].kind,
+                                          t_sent_wall_s=1.0)
+        return encode_state(dataclasses.replace(msg, **flags))
+
+    seq = 0
+    statuses = []
+    for case in ("ok", "slave_clock", "master_clock", "slave_attitude", "master_attitude", "ok"):
+        seq += 1
+        t = t0 + 0.01 * seq
+        master = truth_state(sc, "ego", t)
+        pipe.master_time_ok = case != "master_clock"
+        if case == "master_attitude":
+            master.attitude_ok = False
+        flags = {"time_ok": case != "slave_clock", "attitude_ok": case != "slave_attitude"}
+        r = pipe.handle(msg_bytes(seq, t - 0.05, **flags), key("t2"), master, t)
+        statuses.append(r.status)
+    assert statuses == [TargetStatus.VALID, TargetStatus.CLOCK_UNSYNCED, TargetStatus.CLOCK_UNSYNCED,
+                        TargetStatus.ATTITUDE_UNCERTAIN, TargetStatus.ATTITUDE_UNCERTAIN, TargetStatus.VALID]

@@ -179,3 +179,14 @@ def test_attach_to_a_master_shows_changes_within_half_a_second():
         shown = [t for t, s in seen if s == f["status"] and t >= f["t_wall_s"]]
         assert shown, f
         assert shown[0] - f["t_wall_s"] < 0.5, (f, shown[0] - f["t_wall_s"])
+
+
+def test_last_seen_position_kept_for_a_silent_target():
+    st = _state_with([result(1, TargetStatus.VALID, 1, 1e9)], 10.0)
+    st.refresh(10.0)
+    gone = result(1, TargetStatus.TIMEOUT, 2, 1e9)
+    gone.latency_s = 0.5
+    st.on_relative(encode_relative_body(gone), "t01", 10.5)
+    row = st.refresh(10.5)["rows"][0]
+    assert row["status"] == "timeout" and row["x_m"] is None
+    assert (row["last_x_m"], row["last_y_m"]) == pytest.approx((16.0, 0.0))

@@ -67,12 +67,13 @@ def test_page_shows_the_demo_targets(tmp_path):
             rows = driver.execute_script(
                 "return Array.from(document.querySelectorAll('#rows tr')).map("
                 "tr => [tr.dataset.target, tr.dataset.status, tr.children[5].textContent])")
+            drawn = [d for d in drawn if not d.get("last_seen")]
             valid = [d for d in drawn if d["status"] == "valid"]
             if len(valid) >= 3:    # two vehicles and the pedestrian, all VALID on the canvas
                 best = (drawn, rows)
                 pixels = driver.execute_script(
                     "const c = document.getElementById('view').getContext('2d');"
-                    "return window.v2xposRendered.map(d => Array.from("
+                    "return window.v2xposRendered.filter(d => !d.last_seen).map(d => Array.from("
                     "c.getImageData(Math.round(d.px), Math.round(d.py), 1, 1).data))")
                 snap = mon.snapshot()
                 driver.save_screenshot(str(tmp_path / "monitor.png"))

@@ -5,7 +5,7 @@ import pytest
 
 from sim.imu_faults import FAULTS, FaultSpec, inject_fault, simulate_vehicle
 from v2xpos.quality import grade_units
-from v2xpos.quality.grade import run_fault_sweep
+from bench.grading import run_fault_sweep
 from v2xpos.types import ImuData
 
 

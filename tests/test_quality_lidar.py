@@ -6,7 +6,7 @@ import pytest
 
 from sim.lidar import Box, Cylinder, LidarModel, Scene, cast
 from v2xpos.quality import grade_units
-from v2xpos.quality.grade import run_lidar_check
+from bench.grading import run_lidar_check
 
 
 def test_ray_casting_hits_known_surfaces():

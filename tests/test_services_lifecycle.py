@@ -5,7 +5,6 @@ for its router says so; a master whose port is taken fails with one line naming 
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys

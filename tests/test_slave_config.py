@@ -32,10 +32,13 @@ def test_shipped_configs_load():
     ("[service]\nvehicle = 't1'\n", "unknown key"),
     ("[link]\nmode = 'broker'\n", "[link]"),
     ("[source]\ntype = 'magic'\n", "[source].type"),
-    ("[source]\ntype = 'recording'\n[impairment]\nlatency_ms = [1]\n", "[impairment].latency_ms"),
-    ("[source]\ntype = 'recording'\n[impairment]\nspikes = [[1, 2]]\n", "[impairment].spikes[0]"),
-    ("[source]\ntype = 'recording'\n[servise]\n", "did you mean 'service'"),
+    ("[source]\ntype = 'recording'\ndataset = 'x'\n[impairment]\nlatency_ms = [1]\n", "[impairment].latency_ms"),
+    ("[source]\ntype = 'recording'\ndataset = 'x'\n[impairment]\nspikes = [[1, 2]]\n", "[impairment].spikes[0]"),
+    ("[source]\ntype = 'recording'\ndataset = 'x'\n[servise]\n", "did you mean 'service'"),
     ("[source]\n", "[source].type: required"),
+    ("[source]\ntype = 'recording'\ndatset = 'x'\n", "did you mean 'dataset'"),
+    ("[source]\ntype = 'sim'\nfactory = 'sim.source:from_config'\n[source.params]\nvehicels = 3\n",
+     "did you mean 'vehicles'"),
     ("[service\n", "not valid TOML"),
 ])
 def test_bad_slave_config_names_file_and_key(tmp_path, text, where):

@@ -93,3 +93,20 @@ def test_replay_clock_follower_agrees_with_leader_over_zenoh():
         follower.close()
         client.close()
         router.close()
+
+
+def test_recording_source_applies_the_recordings_calibration_table():
+    """A ``[calibration]`` table (from ``v2xpos calibrate --write-dataset``) reaches the filter of a
+    recording source exactly as it reaches ``v2xpos replay``'s."""
+    from v2xpos.datasets.calibration import parse_calibration
+    from v2xpos.datasets.loader import load_dataset
+    from v2xpos.ins.replay import config_for
+    from v2xpos.sources.recording import ins_config_for
+    ds = load_dataset(_drive())
+    plain = ins_config_for(ds)
+    ds.calibration = parse_calibration({"gnss_lever_arm_m": {"value": [0.4, -0.2, 0.0], "sd": [0.01, 0.01, 0.02]},
+                                        "imu_time_offset_s": {"value": -0.02, "sd": 0.001}}, "test: [calibration]")
+    cal = ins_config_for(ds)
+    assert np.allclose(cal.lever_arm_m - plain.lever_arm_m, [0.4, -0.2, 0.0])
+    assert cal.initial_time_offset_s == -0.02
+    assert np.allclose(cal.lever_arm_m, config_for(ds).lever_arm_m)

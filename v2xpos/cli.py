@@ -3,12 +3,23 @@
 Every command module exposes ``add_arguments(parser)`` and ``run(args) -> int``. Only the chosen
 command's module is imported, so ``v2xpos --help`` stays fast and a broken optional dependency
 of one command never breaks the others.
+
+Exit codes: 0 done; 1 done, and the result says something failed (a graded unit, a process);
+2 bad input, usage or environment (the message names the file and key, or the endpoint);
+3 an unexpected error, i.e. a bug (one line; ``V2XPOS_DEBUG=1`` prints the traceback);
+130 interrupted (Ctrl-C).
 """
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
+import traceback
+
+EXIT_INPUT = 2
+EXIT_INTERNAL = 3
+EXIT_INTERRUPTED = 130
 
 COMMANDS: dict[str, tuple[str, str]] = {
     "replay": ("v2xpos.ins.replay", "replay a recorded drive through the GNSS/INS EKF with simulated outages"),
@@ -30,15 +41,19 @@ BENCHES: dict[str, tuple[str, str]] = {
     "fanin": ("bench.fanin", "slaves at 100 Hz one master core sustains with e2e p99 <= 10 ms"),
     "soak": ("bench.soak", "long run: sent / received / recorded / lost, memory growth"),
     "trust": ("v2xpos.security_bench", "forged / replayed messages, fuzzing, fault scenarios"),
+    "grading": ("bench.grading", "IMU grading on simulated vehicles: fault sweep, lidar rate check"),
     "fuzz": ("v2xpos.fuzz", "fuzz the message decoder and dataset readers"),
     "monitor": ("v2xpos.monitor.command", "monitor CPU and status-change delay at N targets x rate"),
+    "corpus": ("v2xpos.corpus", "broken inputs through replay/calibrate/grade/config loading: tracebacks, silent exits"),
+    "calibration": ("sim.bench_calibration", "Monte-Carlo coverage of calibrate's estimates and sds (simulated drives)"),
 }
 
 
 def _usage(table: dict, prog: str) -> str:
     width = max(len(k) for k in table)
     rows = "\n".join(f"  {k:<{width}}  {d}" for k, (_, d) in table.items())
-    return f"usage: {prog} COMMAND [options]\n\ncommands:\n{rows}\n"
+    version = "\n  --version  print the version and exit\n" if prog == "v2xpos" else ""
+    return f"usage: {prog} COMMAND [options]\n\ncommands:\n{rows}\n{version}"
 
 
 def _dispatch(table: dict, argv: list[str], prog: str, entry: str) -> int:
@@ -56,12 +71,66 @@ def _dispatch(table: dict, argv: list[str], prog: str, entry: str) -> int:
     return int(getattr(module, f"run_{entry[:-1]}" if entry else "run")(args) or 0)
 
 
-def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
+def version() -> str:
+    """The installed distribution's version (the package's own when not installed)."""
+    from importlib import metadata
+    try:
+        return metadata.version("v2xpos")
+    except metadata.PackageNotFoundError:
+        from v2xpos import __version__
+        return __version__
+
+
+def _prog(argv: list[str]) -> str:
+    words = [a for a in argv[:2] if not a.startswith("-")]
+    if words and words[0] == "bench":
+        return " ".join(["v2xpos", *words[:2]])
+    return " ".join(["v2xpos", *words[:1]])
+
+
+def run_command(argv: list[str]) -> int:
+    """Run one command without the guard of ``main`` (an exception propagates): what the
+    bad-input corpus calls, so that an error a command did not handle counts as a traceback."""
     if argv and argv[0] == "bench":
         # bench modules expose add_bench_arguments(parser) and run_bench(args)
         return _dispatch(BENCHES, argv[1:], "v2xpos bench", "bench_")
     return _dispatch(COMMANDS, argv, "v2xpos", "")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run one command; never lets an exception out as a traceback (see the module doc for the
+    exit codes). ``V2XPOS_DEBUG=1`` adds the traceback of an unexpected error."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] == "--version":
+        print(f"v2xpos {version()}")
+        return 0
+    prog = _prog(argv)
+    try:
+        return run_command(argv)
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except BrokenPipeError:  # output piped into a command that stopped reading (e.g. head)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
+        return 1
+    except Exception as exc:  # the last line of defence: a message, not a traceback
+        return report_unexpected(prog, exc)
+
+
+def report_unexpected(prog: str, exc: BaseException) -> int:
+    """One line for an exception no command handled. OSError (a file, a device, a port) and
+    ValueError (a value read from input) are input or environment errors (exit 2); anything else
+    is a bug (exit 3)."""
+    debug = os.environ.get("V2XPOS_DEBUG", "") not in ("", "0")
+    if debug:
+        traceback.print_exception(type(exc), exc, exc.__traceback__)
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    hint = "" if debug else " (V2XPOS_DEBUG=1 shows the traceback)"
+    if isinstance(exc, (OSError, ValueError)):
+        print(f"{prog}: error: {text}", file=sys.stderr)
+        return EXIT_INPUT
+    print(f"{prog}: internal error: {type(exc).__name__}: {text}{hint}", file=sys.stderr)
+    return EXIT_INTERNAL
 
 
 if __name__ == "__main__":

@@ -4,11 +4,11 @@ fields, unknown-key rejection with "did you mean", the ``[source]`` table, ``[li
 """
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from v2xpos.compat import tomllib
 from v2xpos.datasets.calibration import did_you_mean
 from v2xpos.link import LinkConfig, LinkImpairment
 
@@ -45,11 +45,12 @@ def take(table: dict, key: str, kind: type | tuple, default: Any, where: str) ->
 
 
 def check_keys(table: dict, allowed: set, where: str) -> None:
-    """Reject keys outside ``allowed``, naming the first unknown one and the closest allowed key."""
-    unknown = sorted(set(table) - set(allowed))
+    """ConfigError naming ``where`` and the unknown keys, with a "did you mean" for a near miss."""
+    unknown = sorted((str(k) for k in set(table) - set(allowed)))
     if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {unknown}{did_you_mean(unknown[0], allowed)}; "
-                          f"allowed {sorted(allowed)}")
+        hint = "".join(did_you_mean(k, allowed).replace(" (did you mean", f" ({k!r}: did you mean")
+                       for k in unknown[:3])
+        raise ConfigError(f"{where}: unknown key(s) {unknown}{hint}; allowed {sorted(allowed)}")
 
 
 @dataclass
@@ -66,13 +67,11 @@ class SourceConfig:
 
     @classmethod
     def from_table(cls, t: dict, where: str) -> "SourceConfig":
-        from v2xpos.sources import source_types
-        typ = t.get("type")
-        if not isinstance(typ, str):
-            raise ConfigError(f"{where}.type: required: one of {sorted(source_types())}")
-        if typ not in source_types() and "factory" not in t:
-            raise ConfigError(f"{where}.type: {typ!r} is not one of {sorted(source_types())}"
-                              f"{did_you_mean(typ, source_types())} (or name its factory = 'module:function')")
+        from v2xpos.sources import SourceError, check_source_table
+        try:
+            check_source_table(t, where)
+        except SourceError as exc:
+            raise ConfigError(str(exc)) from None
         return cls(table=dict(t))
 
 

@@ -33,6 +33,7 @@ from __future__ import annotations
 import asyncio
 import json
 import math
+import re
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -43,6 +44,34 @@ import zenoh
 from v2xpos.wire import STATE_KEY_ALL, imu_key, relative_key, state_key  # noqa: F401  (re-exported)
 
 MODES = ("router", "peer", "client")
+
+
+class LinkError(OSError):
+    """The zenoh session could not be opened; the message names the mode and the endpoints
+    (an OSError: the port, the router or the network is the problem, not the program)."""
+
+
+def _zenoh_reason(exc: BaseException) -> str:
+    """zenoh's error text without its Rust source locations (`` at /path/file.rs:61.``)."""
+    text = re.sub(r"\s+at \S+\.rs:\d+\.?", "", str(exc))
+    return " ".join(text.replace("[", "").replace("]", "").split()).rstrip(".")
+
+
+def open_error(config: "LinkConfig", exc: BaseException) -> LinkError:
+    """A one-line LinkError for a failed ``zenoh.open`` with ``config``."""
+    reason = _zenoh_reason(exc)
+    where = []
+    if config.listen:
+        where.append(f"listening on {', '.join(config.listen)}")
+    if config.connect:
+        where.append(f"connecting to {', '.join(config.connect)}")
+    hint = ""
+    if "already in use" in reason.lower():
+        hint = " (another master or router already uses that port: stop it or choose another port)"
+    elif config.mode == "client" and config.connect:
+        hint = " (is the master's router running? see connect_timeout_ms)"
+    return LinkError(f"zenoh {config.mode} cannot open ({' and '.join(where) or 'no endpoints'}): "
+                     f"{reason}{hint}")
 
 
 def status_key(fleet: str, master_id: str) -> str:
@@ -99,7 +128,20 @@ class LinkConfig:
                  "connect_timeout_ms", "extra_json5"}
         unknown = set(d) - known
         if unknown:
-            raise ValueError(f"{where}: unknown key(s) {sorted(unknown)}; allowed {sorted(known)}")
+            from v2xpos.datasets.calibration import did_you_mean
+            first = sorted(map(str, unknown))[0]
+            raise ValueError(f"{where}: unknown key(s) {sorted(unknown)}{did_you_mean(first, known)}; "
+                             f"allowed {sorted(known)}")
+        for k, kinds, low in (("retry_init_ms", (int,), 1), ("retry_max_ms", (int,), 1),
+                              ("retry_factor", (int, float), 1), ("connect_timeout_ms", (int,), -1)):
+            v = d.get(k)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, kinds) or not v >= low):
+                raise ValueError(f"{where}.{k}: expected {'an integer' if kinds == (int,) else 'a number'} "
+                                 f">= {low}, got {type(v).__name__} {v!r}")
+        if "mode" in d and not isinstance(d["mode"], str):
+            raise ValueError(f"{where}.mode: expected one of {MODES}, got {d['mode']!r}")
+        if "extra_json5" in d and not isinstance(d["extra_json5"], dict):
+            raise ValueError(f"{where}.extra_json5: expected a table, got {d['extra_json5']!r}")
         kw = dict(d)
         for k in ("listen", "connect"):
             if k in kw and isinstance(kw[k], str):
@@ -130,17 +172,8 @@ class LinkConfig:
         return c
 
 
-class LinkUnavailable(RuntimeError):
-    """The zenoh session could not be opened (message names the endpoints and the cause)."""
-
-
-def _describe_endpoints(config: LinkConfig) -> str:
-    parts = []
-    if config.listen:
-        parts.append("listen " + ", ".join(config.listen))
-    if config.connect:
-        parts.append("connect " + ", ".join(config.connect))
-    return "; ".join(parts) or "no endpoints"
+LinkUnavailable = LinkError
+"""The name the services use for a session that could not be opened."""
 
 
 class Link:
@@ -150,8 +183,8 @@ class Link:
         self.config = config
         try:
             self.session = zenoh.open(config.to_zenoh())
-        except Exception as exc:   # zenoh.ZError: address in use, no router reachable, bad locator
-            raise LinkUnavailable(f"zenoh {config.mode} ({_describe_endpoints(config)}): {exc}") from None
+        except zenoh.ZError as exc:
+            raise open_error(config, exc) from None
         self._entities: list[Any] = []
         self._closed = False
 

@@ -17,15 +17,14 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import signal
 import socket
 import subprocess
 import sys
 import threading
 import time
-from collections import Counter, defaultdict
-from dataclasses import dataclass, field
+from collections import Counter
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -628,7 +627,7 @@ def run_bench(args: argparse.Namespace) -> int:
     if args.soak_json:
         soak = json.loads(Path(args.soak_json).read_text())
     elif not args.skip_soak:
-        from master.bench_soak import run_soak
+        from bench.soak import run_soak
         print("soak ...", file=sys.stderr)
         soak = run_soak(args.soak_slaves, args.soak_rate, args.soak_duration, "out/soak")
     for k in ("sent", "received", "recorded", "lost", "rss_growth_pct"):

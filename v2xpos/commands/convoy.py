@@ -105,7 +105,7 @@ def run_processes(out: Path, master: tuple, slaves: list[tuple], speed: float, l
     """Run the convoy as processes; returns exit codes, durations and the master's summary."""
     from v2xpos.datasets.loader import load_dataset
     configs = write_configs(out, master, slaves, speed, mcap=mcap)
-    import tomllib
+    from v2xpos.compat import tomllib
     mcfg = tomllib.loads(configs[master[1]].read_text())
     port = int(mcfg["link"]["listen"][0].rsplit(":", 1)[1])
     span = None

@@ -17,8 +17,11 @@ write this table::
     gnss_lever_arm_m = { value = [0.5, 0.3, 0.0], sd = [0.02, 0.02, 0.1] }         # added to [gnss] lever_arm_m
     gyro_scale = { value = [0.0, 0.0, -0.007], sd = [0.0, 0.0, 0.0005] }            # fraction, vehicle axes
     accel_scale = { value = [0.0, 0.0, 0.0], sd = [0.01, 0.01, 0.01] }
+    imu_gyro_noise_rps_rthz = { value = 8.7e-5, sd = 1e-6 }    # measured white noise of this IMU
+    imu_accel_noise_mps2_rthz = { value = 1.0e-3, sd = 1e-5 }   # (replaces the filter's default)
 
-Effects left out are zero (not estimated). An entry's sd is its 1-sigma; a value whose sd is 0
+Effects left out are zero (not estimated); the two noise entries, when present, replace the
+filter's default IMU noise densities (they are totals, not corrections). An entry's sd is its 1-sigma; a value whose sd is 0
 is taken as exact. Unknown keys are rejected with the table and the key named.
 """
 from __future__ import annotations
@@ -31,6 +34,7 @@ from typing import Any
 EFFECT_SHAPES: dict[str, int] = {
     "imu_time_offset_s": 1, "imu_clock_drift_ppm": 1, "gnss_latency_s": 1,
     "imu_misalignment_deg": 3, "gnss_lever_arm_m": 3, "gyro_scale": 3, "accel_scale": 3,
+    "imu_gyro_noise_rps_rthz": 1, "imu_accel_noise_mps2_rthz": 1,
 }
 """Effect name -> number of components (1 = scalar)."""
 INFO_KEYS = ("source", "date", "software")

@@ -191,13 +191,16 @@ def read_imu_csv(path: str | Path, timetag: str | Path | TimeTag | None = None) 
     tag_issues = None
     t_s = counter_s.copy()
     delay = np.full(counter_s.size, np.nan)
-    if timetag is not None:
+    if timetag is not None and len(line_idx) >= 2:   # fewer samples: the caller reports the file
+        tag_name = "the timetag"
         if not isinstance(timetag, TimeTag):
+            tag_name = f"the timetag {timetag}"
             timetag, tag_issues = read_timetag(timetag)
         arrival = timetag.arrival_gps_s(ends[line_idx])
         ok = np.isfinite(arrival)
         if ok.sum() < 2:
-            raise ValueError(f"{path}: the timetag covers fewer than 2 valid lines")
+            raise ValueError(f"{path}: {tag_name} covers fewer than 2 valid lines "
+                             f"({len(timetag)} record(s) for {len(line_idx)} line(s))")
         clock = timebase.fit_clock_lower_envelope(counter_s[ok], arrival[ok])
         t_s = clock.to_gps(counter_s)
         delay = arrival - t_s

@@ -20,7 +20,13 @@ Descriptor (``dataset.toml``; paths relative to the toml file)::
     raw_timetag = "gnss_1730.ubx.tag"
 
 A descriptor for a whole-folder layout instead names it: ``layout = "comma2k19"`` or
-``layout = "quadrotor_mimu"`` with ``path = "..."`` (relative to the toml) and optional ``name``.
+``layout = "quadrotor_mimu"`` with ``path = "..."`` (relative to the toml) and optional ``name``
+(and, for ``v2xpos grade``, a ``[grade]`` table).
+
+Both may carry a ``[calibration]`` table (``v2xpos.datasets.calibration``). Every table rejects a
+key it does not know, naming the file, the table and the key, with a "did you mean" for a near
+miss: a misspelt ``imu_to_body`` must not quietly become the identity. An IMU or GNSS file with
+fewer than two usable records (empty, header only, all lines malformed) is an error naming it.
 
 A folder is accepted too: one holding ``dataset.toml``, a comma2k19 segment (``processed_log`` +
 ``global_pose``) or a quadrotor_mimu path folder (``IMU_1.csv`` ... + ``GT.csv``).
@@ -35,12 +41,16 @@ import numpy as np
 
 from v2xpos.types import Dataset, GnssData, MultiImuRecording
 
-try:
-    import tomllib
-except ImportError:  # Python 3.10
-    import tomli as tomllib  # type: ignore[no-redef]
+from v2xpos.compat import tomllib
 
 IMU_FORMATS = ("csv_g_dps_ms",)
+TOP_KEYS = ("name", "platform", "imu", "gnss", "calibration")
+LAYOUT_KEYS = ("layout", "path", "name", "grade", "calibration")
+IMU_KEYS = ("file", "format", "timetag", "imu_to_body")
+GNSS_KEYS = ("file", "format", "timetag", "lever_arm_m", "lever_arm_sd_m", "height_datum", "raw",
+             "raw_timetag")
+MIN_RECORDS = 2
+"""Fewer usable IMU samples or GNSS epochs than this: the file is an error, not a result."""
 GNSS_FORMATS = ("rtklib_pos", "ubx")
 LAYOUTS = ("comma2k19", "quadrotor_mimu")
 log = logging.getLogger(__name__)
@@ -59,7 +69,25 @@ def _field(table: dict, key: str, where: str, toml_path: Path, kind: type | tupl
     return value
 
 
+def check_keys(table: dict, allowed: tuple[str, ...], where: str) -> None:
+    """ValueError naming ``where`` (file and table) and the first unknown key, with a "did you
+    mean" for a near miss."""
+    from v2xpos.datasets.calibration import did_you_mean
+    for key in table:
+        if key not in allowed:
+            raise ValueError(f"{where}: unknown key {key!r}{did_you_mean(str(key), allowed)}; "
+                             f"allowed {list(allowed)}")
+
+
+def _all_numbers(value: Any) -> bool:
+    if isinstance(value, list):
+        return all(_all_numbers(v) for v in value)
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def _matrix(value: Any, shape: tuple[int, ...], field_name: str, toml_path: Path) -> np.ndarray:
+    if not _all_numbers(value):
+        raise ValueError(f"{toml_path}: field {field_name} must hold numbers only, got {value!r}")
     try:
         arr = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
@@ -91,19 +119,27 @@ def _load_toml(toml_path: Path, read_raw: bool) -> Dataset:
     desc = read_descriptor(toml_path)
     base = toml_path.parent
     if "layout" in desc:
+        check_keys(desc, LAYOUT_KEYS, f"{toml_path}: top level (layout descriptor)")
         layout = _field(desc, "layout", "", toml_path)
         if layout not in LAYOUTS:
             raise ValueError(f"{toml_path}: field layout: unknown {layout!r} (known: {LAYOUTS})")
         folder = base / _field(desc, "path", "", toml_path)
+        if not folder.is_dir():
+            raise ValueError(f"{toml_path}: field path: folder {folder} not found")
         ds = _load_layout(layout, folder)
         ds.name = _field(desc, "name", "", toml_path, required=False, default=ds.name)
         ds.source = toml_path
+        ds.calibration = _calibration(desc, toml_path)
         return ds
 
+    check_keys(desc, TOP_KEYS, f"{toml_path}: top level")
     name = _field(desc, "name", "", toml_path)
     platform = _field(desc, "platform", "", toml_path)
     imu_t = _field(desc, "imu", "", toml_path, kind=dict)
     gnss_t = _field(desc, "gnss", "", toml_path, kind=dict)
+    check_keys(imu_t, IMU_KEYS, f"{toml_path}: [imu]")
+    check_keys(gnss_t, GNSS_KEYS, f"{toml_path}: [gnss]")
+    calibration = _calibration(desc, toml_path)
 
     imu_format = _field(imu_t, "format", "[imu] ", toml_path)
     if imu_format not in IMU_FORMATS:
@@ -128,6 +164,9 @@ def _load_toml(toml_path: Path, read_raw: bool) -> Dataset:
                     (3,), "[gnss] lever_arm_m", toml_path)
     lever_sd = float(_field(gnss_t, "lever_arm_sd_m", "[gnss] ", toml_path, kind=(int, float),
                             required=False, default=0.1))
+    if not (np.isfinite(lever_sd) and lever_sd >= 0.0):
+        raise ValueError(f"{toml_path}: field [gnss] lever_arm_sd_m must be a finite number >= 0, "
+                         f"got {lever_sd}")
     height_datum = _field(gnss_t, "height_datum", "[gnss] ", toml_path, required=False,
                           default="msl")
     if height_datum not in ("msl", "ellipsoidal"):
@@ -135,14 +174,21 @@ def _load_toml(toml_path: Path, read_raw: bool) -> Dataset:
     raw = _field(gnss_t, "raw", "[gnss] ", toml_path, required=False)
     raw_timetag = _field(gnss_t, "raw_timetag", "[gnss] ", toml_path, required=False)
 
-    for label, p in (("[imu] file", imu_file), ("[gnss] file", gnss_file)):
+    gnss_tag = _field(gnss_t, "timetag", "[gnss] ", toml_path, required=False)
+    named = [("[imu] file", imu_file), ("[gnss] file", gnss_file)]
+    for label, rel in (("[imu] timetag", timetag), ("[gnss] timetag", gnss_tag), ("[gnss] raw", raw),
+                       ("[gnss] raw_timetag", raw_timetag)):
+        if rel is not None:
+            named.append((label, base / rel))
+    for label, p in named:
         if not p.is_file():
             raise ValueError(f"{toml_path}: field {label}: file {p} not found")
-    if timetag is not None and not (base / timetag).is_file():
-        raise ValueError(f"{toml_path}: field [imu] timetag: file {base / timetag} not found")
 
     imu_res = read_imu_csv(imu_file, base / timetag if timetag else None)
-    notes: dict[str, Any] = {"imu": imu_res.summary(), "malformed": [imu_res.issues.as_dict()]}
+    _enough(len(imu_res.imu), "IMU samples", imu_file, "[imu] file", toml_path, imu_res.issues)
+    notes: dict[str, Any] = {"imu": imu_res.summary(), "malformed": [imu_res.issues.as_dict()],
+                             "files": {"imu": str(imu_file), "gnss": str(gnss_file),
+                                       **({"imu_timetag": str(base / timetag)} if timetag else {})}}
     malformed = imu_res.issues.count
     if imu_res.timetag_issues is not None:
         malformed += imu_res.timetag_issues.count
@@ -154,12 +200,15 @@ def _load_toml(toml_path: Path, read_raw: bool) -> Dataset:
         gnss, gnss_issues = read_rtklib_pos(gnss_file, height_datum=height_datum)
     else:
         from v2xpos.datasets.ubx import read_ubx
-        gnss_tag = _field(gnss_t, "timetag", "[gnss] ", toml_path, required=False)
         ubx_res = read_ubx(gnss_file, base / gnss_tag if gnss_tag else None)
         notes["ubx"] = ubx_res.summary()
         gnss, gnss_issues = ubx_res.gnss, ubx_res.issues
+    _enough(len(gnss), "GNSS epochs", gnss_file, "[gnss] file", toml_path, gnss_issues)
     malformed += gnss_issues.count
     notes["malformed"].append(gnss_issues.as_dict())
+    if timetag is not None:
+        covered = np.isfinite(imu_res.arrival_delay_s)
+        notes["imu_timetag_coverage"] = float(covered.mean()) if covered.size else 0.0
     notes["gnss"] = {"epochs": len(gnss), "height_datum": gnss.height_datum,
                      "fix_counts": _fix_counts(gnss)}
     if raw is not None:
@@ -176,13 +225,29 @@ def _load_toml(toml_path: Path, read_raw: bool) -> Dataset:
             shown = "; ".join(f"line {e['line']}: {e['reason']}" for e in entry["examples"])
             log.warning("%s: %d malformed record(s) skipped (%s)", entry["source"], entry["count"],
                         shown)
-    calibration = None
-    if "calibration" in desc:
-        from v2xpos.datasets.calibration import parse_calibration
-        calibration = parse_calibration(desc["calibration"], f"{toml_path}: [calibration]")
     return Dataset(name=name, platform=platform, imu=imu_res.imu, gnss=gnss,
                    imu_to_body=imu_to_body, lever_arm_m=lever, lever_arm_sd_m=lever_sd,
                    malformed_lines=malformed, source=toml_path, notes=notes, calibration=calibration)
+
+
+def _calibration(desc: dict, toml_path: Path):
+    if "calibration" not in desc:
+        return None
+    from v2xpos.datasets.calibration import parse_calibration
+    return parse_calibration(desc["calibration"], f"{toml_path}: [calibration]")
+
+
+def _enough(n: int, what: str, path: Path, label: str, toml_path: Path, issues) -> None:
+    """ValueError naming the data file (and the descriptor field) when it has too few records."""
+    if n >= MIN_RECORDS:
+        return
+    size = path.stat().st_size
+    why = ("the file is empty" if size == 0 else
+           f"{issues.count} malformed record(s) skipped" if issues.count else
+           "no data records (header or comments only)")
+    first = f"; first: line {issues.examples[0][0]}: {issues.examples[0][1]}" if issues.examples else ""
+    raise ValueError(f"{path}: {n} usable {what}, need at least {MIN_RECORDS}: {why}{first} "
+                     f"(named by {toml_path} field {label})")
 
 
 def _fix_counts(gnss: GnssData) -> dict[str, int]:
@@ -234,9 +299,13 @@ def load_multi_imu(path: str | Path) -> MultiImuRecording:
     path = Path(path)
     if path.is_file():
         desc = read_descriptor(path)
+        check_keys(desc, LAYOUT_KEYS, f"{path}: top level (layout descriptor)")
         if desc.get("layout") != "quadrotor_mimu":
             raise ValueError(f"{path}: field layout must be 'quadrotor_mimu' for a multi-IMU load")
-        return read_quadrotor_path(path.parent / _field(desc, "path", "", path))
+        folder = path.parent / _field(desc, "path", "", path)
+        if not folder.is_dir():
+            raise ValueError(f"{path}: field path: folder {folder} not found")
+        return read_quadrotor_path(folder)
     if _detect_layout(path) != "quadrotor_mimu":
         raise ValueError(f"{path}: not a multi-IMU folder (need IMU_k.csv and GT.csv)")
     return read_quadrotor_path(path)

@@ -70,6 +70,9 @@ def read_numeric_csv(path: str | Path, columns: tuple[str, ...]) -> tuple[np.nda
             continue
         last_t = vals[0]
         rows.append(vals)
+    if len(rows) < 2:
+        why = f"{issues.count} malformed row(s) skipped" if issues.count else "header only"
+        raise ValueError(f"{path}: {len(rows)} usable data row(s), need at least 2 ({why})")
     return np.asarray(rows, dtype=float).reshape(-1, len(columns)), issues
 
 

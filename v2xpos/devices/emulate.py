@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 import errno
 import json
-import math
 import os
 import select
 import signal

@@ -21,7 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from v2xpos.ins.replay import add_schedule_arguments, command_provenance, load_for_command
+from v2xpos.ins.replay import (add_input_arguments, add_schedule_arguments, check_only, command_provenance,
+                                  load_for_command)
 from v2xpos.types import Dataset
 
 from . import identify, structure
@@ -205,6 +206,10 @@ class Calibration:
     log_after: ResidualLog | None = None
     coarse_report: dict = field(default_factory=dict)
     replays: int = 0
+    table: object | None = None          # datasets.calibration.CalibrationTable written back
+    tuning: dict = field(default_factory=dict)
+    source: str = ""
+    online: list = field(default_factory=list)    # ``agreement`` rows: offline vs the live filter's states
 
 
 CALIBRATION_REPLAY_CONFIG = {"gate_probability": 1.0}
@@ -219,19 +224,63 @@ between epochs (``runner.replay``): with the constraints at chunk ends and the G
 extrapolated from the last sample, the replayed cost jumped by 50-140 whenever a stamp shift moved
 a GNSS epoch past an IMU sample (a simulated drive, 2026-11-23), as much as a 2 ms offset costs."""
 
+TUNE_PREDICTOR = True
+"""Fit replays run a filter whose noise matches the recording (``Estimator.tune``, ``tuning.py``):
+a prediction-error fit through a mistuned filter uses parameters that change the filter's gains
+(e.g. a vertical lever arm on a flat road) to whiten the residuals."""
+
 CALIBRATION_OUTAGES = OutageSchedule(length_s=5.0, every_s=15.0, first_s=20.0)
 """Short GNSS gaps in the fit replays: the first innovation after each gap is a 5 s dead-reckoning
 prediction error, so the likelihood also weighs the multi-step prediction that outages need
 (k-step-ahead prediction-error identification, Ljung 1999 sec. 7.3)."""
 
 
-def metrics_replay(ds: Dataset, schedule: OutageSchedule, progress: bool) -> dict:
-    """Outage metrics exactly as ``v2xpos replay`` computes them (default filter configuration),
-    plus ``nis_mean`` of the accepted GNSS position and velocity updates."""
+class Progress:
+    """One progress bar for the whole calibration: a tick per replay, the current step shown beside
+    it. The number of replays is known only roughly in advance (backtracking, elimination rounds),
+    so the total grows when it is reached."""
+
+    def __init__(self, enabled: bool, total: int = 40, desc: str = "calibrate"):
+        self.bar = None
+        if enabled:
+            from tqdm import tqdm
+            self.bar = tqdm(total=total, desc=desc, unit="replay", dynamic_ncols=True,
+                            bar_format="{desc}: {n}/{total} replays |{bar}| {elapsed}<{remaining} {postfix}")
+
+    def start(self, label: str) -> None:
+        if self.bar is not None:
+            self.bar.set_postfix_str(label, refresh=True)
+
+    def done(self) -> None:
+        if self.bar is not None:
+            if self.bar.n + 1 > self.bar.total:
+                self.bar.total = self.bar.n + 2
+            self.bar.update(1)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.total = self.bar.n
+            self.bar.set_postfix_str("done", refresh=True)
+            self.bar.close()
+
+
+NO_PROGRESS = Progress(False)
+
+
+def metrics_replay(ds: Dataset, schedule: OutageSchedule, progress: bool | Progress = False,
+                   label: str = "outage replay") -> dict:
+    """Outage metrics exactly as ``v2xpos replay`` computes them (default filter configuration,
+    the dataset's ``[calibration]`` applied by ``ins_config``), plus ``nis_mean`` of the accepted
+    GNSS position and velocity updates."""
     from v2xpos.ins.replay import OutageSchedule as InsSchedule
     from v2xpos.ins.replay import replay as ins_replay
     sched = InsSchedule(schedule.length_s, schedule.every_s, schedule.first_s)
-    res = ins_replay(ds, sched, progress=progress, keep_series=False)
+    bar = progress if isinstance(progress, Progress) else None
+    if bar:
+        bar.start(label)
+    res = ins_replay(ds, sched, progress=bool(progress) and bar is None, keep_series=False)
+    if bar:
+        bar.done()
     out = dict(res.summary)
     nis = [r.nis for r in res.filter.residuals if r.accepted and r.kind in ("gnss_pos", "gnss_vel")]
     out["nis_mean"] = float(np.mean(nis)) if nis else float("nan")
@@ -242,9 +291,10 @@ class Estimator:
     """Batch estimator bound to one recording; keeps the Jacobian so that recordings derived from
     the same drive (e.g. with injected effects) can be fitted with a couple of replays."""
 
-    def __init__(self, ds: Dataset, progress: bool = False, prior_sd: np.ndarray | None = None):
+    def __init__(self, ds: Dataset, progress: bool | Progress = False, prior_sd: np.ndarray | None = None):
         self.ds = ds
-        self.progress = progress
+        self.bar = progress if isinstance(progress, Progress) else NO_PROGRESS
+        self.progress = bool(progress) and not isinstance(progress, Progress)   # per-replay bars
         self.prior_sd = default_prior_sd(ds) if prior_sd is None else prior_sd
         self.t0_s = float(ds.imu.t_s[0])
         self.replays = 0
@@ -260,11 +310,16 @@ class Estimator:
         self.config = dict(CALIBRATION_REPLAY_CONFIG)
         self.exact_epochs = EXACT_EPOCHS
         self.confirm_log: list = []      # (effect, half-cost rises, kappa, z in the model) per test
+        self.tune_predictor = TUNE_PREDICTOR
+        self.tuning: dict = {}
 
     def _replay(self, ds: Dataset, theta: np.ndarray, label: str) -> ReplayOutcome:
         self.replays += 1
-        return replay(correct(ds, EffectSet.from_vector(theta)), self.schedule, config=self.config,
-                      progress=self.progress, label=label, exact_epochs=self.exact_epochs)
+        self.bar.start(label)
+        out = replay(correct(ds, EffectSet.from_vector(theta)), self.schedule, config=self.config,
+                     progress=self.progress, label=label, exact_epochs=self.exact_epochs)
+        self.bar.done()
+        return out
 
     def coarse(self) -> np.ndarray:
         """Starting point from the filter's own augmented effect states (lever arm, IMU time offset,
@@ -272,8 +327,17 @@ class Estimator:
         from v2xpos.ins.replay import OutageSchedule as InsSchedule
         from v2xpos.ins.replay import config_for
         from v2xpos.ins.replay import replay as ins_replay
+        if self.ds.calibration is not None and self.ds.calibration.effects:
+            # a vehicle that is already calibrated: its table is the starting point
+            from .writeback import theta_from_table
+            th = np.where(self.active, theta_from_table(self.ds.calibration)[0], 0.0)
+            self.coarse_report = {"from": "[calibration] table of the dataset"}
+            self.check_velocity_lag(th)
+            return th
         cfg = config_for(self.ds, effects=("lever_arm", "imu_time_offset", "misalignment"))
+        self.bar.start("online effect states (starting point)")
         res = ins_replay(self.ds, InsSchedule(0.0, 0.0, 0.0), cfg=cfg, progress=self.progress, keep_series=False)
+        self.bar.done()
         self.replays += 1
         rep = res.summary.get("effects", {})
         self.coarse_report = {k: v for k, v in rep.items() if k != "sd"}
@@ -284,6 +348,65 @@ class Estimator:
         th[P_LEVER_ARM] = np.asarray(rep.get("lever_arm_m", self.ds.lever_arm_m), float) - np.asarray(self.ds.lever_arm_m)
         self.check_velocity_lag(th)
         return th
+
+    def online(self) -> dict:
+        """The live filter's own effect states on this recording: ``v2xpos replay``'s filter (its
+        default effect states and noise) with the effect priors of this fit, one run without outages.
+        Returns {parameter index: (value at the end of the drive, sd)} in the ``inject.P_*`` units
+        (IMU offset, mounting, lever arm relative to the declared one)."""
+        from v2xpos.ins.replay import OutageSchedule as InsSchedule
+        from v2xpos.ins.replay import config_for
+        from v2xpos.ins.replay import replay as ins_replay
+        p = self.prior_sd
+        cfg = config_for(self.ds, effect_initial_sd={"lever_arm": p[P_LEVER_ARM].copy(),
+                                                     "imu_time_offset": float(p[P_TIME_OFFSET]),
+                                                     "misalignment": p[P_MISALIGN].copy()})
+        self.bar.start("online effect states (agreement)")
+        res = ins_replay(self.ds, InsSchedule(0.0, 0.0, 0.0), cfg=cfg, progress=self.progress, keep_series=False)
+        self.bar.done()
+        self.replays += 1
+        rep = res.summary.get("effects", {})
+        sds = rep.get("sd", {})
+        out = {}
+        if "imu_time_offset" in sds:
+            out[P_TIME_OFFSET] = (float(rep["imu_time_offset_s"]), float(sds["imu_time_offset"][0]))
+        if "misalignment" in sds:
+            for k in range(3):
+                out[P_MISALIGN.start + k] = (float(rep["misalignment_rad"][k]), float(sds["misalignment"][k]))
+        if "lever_arm" in sds:
+            lever = np.asarray(rep["lever_arm_m"], float) - np.asarray(self.ds.lever_arm_m, float)
+            for k in range(3):
+                out[P_LEVER_ARM.start + k] = (float(lever[k]), float(sds["lever_arm"][k]))
+        self.online_t_end_s = float(self.ds.imu.t_s[-1] - self.t0_s)
+        return out
+
+    def tune(self, theta: np.ndarray, iterations: int = 2) -> dict:
+        """Make the fit replays' filter match the recording (``tuning``): IMU white noise from the
+        samples, then the GNSS position and velocity noise rescaled until the filter's innovation
+        covariances match its innovations (``iterations`` replays at theta); the vehicle
+        constraints keep their declared noise (``tuning`` module docstring)."""
+        from v2xpos.ins.filter import InsConfig
+        from .tuning import imu_noise_density, innovation_scale, rescaled_config
+        d = InsConfig()
+        gyro, accel = imu_noise_density(self.ds.imu)
+        # the second-difference estimate bounds the in-band white noise from above (it weighs
+        # high-frequency vibration up to 16/6 times): below the filter's default it shows the
+        # default is too large and replaces it; above it, the excess may be out-of-band vibration
+        # and the default stays (drive_0708: 5.6e-3 measured, 6e-4..1.2e-3 in band at its stops)
+        if np.isfinite(gyro) and gyro > 0:
+            self.config["gyro_noise_rps_rthz"] = min(gyro, d.gyro_noise_rps_rthz)
+        if np.isfinite(accel) and accel > 0:
+            self.config["accel_noise_mps2_rthz"] = min(accel, d.accel_noise_mps2_rthz)
+        base = {k: getattr(d, k) for k in ("gnss_pos_sd_floor_m", "gnss_vel_sd_scale", "gnss_vel_sd_floor_mps")}
+        history = []
+        for k in range(iterations):
+            out = self._replay(self.ds, theta, f"tuning {k + 1}")
+            fac = innovation_scale(out.log)
+            history.append(fac)
+            self.config = rescaled_config(self.config, base, fac)
+        self.tuning = {"gyro_noise_rps_rthz": gyro, "accel_noise_mps2_rthz": accel, "factors": history,
+                       "config": {k: v for k, v in self.config.items()}}
+        return self.tuning
 
     def check_velocity_lag(self, theta: np.ndarray) -> None:
         """Leave the receiver velocities out of the fit when they lag the positions by > 3 sd."""
@@ -339,7 +462,7 @@ class Estimator:
         for p in it:
             th = theta0.copy()
             th[p] += FD_STEP[p]
-            rows, _ = self.rows(self.ds, th, f"d/d{p}")
+            rows, _ = self.rows(self.ds, th, f"Jacobian d/d {PARAM_NAMES[p]}")
             J[:, p] = (_align(self.base_rows, rows) - r0) / FD_STEP[p]
         # identical relative timing: GNSS latency (tags moved back) = IMU offset (stamps moved on);
         # a slow clock drift acts as the local offset 1e-6 d (t - t0) (filter memory << drive)
@@ -365,6 +488,13 @@ class Estimator:
         is accepted only if the replayed cost drops, else halved (backtracking, at most 3 times)."""
         theta = theta_start.copy()
         for k in range(iterations):
+            if self.tune_predictor and k == 0:
+                # the predictor is tuned once, at the starting point, and then held: every later
+                # replay (Jacobian, refinement, elimination) runs the same filter, so that costs and
+                # weights stay comparable. (Re-tuning at every iterate was tried: on convoy_dev B it
+                # inflated the lever-arm and time-offset sds 2-3 times and the elimination dropped
+                # them; 2026-11-24, docs/calibration.md.)
+                self.tune(theta, iterations=2)
             rows0 = self.linearize(theta, keep_weights=k > 0)
             c0 = float(np.nansum(_align(self.base_rows, rows0) ** 2))
             step = identify.fit(self.problem(rows0, theta), systematic_sd=self.systematic_sd()).theta - theta
@@ -414,6 +544,7 @@ class Estimator:
                 self.J = J_secant
                 f.sd = np.maximum(f.sd, f_fd.sd)
                 f.sd_stat = np.maximum(f.sd_stat, f_fd.sd_stat)
+                f.determined = f.determined & f_fd.determined
             f = identify.decide(prob, f)
             return f, prob, out
         finally:
@@ -437,7 +568,7 @@ class Estimator:
         necessary while the other is held at its joint estimate, but not when it may move.
         The significant effects' values and sd become those of the final model; the others keep
         the joint fit's."""
-        cand = [int(i) for i in np.flatnonzero(prob.active & (np.abs(f.theta) > n_sigma * f.sd))]
+        cand = [int(i) for i in np.flatnonzero(prob.active & f.determined & (np.abs(f.theta) > n_sigma * f.sd))]
         t_mid = float(np.median(prob.t_s))
         first = self.base_rows.t_s < t_mid
         gain = np.zeros(N_PARAMS)
@@ -484,46 +615,88 @@ class Estimator:
         return f
 
 
+def with_calibration(ds: Dataset, table) -> Dataset:
+    """A shallow copy of ``ds`` carrying ``table`` as its ``[calibration]`` (replaces any other)."""
+    import copy
+    out = copy.copy(ds)
+    out.calibration = table
+    return out
+
+
 def calibrate_dataset(ds: Dataset, schedule: OutageSchedule, progress: bool = True,
                       gn_iterations: int = 2) -> Calibration:
-    """The full pipeline of the module docstring."""
-    est = Estimator(ds, progress=progress)
-    before = metrics_replay(ds, schedule, progress)
-    theta_c = est.coarse()
-    theta = est.gauss_newton(theta_c, iterations=gn_iterations)
-    f, prob, out_fit = est.refine(ds, theta, iterations=2)
-    f = est.confirm(ds, f, prob)
-    a, b = identify.halves(prob)
-    f1 = identify.fit(a, systematic_sd=est.systematic_sd())
-    f2 = identify.fit(b, systematic_sd=est.systematic_sd())
-    sig = EffectSet.from_vector(np.where(f.significant, f.theta, 0.0))
-    after = metrics_replay(correct(ds, sig), schedule, progress)
-    base_fit = replay(ds, est.schedule, config=est.config, progress=progress, label="declared model")
-    est.replays += 3
+    """The full pipeline of the module docstring. *before* is the vehicle as configured (declared
+    values and the dataset's own ``[calibration]``, if any); *after* is the same replay with the
+    table this calibration writes back (``ins_config``), i.e. exactly what ``v2xpos replay`` gives
+    on the ``--write-dataset`` descriptor."""
+    from .writeback import calibration_table
+    n_active = int(active_parameters(ds.platform).sum())
+    bar = Progress(progress, total=6 + gn_iterations * (n_active + 4) + 3 + 8)
+    try:
+        est = Estimator(ds, progress=bar)
+        before = metrics_replay(ds, schedule, bar, "before: the vehicle as declared")
+        theta_c = est.coarse()
+        theta = est.gauss_newton(theta_c, iterations=gn_iterations)
+        f, prob, out_fit = est.refine(ds, theta, iterations=2)
+        f = est.confirm(ds, f, prob)
+        a, b = identify.halves(prob)
+        f1 = identify.fit(a, systematic_sd=est.systematic_sd())
+        f2 = identify.fit(b, systematic_sd=est.systematic_sd())
+        sig = EffectSet.from_vector(np.where(f.significant, f.theta, 0.0))
+        source = str(getattr(ds, "source", "") or ds.name)
+        noise = None
+        if "gyro_noise_rps_rthz" in est.config:
+            # the predictor's IMU noise (``Estimator.tune``) goes back into the vehicle with the fit
+            noise = (est.config["gyro_noise_rps_rthz"], est.config["accel_noise_mps2_rthz"], len(ds.imu.t_s))
+        table = calibration_table(f.theta, f.sd, f.significant, f.determined, est.prior_sd, ds.lever_arm_sd_m,
+                                  source=source, imu_noise=noise)
+        after = metrics_replay(with_calibration(ds, table), schedule, bar, "after: the calibrated vehicle")
+        online = agreement(f, est.online(), est.online_t_end_s)
+        base_fit = est._replay(ds, np.zeros(N_PARAMS), "declared model (report)")
+    finally:
+        bar.close()
     return Calibration(dataset=ds.name, fit=f, problem=prob, theta_coarse=theta_c, fit_first=f1,
                        fit_second=f2, effects_significant=sig, before=before, after=after,
                        log_before=base_fit.log, log_after=out_fit.log, coarse_report=est.coarse_report,
-                       replays=est.replays)
+                       replays=est.replays + 2, table=table, tuning=est.tuning, source=source, online=online)
+
+
+def agreement(f: Fit, online: dict, t_end_s: float) -> list[dict]:
+    """Offline estimate against the live filter's state per effect: ``z = (online - offline) /
+    sqrt(sd_on^2 + sd_off^2)``, agreeing when |z| <= 2. The offline IMU offset is moved to the end
+    of the drive with its clock drift (the online state is the offset at that time)."""
+    rows = []
+    for i, (v_on, sd_on) in sorted(online.items()):
+        v_off, var_off = float(f.theta[i]), float(f.sd[i]) ** 2
+        if i == P_TIME_OFFSET:
+            g = np.zeros(N_PARAMS)
+            g[P_TIME_OFFSET], g[P_CLOCK_DRIFT] = 1.0, 1e-6 * t_end_s
+            v_off = float(g @ f.theta)
+            var_off = max(float(g @ f.cov @ g), var_off)
+        comb = np.sqrt(var_off + sd_on ** 2)
+        z = (v_on - v_off) / comb if comb > 0 else np.inf
+        rows.append({"index": int(i), "name": PARAM_NAMES[i], "offline": v_off, "offline_sd": float(np.sqrt(var_off)),
+                     "online": v_on, "online_sd": sd_on, "z": float(z), "agree": bool(abs(z) <= 2.0),
+                     "determined": bool(f.determined[i])})
+    return rows
 
 
 # ---------------------------------------------------------------------------------- JSON
 def _entry(f: Fit, sl, scale: float = 1.0) -> dict:
     if isinstance(sl, slice):
         return {"value": (f.theta[sl] * scale).tolist(), "sd": (f.sd[sl] * scale).tolist(),
-                "significant": [bool(x) for x in f.significant[sl]]}
-    return {"value": float(f.theta[sl] * scale), "sd": float(f.sd[sl] * scale), "significant": bool(f.significant[sl])}
+                "significant": [bool(x) for x in f.significant[sl]],
+                "determined": [bool(x) for x in f.determined[sl]]}
+    return {"value": float(f.theta[sl] * scale), "sd": float(f.sd[sl] * scale), "significant": bool(f.significant[sl]),
+            "determined": bool(f.determined[sl])}
 
 
 def effects_json(f: Fit) -> dict:
-    """The ``effects`` object of the calibrate JSON (angles in degrees)."""
-    deg = 180.0 / np.pi
-    return {"imu_time_offset_s": _entry(f, P_TIME_OFFSET),
-            "imu_clock_drift_ppm": _entry(f, P_CLOCK_DRIFT),
-            "gnss_latency_s": _entry(f, P_GNSS_LATENCY),
-            "imu_misalignment_deg": _entry(f, P_MISALIGN, deg),
-            "gnss_lever_arm_m": _entry(f, P_LEVER_ARM),
-            "gyro_scale": _entry(f, P_GYRO_SCALE),
-            "accel_scale": _entry(f, P_ACCEL_SCALE)}
+    """The ``effects`` object of the calibrate JSON (angles in degrees). ``determined`` is false where
+    the recording could not tell the effect (sd not below half the prior's: the value is then the
+    prior's, not a measurement; ``identify.DETERMINED_RATIO``)."""
+    from .writeback import EFFECT_SLICES
+    return {name: _entry(f, sl, k) for name, (sl, k) in EFFECT_SLICES.items()}
 
 
 METRIC_KEYS = ("outage_h_rms_m", "outage_h_max_m", "aided_h_rms_m", "nis_mean")
@@ -533,32 +706,54 @@ def to_json(cal: Calibration) -> dict:
     return {"dataset": cal.dataset,
             "effects": effects_json(cal.fit),
             "before": {k: cal.before[k] for k in METRIC_KEYS},
-            "after": {k: cal.after[k] for k in METRIC_KEYS}}
+            "after": {k: cal.after[k] for k in METRIC_KEYS},
+            "online_agreement": {r["name"]: {k: r[k] for k in ("offline", "offline_sd", "online", "online_sd", "z", "agree")}
+                                 for r in cal.online}}
 
 
 # ---------------------------------------------------------------------------------- command
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset", help="dataset.toml of the recording")
-    parser.add_argument("--json", help="write the result JSON here")
+    parser.add_argument("--json", help="write the result JSON here ('-': to stdout, the summary then goes to stderr)")
     parser.add_argument("--plots", help="directory for the report (PNG figures + report.md)")
+    parser.add_argument("--write-dataset", metavar="OUT.toml",
+                        help="write a dataset descriptor: the input's declared tables (paths relative to OUT) "
+                             "and a [calibration] table with the effects found")
     add_schedule_arguments(parser)
+    add_input_arguments(parser)
     parser.add_argument("--iterations", type=int, default=2, help="Gauss-Newton iterations (default 2)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
 def run(args: argparse.Namespace) -> int:
-    ds = load_for_command(args.dataset, "calibrate")
+    """``v2xpos calibrate``: 2 (with the file and key named) when the inputs cannot be used; the
+    input warnings go into the JSON (``input_checks``)."""
+    ds = load_for_command(args.dataset, "calibrate", args.min_overlap)
     if ds is None:
         return 2
+    if args.check:
+        return check_only(ds, "calibrate", args.json)
     schedule = OutageSchedule(args.outage_length, args.outage_every, args.outage_first)
     cal = calibrate_dataset(ds, schedule, progress=not args.no_progress, gn_iterations=args.iterations)
     out = to_json(cal)
+    out["input_checks"] = ds.notes.get("input_check", {})
+    out["warnings"] = len(out["input_checks"].get("warnings", []))
     out["provenance"] = command_provenance("calibrate", args)
     text = json.dumps(out, indent=2)
-    if args.json:
+    if args.json == "-":
+        print(text)
+    elif args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(text + "\n")
-    print(text)
+    from .summary import summary_text
+    print(summary_text(cal), file=sys.stderr if args.json == "-" else sys.stdout)
+    if args.write_dataset:
+        from .writeback import write_dataset
+        if ds.source is None:
+            print("v2xpos calibrate: --write-dataset needs a dataset loaded from a descriptor (.toml)", file=sys.stderr)
+            return 2
+        path = write_dataset(ds.source, args.write_dataset, cal.table)
+        print(f"calibrated dataset: {path}", file=sys.stderr if args.json == "-" else sys.stdout)
     if args.plots:
         from .report import write_report
         path = write_report(cal, Path(args.plots))

@@ -58,11 +58,21 @@ class Fit:
     significant: np.ndarray = field(default_factory=lambda: np.zeros(N_PARAMS, bool))
     cv_gain: np.ndarray = field(default_factory=lambda: np.zeros(N_PARAMS))
     sd_white: np.ndarray = field(default_factory=lambda: np.zeros(N_PARAMS))
+    determined: np.ndarray = field(default_factory=lambda: np.ones(N_PARAMS, bool))
 
     def table(self) -> list[dict]:
         return [{"name": PARAM_NAMES[i], "value": float(self.theta[i]), "sd": float(self.sd[i]),
                  "sd_stat": float(self.sd_stat[i]), "significant": bool(self.significant[i]),
-                 "cv_gain": float(self.cv_gain[i])} for i in range(len(self.theta))]
+                 "determined": bool(self.determined[i]), "cv_gain": float(self.cv_gain[i])}
+                for i in range(len(self.theta))]
+
+
+DETERMINED_RATIO = 0.5
+"""An effect is *determined* by the recording when its sd is below half its prior sd, i.e. the data
+carry at least three times the prior's information (1/sd^2 >= 4/prior^2): its value then reflects
+the recording and not the prior. Otherwise (e.g. a vertical lever arm on a flat road, which moves
+the antenna only through roll and pitch; the split of IMU offset and GNSS latency) it is reported
+as not determined and is never significant."""
 
 
 def _solve(prob: LinearProblem, active: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -136,8 +146,10 @@ def fit(prob: LinearProblem, block_s: float = 10.0, systematic_sd: np.ndarray | 
     sd_white = np.sqrt(np.diag(cov_naive))
     scale = np.where(sd_white > 0, sd_stat / np.maximum(sd_white, 1e-300), 1.0)
     cov = cov_naive * np.outer(scale, scale)
+    determined = active & (sd < DETERMINED_RATIO * prob.prior_sd)
     return Fit(theta=theta, cov=cov, sd=sd, sd_stat=sd_stat, cost_before=cost(prob, np.zeros(N_PARAMS)),
-               cost_after=float(res @ res), n_rows=m, reduced_chi2=chi2, sd_white=sd_white)
+               cost_after=float(res @ res), n_rows=m, reduced_chi2=chi2, sd_white=sd_white,
+               determined=determined)
 
 
 def halves(prob: LinearProblem, t_split_s: float | None = None) -> tuple[LinearProblem, LinearProblem]:
@@ -167,7 +179,7 @@ def decide(prob: LinearProblem, f: Fit, n_sigma: float = 3.0, active: np.ndarray
     """Mark parameters significant: beyond n_sigma sd and a positive cross-validated gain."""
     active = prob.active if active is None else active
     f.cv_gain = cross_validated_gain(prob, active)
-    f.significant = active & (np.abs(f.theta) > n_sigma * f.sd) & (f.cv_gain > 0)
+    f.significant = active & f.determined & (np.abs(f.theta) > n_sigma * f.sd) & (f.cv_gain > 0)
     return f
 
 

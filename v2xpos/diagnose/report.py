@@ -23,6 +23,7 @@ import numpy as np
 from . import structure
 from .inject import PARAM_NAMES
 from .residuals import ResidualLog
+from .summary import DISPLAY, markdown_tables
 
 MIN_SPEED_MPS = 2.0
 
@@ -165,8 +166,12 @@ def write_report(cal, out_dir: Path) -> Path:
         axes[0].set_ylabel(before[name][2])
         axes[1].set_ylabel(after[name][2])
         i = PARAM_NAMES.index(name)
-        fig.suptitle(f"{name}: {f.theta[i]:+.4g} +- {f.sd[i]:.2g}  "
-                     f"({'significant' if f.significant[i] else 'not significant'})", fontsize=10)
+        _, label, unit, k = DISPLAY[i]
+        verdict = ("not determined" if not f.determined[i] else
+                   "significant" if f.significant[i] else "not significant")
+        value = "" if not f.determined[i] else f"{f.theta[i] * k:+.4g} "
+        fig.suptitle(f"{label}: {value}+- {f.sd[i] * k:.2g} {unit} ({verdict}) -- "
+                     f"{before[name][2]} against {before[name][3]}", fontsize=10)
         fig.tight_layout()
         p = out_dir / f"effect_{name}.png"
         fig.savefig(p, dpi=110)
@@ -182,6 +187,7 @@ def write_report(cal, out_dir: Path) -> Path:
         ax.bar(k[:len(oa)] + 0.2, oa, 0.4, label=f"after (RMS {cal.after['outage_h_rms_m']:.2f} m)", color="C2")
         ax.set_xlabel("outage #")
         ax.set_ylabel("horizontal error at outage end [m]")
+        ax.set_title(f"{cal.dataset}: horizontal error at the end of each simulated GNSS outage", fontsize=10)
         ax.legend()
         ax.grid(alpha=0.3, axis="y")
         fig.tight_layout()
@@ -190,35 +196,34 @@ def write_report(cal, out_dir: Path) -> Path:
 
     md = [f"# Calibration report: {cal.dataset}", "",
           "Effects estimated by a batch maximum-likelihood fit over the EKF innovations "
-          "(docs/calibration.md). Significant = |value| > 3 sd AND lower residual cost in both "
-          "halves of the recording when the effect is applied.", "",
-          "## Errors before / after", "",
-          "| metric | before | after |", "|---|---|---|"]
-    for k in ("outage_h_rms_m", "outage_h_max_m", "aided_h_rms_m", "nis_mean"):
-        b, a = cal.before.get(k), cal.after.get(k)
-        md.append(f"| {k} | {b:.3f} | {a:.3f} |" if b is not None and a is not None else f"| {k} | {b} | {a} |")
+          "(docs/calibration.md). Significant = beyond 3 sd and confirmed by replays without it; "
+          "not determined = the recording cannot tell the effect (its sd is not below half the prior's).",
+          "", "## Errors before / after and effects", ""]
+    md += markdown_tables(cal)
     md += ["", "![outage errors](outage_errors.png)" if len(ob) else "", "",
-           "## Effects", "",
-           "| effect | value | sd | significant | residual-cost gain | first half | second half | halves diff / combined sd |",
-           "|---|---|---|---|---|---|---|---|"]
+           "## Halves of the recording", "",
+           "| effect | unit | first half | second half | halves diff / combined sd | residual-cost gain |",
+           "|---|---|---|---|---|---|"]
     from .identify import compare
     z = compare(cal.fit_first, cal.fit_second)
-    for i, name in enumerate(PARAM_NAMES):
-        md.append(f"| {name} | {f.theta[i]:+.5g} | {f.sd[i]:.3g} | {'**yes**' if f.significant[i] else 'no'} | "
-                  f"{f.cv_gain[i]:.3g} | {cal.fit_first.theta[i]:+.4g} | {cal.fit_second.theta[i]:+.4g} | {z[i]:.2f} |")
+    for i, label, unit, k in DISPLAY:
+        md.append(f"| {label} | {unit} | {cal.fit_first.theta[i] * k:+.4g} | {cal.fit_second.theta[i] * k:+.4g} | "
+                  f"{z[i]:.2f} | {f.cv_gain[i]:.3g} |")
     md += ["", f"Rows in the fit: {f.n_rows}; reduced chi-square {f.reduced_chi2:.2f}; "
            f"replays: {cal.replays}.", "",
            "## Residual against the signal that reveals each effect", "",
            "| effect | signal | r before | p before | r after | p after |", "|---|---|---|---|---|---|"]
     for name, png in figures:
+        name_shown = DISPLAY[PARAM_NAMES.index(name)][1]
         cb = s_before.get(name, {}).get("correlation", {})
         ca = s_after.get(name, {}).get("correlation", {})
-        md.append(f"| {name} | {before[name][3]} | {cb.get('detail', {}).get('r', float('nan')):+.3f} | "
+        md.append(f"| {name_shown} | {before[name][3]} | {cb.get('detail', {}).get('r', float('nan')):+.3f} | "
                   f"{cb.get('p_value', float('nan')):.1e} | {ca.get('detail', {}).get('r', float('nan')):+.3f} | "
                   f"{ca.get('p_value', float('nan')):.1e} |")
     md.append("")
     for name, png in figures:
-        md += [f"### {name}", "", f"![{name}]({png})", ""]
+        name_shown = DISPLAY[PARAM_NAMES.index(name)][1]
+        md += [f"### {name_shown}", "", f"![{name_shown}]({png})", ""]
     path = out_dir / "report.md"
     path.write_text("\n".join(md) + "\n")
     return path

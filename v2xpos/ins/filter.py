@@ -70,6 +70,7 @@ class InsConfig:
     consistency_false_alarm: float = 1e-4         # of the windowed NIS test (chi-square quantile 1 - this)
     consistency_mean_z: float = 3.0               # limit of the windowed body-frame innovation mean (N(0, 1) units)
     verify_turn_deg: float = 45.0                 # turning that must pass the test before the solution is verified
+    reopen_on_inconsistency: bool = False         # a failed test reopens the effect states (_on_inconsistency)
     undeclared_lever_arm_sd_m: float = 0.5        # horizontal lever-arm sd the filter reopens to when its test fails
     reopen_all_effects: bool = True               # ... and every other effect state to its prior sd
     effect_initial_sd: dict = field(default_factory=dict)
@@ -542,7 +543,7 @@ class InsFilter:
         test restart (their innovations came from the filter before the reset)."""
         i = self.layout.at("lever_arm")
         sd = self.cfg.undeclared_lever_arm_sd_m
-        if i < 0 or not sd > 0:
+        if not self.cfg.reopen_on_inconsistency or i < 0 or not sd > 0:
             return
         reopen = [(i, sd), (i + 1, sd)]
         if self.cfg.reopen_all_effects:

@@ -2,7 +2,12 @@
 
 Outage schedule (seconds from the first GNSS epoch): outage i covers
 ``[first + i every, first + i every + length)``; GNSS is not used inside. Only outages that end
-before the last GNSS epoch count. Metrics (antenna position, horizontal/vertical):
+before the last GNSS epoch and that the IMU covers without a gap (``datasets.checks.imu_coverage``)
+count; the others are counted in ``outages_skipped_no_imu``.
+
+Inputs are checked before the run (``load_for_command``: descriptor, files, and the plausibility
+checks of ``v2xpos.datasets.checks``): an error stops the command with exit code 2 and a message
+naming the file and the key; warnings are printed and carried in the summary (``input_checks``). Metrics (antenna position, horizontal/vertical):
 
 * ``outage_*``: filter antenna position at the END of each outage minus the RTK-FIXED solution
   linearly interpolated to that time (the reference pose when the dataset has no fixed epochs);
@@ -118,7 +123,11 @@ def replay(dataset: Dataset, schedule: OutageSchedule | None = None, cfg: InsCon
         ref_t, ref_lla = np.asarray(dataset.reference.t_s), np.asarray(dataset.reference.lla)
     else:
         ref_t, ref_lla = np.zeros(0), np.zeros((0, 3))
+    from v2xpos.datasets.checks import covered, imu_coverage
     outages = schedule.intervals(float(gn.t_s[0]), float(gn.t_s[-1])) if len(gn) else []
+    coverage = imu_coverage(t_imu)
+    n_scheduled = len(outages)
+    outages = [o for o in outages if covered(o[0], o[1], coverage)]
     # only GnssData's own velocity is used (comma2k19's speed/bearing in the notes turned the heading
     # away by 25 deg on its highway segment: docs/ins.md); without it the alignment uses the course tracker
     vel, vel_sd = gn.vel_ned_mps, gn.vel_sd_ned_mps
@@ -249,6 +258,7 @@ def replay(dataset: Dataset, schedule: OutageSchedule | None = None, cfg: InsCon
         "gnss_epochs": int(len(gn)),
         "malformed_lines": int(dataset.malformed_lines),
         "outage_count": int(len(oe)),
+        "outages_skipped_no_imu": int(n_scheduled - len(outages)),
         "outage_h_rms_m": _rms(oh),
         "outage_h_max_m": float(oh.max()) if len(oh) else None,
         "outage_v_rms_m": _rms(oe[:, 2]),
@@ -263,6 +273,9 @@ def replay(dataset: Dataset, schedule: OutageSchedule | None = None, cfg: InsCon
         summary["reference_h_rms_m"] = _rms(np.hypot(re[:, 0], re[:, 1]))
         summary["reference_h_max_m"] = float(np.hypot(re[:, 0], re[:, 1]).max()) if len(re) else None
         summary["reference_v_rms_m"] = _rms(re[:, 2])
+    if "input_check" in dataset.notes:
+        summary["input_checks"] = dataset.notes["input_check"]
+        summary["warnings"] = len(dataset.notes["input_check"].get("warnings", []))
     summary["outage_h_m"] = oh.tolist()
     summary["effects"] = f.effects_report()
     summary["static_calibration"] = [e.as_dict() for e in f.calibrator.estimates]
@@ -409,14 +422,71 @@ def schedule_from_args(args: argparse.Namespace) -> OutageSchedule:
     return OutageSchedule(args.outage_length, args.outage_every, args.outage_first)
 
 
-def load_for_command(path: str, command: str) -> Dataset | None:
-    """Load a dataset for a command; on a bad file print why (naming it) and return None."""
+def add_input_arguments(parser: argparse.ArgumentParser) -> None:
+    """Input-check options shared by ``v2xpos replay`` and ``v2xpos calibrate``."""
+    from v2xpos.datasets.checks import MIN_OVERLAP_SHARE
+    parser.add_argument("--check", action="store_true",
+                        help="only check the inputs (descriptor, files, time overlap, mounting against "
+                             "gravity, rates and gaps): exit 2 on an error, 0 otherwise")
+    parser.add_argument("--min-overlap", type=float, default=MIN_OVERLAP_SHARE,
+                        help="least share of the recording that IMU and GNSS must have in common "
+                             f"(default {MIN_OVERLAP_SHARE})")
+
+
+def load_for_command(path: str, command: str, min_overlap_share: float | None = None) -> Dataset | None:
+    """Load a dataset for a command and check it (``v2xpos.datasets.checks``). On an error print
+    one line per problem (naming the file and the key) and return None; print the warnings, keep
+    the check in ``notes["input_check"]`` for the report, and drop GNSS epochs the IMU does not
+    cover (``restrict_to_imu_coverage``)."""
     from v2xpos.datasets import load_dataset
+    from v2xpos.datasets.checks import MIN_OVERLAP_SHARE, check_dataset, restrict_to_imu_coverage
+    import logging
+    loader_log = logging.getLogger("v2xpos.datasets.loader")
+    level = loader_log.level
+    loader_log.setLevel(logging.ERROR)   # the checks below restate its warnings, in the report too
     try:
-        return load_dataset(path)
+        ds = load_dataset(path)
     except (OSError, ValueError) as e:
-        print(f"v2xpos {command}: cannot load {path}: {e}", file=sys.stderr)
+        msg = " ".join(str(e).split())
+        print(f"v2xpos {command}: cannot load {msg if str(path) in msg else f'{path}: {msg}'}",
+              file=sys.stderr)
         return None
+    finally:
+        loader_log.setLevel(level)
+    chk = check_dataset(ds, MIN_OVERLAP_SHARE if min_overlap_share is None else min_overlap_share)
+    for f in chk.errors:
+        print(f"v2xpos {command}: {f.message}", file=sys.stderr)
+    if chk.errors:
+        return None
+    ds, dropped = restrict_to_imu_coverage(ds)
+    if dropped:
+        chk.add("warning", "overlap", f"{chk.source}: {dropped} GNSS epoch(s) outside the IMU's span not used")
+    for f in chk.warnings:
+        print(f"v2xpos {command}: warning: {f.message}", file=sys.stderr)
+    ds.notes["input_check"] = chk.as_dict()
+    return ds
+
+
+def note_warning(summary: dict, command: str, message: str) -> None:
+    """Print a warning found while running and add it to the summary's ``input_checks``."""
+    print(f"v2xpos {command}: warning: {message}", file=sys.stderr)
+    summary.setdefault("input_checks", {}).setdefault("warnings", []).append(message)
+    summary["warnings"] = len(summary["input_checks"]["warnings"])
+
+
+def check_only(ds: Dataset, command: str, json_path: str | None) -> int:
+    """``--check``: the inputs passed (errors were already reported); print the summary."""
+    chk = ds.notes.get("input_check", {})
+    rates = chk.get("rates", {})
+    ov = chk.get("overlap") or {}
+    print(f"v2xpos {command}: inputs OK: {ds.name}, {len(ds.imu)} IMU samples "
+          f"({rates.get('imu_rate_hz') or float('nan'):.1f} Hz), {len(ds.gnss)} GNSS epochs "
+          f"({rates.get('gnss_rate_hz') or float('nan'):.1f} Hz), IMU/GNSS overlap "
+          f"{100 * ov.get('share', float('nan')):.0f} %, {len(chk.get('warnings', []))} warning(s)")
+    if json_path:
+        Path(json_path).parent.mkdir(parents=True, exist_ok=True)
+        Path(json_path).write_text(json.dumps({"dataset": ds.name, "input_checks": chk}, indent=2))
+    return 0
 
 
 def command_provenance(command: str, args: argparse.Namespace) -> dict:
@@ -433,6 +503,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``v2xpos replay``."""
     parser.add_argument("dataset", help="dataset.toml (or a dataset directory, e.g. a comma2k19 segment)")
     add_schedule_arguments(parser)
+    add_input_arguments(parser)
     parser.add_argument("--json", help="write the summary JSON here")
     parser.add_argument("--plots", help="write PNG plots into this directory")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -444,10 +515,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """``v2xpos replay``: print the summary, optionally write the JSON and plots; 2 if unloadable."""
-    ds = load_for_command(args.dataset, "replay")
+    """``v2xpos replay``: print the summary, optionally write the JSON and plots; 2 if the inputs
+    cannot be used (the message names the file and the key)."""
+    ds = load_for_command(args.dataset, "replay", args.min_overlap)
     if ds is None:
         return 2
+    if args.check:
+        return check_only(ds, "replay", args.json)
     sched = schedule_from_args(args)
     writer = None
     if args.solution:
@@ -467,14 +541,21 @@ def run(args: argparse.Namespace) -> int:
             writer.close()
     if writer is not None:
         print(f"{'solution':>20}: {writer.rows} epochs -> {args.solution}")
-    keys = ("dataset", "imu_samples", "gnss_epochs", "malformed_lines", "outage_count", "outage_h_rms_m",
+    if res.summary["outage_count"] == 0:
+        note_warning(res.summary, "replay",
+                     f"{ds.source or ds.name}: no outage was scored ({res.summary['outages_skipped_no_imu']} "
+                     "scheduled outage(s) not covered by the IMU); the recording may be shorter than "
+                     "--outage-first + --outage-length")
+    keys = ("dataset", "imu_samples", "gnss_epochs", "malformed_lines", "warnings", "outage_count",
+            "outages_skipped_no_imu", "outage_h_rms_m",
             "outage_h_max_m", "outage_v_rms_m", "aided_h_rms_m", "aided_h_rms_steady_m", "wall_s",
             "imu_samples_per_s",
             "reference_h_rms_m")
     for k in keys:
         if k in res.summary:
             v = res.summary[k]
-            print(f"{k:>20}: {v:.4g}" if isinstance(v, float) else f"{k:>20}: {v}")
+            print(f"{k:>20}: {v:.4g}" if isinstance(v, float) else
+                  f"{k:>20}: {'n/a' if v is None else v}")
     eff = res.summary["effects"]
     print(f"{'effects':>20}: time offset {eff['imu_time_offset_s'] * 1e3:.1f} ms, lever arm "
           f"{np.round(eff['lever_arm_m'], 3).tolist()} m, misalignment "

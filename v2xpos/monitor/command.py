@@ -119,7 +119,6 @@ def run_bench(args: argparse.Namespace) -> int:
     and this process as the monitor, with the web page polled at 5 Hz and the table rendered at
     every snapshot, as a user would run it. Reports the monitor process's CPU [% of one core] and
     the delay from a flip's first result to the first snapshot / table showing it."""
-    from v2xpos.link import Link
     import socket
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -138,6 +138,7 @@ class MonitorState:
         self._trails: dict[str, deque] = {}
         self._trail_last: dict[str, float] = {}
         self._changes: dict[str, tuple[str, float]] = {}      # target -> (status, wall time first seen)
+        self._last_pose: dict[str, tuple[float, float, float | None]] = {}   # target -> last x, y, yaw
         self.version = 0
 
     # ------------------------------------------------------------------ inputs
@@ -257,6 +258,10 @@ class MonitorState:
             if prev is None or prev[0] != row["status"]:
                 self._changes[tid] = (row["status"], t_wall_s)
             row["status_since_wall_s"] = self._changes[tid][1]
+            if row["x_m"] is not None and row["y_m"] is not None:
+                self._last_pose[tid] = (row["x_m"], row["y_m"], row["rel_yaw_deg"])
+            # where it was last seen, for a target whose status carries no position (e.g. TIMEOUT)
+            row["last_x_m"], row["last_y_m"], row["last_rel_yaw_deg"] = self._last_pose.get(tid, (None, None, None))
             self._trail(tid, row, t_wall_s)
             rows.append(row)
         rows.sort(key=sort_key)

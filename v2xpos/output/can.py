@@ -410,7 +410,7 @@ class FramePacker:
     def _compile(self):
         """``pack`` as a function generated for this layout (constants inlined: ~2x faster than a
         loop over the field table; same arithmetic)."""
-        lines = [f"def pack(values):", f"    ({', '.join(f'v{i}' for i in range(len(self._fields)))},) = values",
+        lines = ["def pack(values):", f"    ({', '.join(f'v{i}' for i in range(len(self._fields)))},) = values",
                  "    w = 0"]
         for i, (start, mask, scale, offset, lo, hi, special) in enumerate(self._fields):
             v = f"v{i}"

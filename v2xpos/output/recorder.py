@@ -52,12 +52,12 @@ from typing import Any, Iterator
 
 import numpy as np
 import orjson
-from mcap.records import Channel, Message, Metadata, Schema
+from mcap.records import Channel, Message, Metadata
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from v2xpos.types import FixStatus, NavState
-from v2xpos.wire import FixSide, RelativeResult, WireError, decode_relative, decode_state, encode_relative
+from v2xpos.wire import RelativeResult, WireError, decode_relative, decode_state, encode_relative
 
 TOPIC_RX = "/v2xpos/rx"
 TOPIC_RAW_RX = "/v2xpos/raw/rx"
@@ -414,7 +414,7 @@ class McapRecorder:
             if self._origin is None:
                 self._origin = np.array(doc["lla"], float)
                 self._write_lanes(t_ns)
-            if self._viz_due(f"nav", t_ns):
+            if self._viz_due("nav", t_ns):
                 from v2xpos.output import foxglove as fg
                 mid = self.master_id
                 self._add_raw(self._location_channel(mid),

@@ -1,19 +1,25 @@
 """``v2xpos grade``: grade the IMU units of a multi-IMU recording (or of simulated vehicles).
 
     v2xpos grade CONFIG_OR_DIR [--reference UNIT] [--json FILE] [--plots DIR]
-    v2xpos grade --simulate faults [--seeds N] [--json FILE]     (fault sweep, issue 5 numbers)
-    v2xpos grade --simulate lidar [--json FILE] [--plots DIR]    (pose-aided rate check, KISS-ICP)
+    (simulated vehicles: ``v2xpos bench grading faults|lidar``, bench/grading.py)
 
 CONFIG_OR_DIR: a quadrotor_mimu path folder, or a dataset toml (``layout = "quadrotor_mimu"``) that
 may carry a ``[grade]`` table: ``reference = "IMU_1"``, ``window_s``, ``step_s`` and
-``[grade.mounting_xyz_deg]`` with ``UNIT = [a, b, c]`` (X-Y-Z order, deg, unit -> body).
+``[grade.mounting_xyz_deg]`` with ``UNIT = [a, b, c]`` (X-Y-Z order, deg, unit -> body). Unknown
+keys are errors naming the file, the table and the key.
+
+Coverage (``check_coverage``): every unit's time span is compared with the recording's span (the
+union of all units); a unit covering less than ``COVERAGE_WARN`` of it gets a ``coverage`` check
+(warn; fail below ``COVERAGE_FAIL``), every unit is graded on the span all units share, and the
+cut is stated in the report (``coverage``, ``warnings``) and on stderr. A common span shorter
+than ``MIN_COMMON_S``, a unit with too few samples, an empty or header-only file are errors (exit 2)
+naming the file.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 from typing import TextIO
 
@@ -24,6 +30,14 @@ from v2xpos.types import MultiImuRecording
 from .fleet import GradeConfig
 from .grader import grade_units, public_report
 
+GRADE_KEYS = ("reference", "window_s", "step_s", "mounting_xyz_deg")
+COVERAGE_WARN = 0.95
+COVERAGE_FAIL = 0.5
+MIN_COMMON_S = 5.0
+"""Shortest span all units must share to be graded [s] (a few sliding windows and the clock
+offset search margins)."""
+MIN_UNIT_SAMPLES = 16
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("path", nargs="?", help="quadrotor_mimu path folder or dataset toml")
@@ -33,9 +47,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--window-s", type=float, default=None, help="sliding window length [s] (default 1)")
     parser.add_argument("--step-s", type=float, default=None, help="sliding window step [s] (default 0.5)")
     parser.add_argument("--no-fusion", action="store_true", help="skip the second parameter (fused differences)")
-    parser.add_argument("--simulate", choices=("faults", "lidar"),
-                        help="grade simulated vehicles instead of a recording")
-    parser.add_argument("--seeds", type=int, default=20, help="seeds per fault for --simulate faults")
+    parser.add_argument("--check", action="store_true",
+                        help="only check the inputs (files, [grade] table, each unit's coverage): exit 2 "
+                             "on an error, 0 otherwise (warnings printed and in --json)")
 
 
 def _json_default(o):
@@ -69,7 +83,7 @@ def _write_json(path: Path, obj: dict, args: argparse.Namespace | None = None) -
         if args.path:
             p = Path(args.path)
             configs["recording"] = p if p.is_file() else str(p)
-        seeds = {"seeds": list(range(args.seeds))} if args.simulate == "faults" else None
+        seeds = {"seeds": list(range(args.seeds))} if getattr(args, "seeds", None) else None
         obj = {**obj, "provenance": provenance("grade", configs, seeds=seeds)}
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(_finite(obj), indent=1, default=_json_default, allow_nan=False))
@@ -80,13 +94,100 @@ def load_recording(path: str | Path) -> tuple[MultiImuRecording, dict]:
     """(MultiImuRecording, grade options dict) from a folder or a toml (see module doc)."""
     from v2xpos.datasets.loader import load_multi_imu, read_descriptor
 
+    from v2xpos.datasets.loader import check_keys
+
     p = Path(path)
     opts: dict = {}
     if p.is_file():
         opts = read_descriptor(p).get("grade", {})
         if not isinstance(opts, dict):
             raise ValueError(f"{p}: [grade] must be a table")
+        check_keys(opts, GRADE_KEYS, f"{p}: [grade]")
+        for key in ("window_s", "step_s"):
+            v = opts.get(key)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0
+                                  or not np.isfinite(v)):
+                raise ValueError(f"{p}: [grade] {key}: expected a positive number of seconds, got {v!r}")
+        if "reference" in opts and not isinstance(opts["reference"], str):
+            raise ValueError(f"{p}: [grade] reference: expected a unit id string, got {opts['reference']!r}")
     return load_multi_imu(p), opts
+
+
+def _unit_file(rec: MultiImuRecording, uid: str) -> str:
+    return str(Path(rec.source) / f"{uid}.csv") if rec.source is not None else uid
+
+
+def check_coverage(rec: MultiImuRecording, cfg: GradeConfig | None = None) -> tuple[MultiImuRecording, dict]:
+    """Check every unit's coverage and cut all units to the span they share (see the module doc).
+
+    Returns (recording cut to the common span, ``coverage`` report with ``warnings``). Raises
+    ValueError naming the file for a unit with too few samples or a common span that is too short.
+    """
+    from v2xpos.types import ImuData
+
+    warnings: list[str] = []
+    malformed = rec.notes.get("malformed", {}) if isinstance(rec.notes, dict) else {}
+    for fname, entry in malformed.items():
+        if isinstance(entry, dict) and entry.get("count"):
+            shown = "; ".join(f"line {e['line']}: {e['reason']}" for e in entry.get("examples", [])[:3])
+            warnings.append(f"{entry.get('source', fname)}: {entry['count']} malformed record(s) skipped ({shown})")
+    spans = {}
+    for uid, imu in rec.units.items():
+        t = np.asarray(imu.t_s, float)
+        if len(t) < MIN_UNIT_SAMPLES:
+            raise ValueError(f"{_unit_file(rec, uid)}: {len(t)} usable samples, need at least "
+                             f"{MIN_UNIT_SAMPLES} (empty, header only or every line malformed)")
+        spans[uid] = (float(t[0]), float(t[-1]))
+    u0 = min(a for a, _ in spans.values())
+    u1 = max(b for _, b in spans.values())
+    c0 = max(a for a, _ in spans.values())
+    c1 = min(b for _, b in spans.values())
+    total = u1 - u0
+    units = {}
+    for uid, (a, b) in spans.items():
+        share = (b - a) / total if total > 0 else 1.0
+        units[uid] = {"file": _unit_file(rec, uid), "span_s": [a, b], "share": share,
+                      "cut_start_s": max(0.0, c0 - a), "cut_end_s": max(0.0, b - c1)}
+    out = {"recording_span_s": [u0, u1], "common_span_s": [c0, c1], "common_s": max(0.0, c1 - c0),
+           "recording_s": total, "units": units, "warn_below": COVERAGE_WARN,
+           "fail_below": COVERAGE_FAIL, "warnings": warnings}
+    short = [uid for uid, u in units.items() if u["share"] < COVERAGE_WARN]
+    if c1 - c0 < MIN_COMMON_S:
+        limit = min(short or list(units), key=lambda u: units[u]["share"])
+        raise ValueError(f"{units[limit]['file']}: covers {spans[limit][0] - u0:.1f}-{spans[limit][1] - u0:.1f} s "
+                         f"of the recording's {total:.1f} s; the units share only {max(0.0, c1 - c0):.1f} s "
+                         f"(need at least {MIN_COMMON_S:.0f} s to grade)")
+    tol = max(0.5, 0.01 * total)
+    if short or any(u["cut_start_s"] > tol or u["cut_end_s"] > tol for u in units.values()):
+        listed = ", ".join(f"{units[u]['file']} covers {spans[u][0] - u0:.1f}-{spans[u][1] - u0:.1f} s"
+                           for u in (short or list(units)))
+        warnings.append(f"{rec.source or rec.name}: graded on the span all units share, "
+                        f"{c0 - u0:.1f}-{c1 - u0:.1f} s ({c1 - c0:.1f} s of {total:.1f} s): {listed}")
+    ref = rec.reference
+    if ref is not None and len(getattr(ref, "t_s", [])):
+        rt = np.asarray(ref.t_s, float)
+        inside = max(0.0, min(c1, rt[-1]) - max(c0, rt[0]))
+        out["reference_span_s"] = [float(rt[0]), float(rt[-1])]
+        if c1 > c0 and inside < COVERAGE_WARN * (c1 - c0):
+            warnings.append(f"{Path(rec.source) / 'GT.csv' if rec.source else 'reference'}: the reference "
+                            f"covers {inside:.1f} s of the {c1 - c0:.1f} s graded; fused differences and the "
+                            "rate check use that part only")
+    cut = {}
+    for uid, imu in rec.units.items():
+        t = np.asarray(imu.t_s, float)
+        keep = (t >= c0) & (t <= c1)
+        cut[uid] = ImuData(t_s=t[keep], acc_mps2=np.asarray(imu.acc_mps2)[keep],
+                           gyro_rps=np.asarray(imu.gyro_rps)[keep],
+                           counter_ms=None if imu.counter_ms is None else np.asarray(imu.counter_ms)[keep])
+    import dataclasses
+    return dataclasses.replace(rec, units=cut), out
+
+
+def coverage_checks(coverage: dict) -> dict[str, dict]:
+    """Per unit, the ``coverage`` check (share of the recording's span the unit covers)."""
+    from .verdict import check
+    return {uid: check("coverage", u["share"], COVERAGE_WARN, COVERAGE_FAIL, "fraction", above=False)
+            for uid, u in coverage["units"].items()}
 
 
 def _mounting(opts: dict, source: str) -> dict | None:
@@ -153,88 +254,46 @@ def reference_rate_checks(rec: MultiImuRecording, window_s: float | None = None)
     return out or None
 
 
-def grade_recording(path: str | Path, reference: str | None = None, cfg: GradeConfig | None = None,
-                    fusion: bool = True) -> dict:
-    """Load and grade a multi-IMU recording; returns the full report (with internals)."""
+def prepare_recording(path: str | Path, reference: str | None = None, cfg: GradeConfig | None = None) -> dict:
+    """Everything ``grade_recording`` checks before grading (``v2xpos grade --check``): load, the
+    ``[grade]`` table, coverage (units cut to the common span), reference and mounting unit ids.
+    Returns {'rec', 'coverage', 'reference', 'mounting', 'cfg'}; ValueError naming the file."""
     rec, opts = load_recording(path)
+    rec, coverage = check_coverage(rec)
     cfg = cfg or GradeConfig()
     cfg.window_s = float(opts.get("window_s", cfg.window_s))
     cfg.step_s = float(opts.get("step_s", cfg.step_s))
+    reference = reference or opts.get("reference")
+    if reference is not None and reference not in rec.units:
+        from v2xpos.datasets.calibration import did_you_mean
+        raise ValueError(f"{path}: reference unit {reference!r} is not among the units {list(rec.units)}"
+                         f"{did_you_mean(reference, rec.units)}")
+    mounting = _mounting(opts, str(path))
+    for uid in mounting or {}:
+        if uid not in rec.units:
+            from v2xpos.datasets.calibration import did_you_mean
+            raise ValueError(f"{path}: [grade.mounting_xyz_deg] {uid}: no such unit{did_you_mean(uid, rec.units)}; "
+                             f"units {list(rec.units)}")
+    return {"rec": rec, "coverage": coverage, "reference": reference, "mounting": mounting, "cfg": cfg}
+
+
+def grade_recording(path: str | Path, reference: str | None = None, cfg: GradeConfig | None = None,
+                    fusion: bool = True) -> dict:
+    """Load and grade a multi-IMU recording; returns the full report (with internals)."""
+    prep = prepare_recording(path, reference, cfg)
+    rec, coverage, reference, mounting, cfg = (prep[k] for k in ("rec", "coverage", "reference", "mounting", "cfg"))
     fixes = None
     if fusion and rec.reference is not None and getattr(rec.reference, "pos_ned_m", None) is not None:
         fixes = {"t_s": rec.reference.t_s, "r_ned_m": rec.reference.pos_ned_m, "sd_m": 0.05,
                  "source": "reference trajectory (GT.csv)"}
     rates = reference_rate_checks(rec) if fusion else None
-    rep = grade_units(rec.units, reference or opts.get("reference"), _mounting(opts, str(path)), cfg=cfg,
-                      fixes=fixes, rate_check=rates)
+    rep = grade_units(rec.units, reference, mounting, cfg=cfg, fixes=fixes, rate_check=rates,
+                      extra_checks=coverage_checks(coverage))
     rep["recording"] = rec.name
     rep["malformed_lines"] = rec.malformed_lines
+    rep["coverage"] = coverage
+    rep["warnings"] = coverage["warnings"]
     return rep
-
-
-def run_fault_sweep(seeds: int = 20, n_units: int = 3, duration_s: float = 60.0, progress: bool = True) -> dict:
-    """Grade simulated vehicles with one faulty unit per fault and seed (sim.imu_faults); returns
-    {'faults': {kind: {'detected', 'runs', 'healthy_fail', 'healthy_warn', 'healthy_units'}}, 'clean': {...}}."""
-    from tqdm import tqdm
-
-    from sim.imu_faults import FAULTS, simulate_vehicle
-
-    res = {}
-    kinds = [None, *FAULTS]
-    bar = tqdm(total=len(kinds) * seeds, disable=not progress, file=sys.stderr, desc="fault sweep")
-    for kind in kinds:
-        r = {"runs": seeds, "detected": 0, "healthy_units": 0, "healthy_fail": 0, "healthy_warn": 0,
-             "missed_seeds": []}
-        for seed in range(seeds):
-            v = simulate_vehicle(n_units, kind, seed, duration_s)
-            rep = grade_units(v.units, mounting_xyz_deg=v.mounting_xyz_deg)
-            for u in rep["units"]:
-                if u["id"] == v.faulty:
-                    if u["grade"] == "fail":
-                        r["detected"] += 1
-                    else:
-                        r["missed_seeds"].append(seed)
-                else:
-                    r["healthy_units"] += 1
-                    r["healthy_fail"] += u["grade"] == "fail"
-                    r["healthy_warn"] += u["grade"] == "warn"
-            bar.update()
-        res[kind or "none"] = r
-    bar.close()
-    return res
-
-
-def run_lidar_check(seed: int = 0, duration_s: float = 4.0, scale_error: float = 0.03) -> dict:
-    """Pose-aided rate check end to end: truth turn -> ray-cast scans -> KISS-ICP poses -> angular
-    rate; one healthy and one scale-faulty gyro. Returns yaw-rate recovery and both checks."""
-    from sim.imu_faults import FaultSpec, inject_fault
-    from sim.lidar import LidarModel, courtyard, kiss_icp_poses, simulate_scans
-    from sim.sensors import ImuErrorModel, simulate_imu
-    from sim.trajectory import Segment, generate
-
-    from .rate_check import angular_rates_from_poses, rate_check
-
-    speed, yaw_rate = 5.0, 0.3
-    radius = speed / yaw_rate
-    traj = generate([Segment(duration_s + 2.0, yaw_rate_rps=yaw_rate)], dt_s=0.01, speed0_mps=speed,
-                    smooth_tau_s=0.0, r0_ned_m=np.array([0.0, -radius, 0.0]))
-    scene = courtyard(n_cylinders=20, n_boxes=10, ground=False, seed=seed)
-    model = LidarModel(azimuth_step_deg=0.25, elevations_deg=np.linspace(-10.0, 20.0, 16))
-    rng = np.random.default_rng(seed)
-    seq = simulate_scans(traj, scene, model, rng, t_start_s=traj.t_s[0] + 1.0, duration_s=duration_s)
-    poses = kiss_icp_poses(seq)
-    t_mid, w_pose = angular_rates_from_poses(seq.t_s, poses)
-    yaw_icp = float(np.mean(w_pose[:, 2]))
-    yaw_true = float(np.mean(np.interp(t_mid, traj.t_s, traj.w_nb_b_rps[:, 2])))
-    imu = simulate_imu(traj, ImuErrorModel.preset("automotive", rng), rng=rng)
-    bad = inject_fault(imu, FaultSpec("gyro_scale", scale_error))
-    healthy = rate_check(seq.t_s, poses, imu.t_s, imu.gyro_rps, window_s=2.0)
-    faulty = rate_check(seq.t_s, poses, bad.t_s, bad.gyro_rps, window_s=2.0)
-    return {"n_scans": len(seq.scans), "points_per_scan": int(np.mean([len(s) for s in seq.scans])),
-            "yaw_rate_true_dps": float(np.degrees(yaw_true)), "yaw_rate_icp_dps": float(np.degrees(yaw_icp)),
-            "yaw_rate_rel_error": float(yaw_icp / yaw_true - 1.0),
-            "healthy": healthy.as_dict(), "scale_fault": faulty.as_dict(),
-            "_results": {"healthy": healthy, f"scale {scale_error:.0%}": faulty}}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -243,42 +302,31 @@ def run(args: argparse.Namespace) -> int:
         cfg.window_s = args.window_s
     if args.step_s:
         cfg.step_s = args.step_s
-    if args.simulate == "faults":
-        t0 = time.perf_counter()
-        res = run_fault_sweep(args.seeds)
-        print(f"{'fault':<16} {'faulty unit graded fail':<24} {'healthy fail':<13} healthy warn")
-        for k, r in res.items():
-            det = f"{r['detected']}/{r['runs']}" if k != "none" else "-"
-            print(f"{k:<16} {det:<24} {r['healthy_fail']}/{r['healthy_units']:<11} {r['healthy_warn']}")
-        print(f"({time.perf_counter() - t0:.1f} s)")
-        if args.json:
-            _write_json(args.json, {"seeds": args.seeds, "faults": res}, args)
-        ok = all(r["healthy_fail"] == 0 for r in res.values()) and \
-            all(r["detected"] == r["runs"] for k, r in res.items() if k != "none")
-        return 0 if ok else 1
-    if args.simulate == "lidar":
-        res = run_lidar_check()
-        print(f"scans {res['n_scans']} ({res['points_per_scan']} points each); yaw rate true "
-              f"{res['yaw_rate_true_dps']:.3f} dps, KISS-ICP {res['yaw_rate_icp_dps']:.3f} dps "
-              f"({100 * res['yaw_rate_rel_error']:+.2f} %)")
-        for name in ("healthy", "scale_fault"):
-            r = res[name]
-            print(f"{name:<12} mean |w_imu|-|w_pose| {r['mean_diff_dps']:+.3f} dps, threshold "
-                  f"{r['threshold_dps']:.3f} dps -> {'ANOMALY' if r['anomaly'] else 'ok'}")
-        if args.plots:
-            from .plots import plot_rate_check
-            print(f"wrote {plot_rate_check(res['_results'], Path(args.plots) / 'rate_check.png')}")
-        if args.json:
-            _write_json(args.json, {k: v for k, v in res.items() if not k.startswith("_")}, args)
-        return 0
     if not args.path:
-        print("v2xpos grade: give CONFIG_OR_DIR or --simulate", file=sys.stderr)
+        print("v2xpos grade: give CONFIG_OR_DIR (simulated vehicles: v2xpos bench grading faults|lidar)",
+              file=sys.stderr)
         return 2
+    if args.check:
+        try:
+            prep = prepare_recording(args.path, args.reference, cfg)
+        except (ValueError, OSError) as exc:
+            print(f"v2xpos grade: {' '.join(str(exc).split())}", file=sys.stderr)
+            return 2
+        cov = prep["coverage"]
+        for w in cov["warnings"]:
+            print(f"v2xpos grade: warning: {w}", file=sys.stderr)
+        print(f"v2xpos grade: inputs OK: {len(prep['rec'].units)} units, common span {cov['common_s']:.1f} s "
+              f"of {cov['recording_s']:.1f} s, {len(cov['warnings'])} warning(s)")
+        if args.json:
+            _write_json(args.json, {"recording": prep["rec"].name, "coverage": cov, "warnings": cov["warnings"]})
+        return 0
     try:
         rep = grade_recording(args.path, args.reference, cfg, fusion=not args.no_fusion)
     except (ValueError, OSError) as exc:
-        print(f"v2xpos grade: {exc}", file=sys.stderr)
+        print(f"v2xpos grade: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
+    for w in rep.get("warnings", []):
+        print(f"v2xpos grade: warning: {w}", file=sys.stderr)
     print_table(rep)
     if args.plots:
         from .plots import plot_first_parameter

@@ -18,7 +18,7 @@ from . import alignment as al
 from .bias import unit_bias_stability
 from .consistency import box_stats, pcc_stats
 from .fleet import AXES, FleetComparison, GradeConfig, compare_units
-from .verdict import Thresholds, check, fused_checks, unit_checks, worst
+from .verdict import Thresholds, accel_pcc_check, check, fused_checks, unit_checks, worst
 
 
 def _per_axis(values: np.ndarray, scale: float = 1.0) -> list[float]:
@@ -67,13 +67,15 @@ def choose_reference(scores: dict) -> str:
 def grade_units(units: dict[str, ImuData], reference: str | None = None,
                 mounting_xyz_deg: dict | None = None, thresholds: Thresholds | None = None,
                 cfg: GradeConfig | None = None, fixes: dict | None = None,
-                rate_check: dict | None = None, bias_stops: bool = True) -> dict:
+                rate_check: dict | None = None, bias_stops: bool = True,
+                extra_checks: dict[str, dict] | None = None) -> dict:
     """Grade every unit; returns the report dict (JSON-ready after ``public_report``).
 
     fixes: position fixes for the second parameter, {'t_s', 'r_ned_m' (N, 3 local NED), 'sd_m',
     'source'} on the units' time axis (GNSS converted to local NED, or a reference trajectory);
     rate_check: unit id -> ``RateCheckResult.as_dict()`` from a pose source. Both optional; units
-    without them get no ``fused_diff`` / ``rate_check`` entry.
+    without them get no ``fused_diff`` / ``rate_check`` entry. extra_checks: unit id -> one more
+    check dict (e.g. the recording's ``coverage``).
     """
     th = thresholds or Thresholds()
     cfg = cfg or GradeConfig()
@@ -115,6 +117,10 @@ def grade_units(units: dict[str, ImuData], reference: str | None = None,
         has_motion = any(fc.pair(uid, v).pcc_signal.any() for v in fc.unit_ids if v != uid)
         pcc_min = 1.0 - s["pcc_deficit"]["score"] if has_motion else None
         checks = unit_checks(uid, s, stuck, pcc_min, th)
+        if has_motion and uid != ref:
+            checks.append(accel_pcc_check(entry["pcc"]["accel"], th))
+        if extra_checks and uid in extra_checks:
+            checks.append(extra_checks[uid])
         if bias_stops:
             m = (mounting_xyz_deg or {}).get(uid)
             bs = unit_bias_stability(fc.units[uid], None if m is None else al.mounting_dcm(m))

@@ -8,6 +8,11 @@ Absolute checks (any number of units):
     gyro similarity   median window PCC, axes with motion     warn < 0.75,   fail < 0.5
     fused difference  P90 attitude / position difference     (two units only) warn > 5 deg / 1 m,
                                                               fail > 15 deg / 3 m
+    fused plausible   P90 attitude / position difference     fail > 45 deg / 10 m, with any number
+                                                              of units (a ratio to equally bad
+                                                              units would pass)
+    accel similarity  best axis median window accel PCC       warn < 0.5, fail < 0.3 (not the
+                      against the reference, with motion      reference itself)
     pose-aided rate   mean |w_pose| - |w_gyro| difference     anomaly -> fail
     bias stability    spread of per-stop gyro biases (>= 2)   warn > 0.1 deg/s, fail > 0.3 deg/s
 
@@ -64,6 +69,10 @@ class Thresholds:
     fused_fail_ratio: float = 3.0
     fused_att_floor_deg: float = 0.1
     fused_pos_floor_m: float = 0.02
+    fused_att_implausible_deg: float = 45.0
+    fused_pos_implausible_m: float = 10.0
+    accel_pcc_warn: float = 0.5
+    accel_pcc_fail: float = 0.3
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -123,6 +132,15 @@ def unit_checks(unit: str, scores: dict, stuck_s: float, pcc_min: float | None,
     return out
 
 
+def accel_pcc_check(accel_pcc: list[float], th: Thresholds) -> dict:
+    """Absolute accelerometer similarity: the best axis's median window PCC against the reference.
+    Healthy units on one frame correlate on the axis with the most motion whatever the others do
+    (the quieter axes may not: noise and vibration dominate them)."""
+    vals = [v for v in accel_pcc if v is not None and np.isfinite(v)]
+    return check("accel_pcc", max(vals) if vals else None, th.accel_pcc_warn, th.accel_pcc_fail, "pcc",
+                 above=False)
+
+
 def fused_checks(unit: str, fused: dict, th: Thresholds) -> list[dict]:
     """Second-parameter checks of one non-reference unit. fused: unit id -> fused_diff entry of
     every non-reference unit. With other non-reference units the P90 is compared with the median
@@ -142,4 +160,7 @@ def fused_checks(unit: str, fused: dict, th: Thresholds) -> list[dict]:
         else:
             c = check(name, p90, warn_abs, fail_abs, key.split("_")[1])
         out.append(c)
+        if others:
+            limit = th.fused_att_implausible_deg if key == "att_deg" else th.fused_pos_implausible_m
+            out.append(check(f"{name}_plausible", p90, limit, limit, key.split("_")[1]))
     return out

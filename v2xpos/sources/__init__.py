@@ -23,11 +23,6 @@ BUILTIN: dict[str, str] = {
 }
 
 
-def _load(ref: str) -> Callable:
-    module, _, attr = ref.partition(":")
-    return getattr(importlib.import_module(module), attr)
-
-
 def source_types() -> dict[str, str]:
     """Every known source type -> ``module:factory`` (built-in first, then entry points)."""
     out = dict(BUILTIN)
@@ -40,14 +35,16 @@ def source_types() -> dict[str, str]:
     return out
 
 
-def make_source(table: dict, where: str, ctx: SourceContext) -> VehicleSource:
-    """The source named by ``table["type"]``, built from the rest of the table."""
+def _factory_ref(table: dict, where: str) -> str:
+    """``module:function`` of the factory that builds ``table``'s type (SourceError if none)."""
     if not isinstance(table, dict):
         raise SourceError(f"{where}: expected a table")
     kinds = source_types()
     kind = table.get("type")
     if kind is None:
-        raise SourceError(f"{where}.type: missing; one of {sorted(kinds)}")
+        raise SourceError(f"{where}.type: required: one of {sorted(kinds)}")
+    if not isinstance(kind, str):
+        raise SourceError(f"{where}.type: expected a string (one of {sorted(kinds)}), got {kind!r}")
     factory_ref = table.get("factory")
     if factory_ref is not None:
         if not isinstance(factory_ref, str) or ":" not in factory_ref:
@@ -56,14 +53,41 @@ def make_source(table: dict, where: str, ctx: SourceContext) -> VehicleSource:
     elif kind not in kinds:
         from v2xpos.datasets.calibration import did_you_mean
         raise SourceError(f"{where}.type: {kind!r} is not one of {sorted(kinds)}{did_you_mean(str(kind), kinds)}")
+    return kinds[kind]
+
+
+def _module_attr(ref: str, where: str, kind: str, attr: str | None = None) -> Callable | None:
+    module, _, name = ref.partition(":")
     try:
-        factory = _load(kinds[kind])
-    except (ImportError, AttributeError) as exc:
-        raise SourceError(f"{where}.type: source {kind!r} ({kinds[kind]}) cannot be loaded: {exc}") from None
+        mod = importlib.import_module(module)
+    except ImportError as exc:
+        raise SourceError(f"{where}.type: source {kind!r} ({ref}) cannot be loaded: {exc}") from None
+    if attr is not None:
+        return getattr(mod, attr, None)
+    try:
+        return getattr(mod, name)
+    except AttributeError:
+        raise SourceError(f"{where}.type: source {kind!r}: {module} has no {name!r}") from None
+
+
+def make_source(table: dict, where: str, ctx: SourceContext) -> VehicleSource:
+    """The source named by ``table["type"]``, built from the rest of the table."""
+    ref = _factory_ref(table, where)
+    factory = _module_attr(ref, where, table["type"])
     rest = {k: v for k, v in table.items() if k != "type"}
     return factory(rest, where, ctx)
 
 
+def check_source_table(table: dict, where: str) -> None:
+    """Validate a ``[source]`` table without building the source (no file loaded, no port opened):
+    the type, and the keys through the factory module's ``check_table(table, where)`` when it has
+    one. SourceError naming ``where`` and the key. Service configs call it when they load."""
+    ref = _factory_ref(table, where)
+    check = _module_attr(ref, where, table["type"], attr="check_table")
+    if check is not None:
+        check({k: v for k, v in table.items() if k != "type"}, where)
+
+
 __all__ = ["SessionClock", "SourceContext", "SourceError", "Stopped", "VehicleSource", "make_source",
-           "run_until_stopped", "source_types",
+           "run_until_stopped", "source_types", "check_source_table",
            "ENTRY_POINT_GROUP"]

@@ -63,9 +63,16 @@ class SessionClock(ABC):
     """
 
     speed: float = 1.0
+    t_start_gps_s: float | None = None
+    """Where the session's own time starts (a scenario epoch, a recording's first sample); a
+    service's ``duration_s`` counts from here. None: from the moment ``start()`` returns."""
 
     @abstractmethod
     def now_gps_s(self) -> float: ...
+
+    def session_start_gps_s(self) -> float:
+        """``t_start_gps_s`` when the clock defines one, else the time now (call after ``start``)."""
+        return self.now_gps_s() if self.t_start_gps_s is None else float(self.t_start_gps_s)
 
     def wall_of(self, t_gps_s: float) -> float:
         """Host wall time [Unix s] at which the session reaches ``t_gps_s``."""

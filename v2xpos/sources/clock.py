@@ -67,6 +67,7 @@ class ReplayClock(SessionClock):
         if mode != "alone" and link is None:
             raise ValueError(f"a {mode} clock needs the service's link")
         self.t_begin_gps_s = float(t_begin_gps_s)
+        self.t_start_gps_s = self.t_begin_gps_s if mode != "follower" else None
         self.speed = float(speed)
         self.mode = mode
         self.link = link

@@ -246,10 +246,9 @@ class DeviceSource(VehicleSource):
             self.imu_stream.close()
 
 
-def from_config(table: dict, where: str, ctx: SourceContext) -> DeviceSource:
-    """The ``device`` source from its ``[source]`` table (``type`` already removed); the ports are
-    opened and their reader threads started. SourceError naming ``where`` and the key."""
-    from v2xpos.ins.calibrated import ins_config
+def check_table(table: dict, where: str) -> dict:
+    """Validate a ``device`` ``[source]`` table (``type`` removed) without opening anything; the
+    parsed values. SourceError naming ``where`` and the key."""
     if not isinstance(table, dict):
         raise SourceError(f"{where}: expected a table")
     for key in table:
@@ -284,7 +283,17 @@ def from_config(table: dict, where: str, ctx: SourceContext) -> DeviceSource:
         clock = clock_from_config(table.get("clock"), f"{where}.clock")
     except ValueError as exc:
         raise SourceError(str(exc)) from None
-    cfg = ins_config(platform, imu_to_body, lever, float(lever_sd), calibration)
+    return {"platform": platform, "imu_to_body": imu_to_body, "lever": lever, "lever_sd": float(lever_sd),
+            "window": float(window), "span": float(span), "calibration": calibration, "clock": clock}
+
+
+def from_config(table: dict, where: str, ctx: SourceContext) -> DeviceSource:
+    """The ``device`` source from its ``[source]`` table (``type`` already removed); the ports are
+    opened and their reader threads started. SourceError naming ``where`` and the key."""
+    from v2xpos.ins.calibrated import ins_config
+    v = check_table(table, where)
+    clock, calibration, window, span = v["clock"], v["calibration"], v["window"], v["span"]
+    cfg = ins_config(v["platform"], v["imu_to_body"], v["lever"], v["lever_sd"], calibration, integrity=True)
 
     holder: dict = {}
 

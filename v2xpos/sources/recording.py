@@ -19,19 +19,16 @@ is shifted onto another epoch.
 """
 from __future__ import annotations
 
-import logging
 import math
 import sys
 from pathlib import Path
 
-import numpy as np
 
 from v2xpos.types import FixStatus, NavState
 
 from .base import SessionClock, SourceContext, SourceError, VehicleSource
 from .clock import ReplayClock
 
-log = logging.getLogger(__name__)
 
 KEYS = ("dataset", "speed", "sync", "wait_for", "wait_timeout_s", "outline_m")
 
@@ -50,8 +47,9 @@ def _number(table: dict, key: str, default: float, where: str, lo: float, hi: fl
     return float(v)
 
 
-def from_config(table: dict, where: str, ctx: SourceContext) -> "RecordingSource":
-    """Build from a ``[source]`` table (without ``type``); errors name ``where`` and the key."""
+def check_table(table: dict, where: str) -> dict:
+    """Validate a ``recording`` ``[source]`` table (without ``type``) without loading anything; the
+    parsed values. SourceError naming ``where`` and the key."""
     _check_keys(table, where)
     path = table.get("dataset")
     if not isinstance(path, str) or not path:
@@ -69,22 +67,26 @@ def from_config(table: dict, where: str, ctx: SourceContext) -> "RecordingSource
                                 or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and x >= 0
                                            for x in outline)):
         raise SourceError(f"{where}.outline_m: expected [front, rear, half_width] in metres (>= 0)")
+    return {"dataset": path, "speed": speed, "sync": sync, "wait_for": tuple(wait_for), "wait_timeout_s": timeout,
+            "outline_m": outline}
+
+
+def from_config(table: dict, where: str, ctx: SourceContext) -> "RecordingSource":
+    """Build from a ``[source]`` table (without ``type``); errors name ``where`` and the key."""
+    v = check_table(table, where)
     try:
-        return RecordingSource(ctx.resolve(path), speed=speed, sync=sync, wait_for=tuple(wait_for),
-                               wait_timeout_s=timeout, outline_m=outline)
+        return RecordingSource(ctx.resolve(v.pop("dataset")), **v)
     except (OSError, ValueError) as exc:
         raise SourceError(f"{where}.dataset: {exc}") from None
 
 
 def ins_config_for(ds) -> "object":
     """The filter configuration of a recording: its declared mounting and lever arm, the platform's
-    vehicle constraints (car: NHC/ZUPT; pedestrian, generic: none)."""
-    from v2xpos.ins import InsConfig
-    plat = ds.platform if ds.platform in ("car", "pedestrian") else "generic"
-    if ds.calibration is not None and ds.calibration.effects:
-        log.warning("%s: [calibration] table present but not applied by the recording source yet", ds.source)
-    return InsConfig(platform=plat, imu_to_body=ds.imu_to_body, lever_arm_m=ds.lever_arm_m,
-                     lever_arm_sd_m=ds.lever_arm_sd_m, imu_noise_from_data=True)
+    vehicle constraints (car: NHC/ZUPT; pedestrian, generic: none) and its ``[calibration]`` table
+    when it has one (``v2xpos.ins.calibrated.dataset_ins_config``: the same function ``v2xpos
+    replay`` and the device source use, so a calibrated vehicle is the same filter everywhere)."""
+    from v2xpos.ins.calibrated import dataset_ins_config
+    return dataset_ins_config(ds, integrity=True)
 
 
 class RecordingSource(VehicleSource):

@@ -27,13 +27,16 @@ function legend() {
   el.innerHTML = Object.entries(COLORS).map(([k, c]) => `<span><i style="background:${c}"></i>${k}</span>`).join("");
 }
 
+let manualHalfRangeM = null;  // set by the zoom buttons; null = fit every target
+const STEPS = [15, 30, 60, 120, 250, 500, 1000];
+
 function chooseScale(rows) {
+  if (manualHalfRangeM !== null) { halfRangeM = manualHalfRangeM; return; }
   let need = 10;
   for (const r of rows) {
     if (r.x_m !== null && r.y_m !== null) need = Math.max(need, Math.abs(r.x_m) * 1.15 + 5, Math.abs(r.y_m) * 1.15 + 5);
   }
-  const steps = [15, 30, 60, 120, 250, 500, 1000];
-  let want = steps.find(s => s >= need) || steps[steps.length - 1];
+  let want = STEPS.find(s => s >= need) || STEPS[STEPS.length - 1];
   // grow at once, shrink only when everything fits in half of the view (no jumping back and forth)
   if (want > halfRangeM || want * 2 <= halfRangeM) halfRangeM = want;
 }
@@ -81,13 +84,29 @@ function drawTrail(points, color) {
   ctx.stroke(); ctx.restore();
 }
 
-function drawTarget(r) {
+function drawTarget(r, lastSeen) {
+  // lastSeen: the status carries no position; drawn hollow and dashed where it was last seen
   const color = colorOf(r.status);
   const g = r.geometry || DEFAULT_OUTLINE[r.kind] || DEFAULT_OUTLINE.vehicle;
-  const yaw = (r.rel_yaw_deg === null ? 0 : r.rel_yaw_deg) * Math.PI / 180;
+  const x = lastSeen ? r.last_x_m : r.x_m, y = lastSeen ? r.last_y_m : r.y_m;
+  const yawDeg = lastSeen ? r.last_rel_yaw_deg : r.rel_yaw_deg;
+  const yaw = (yawDeg === null ? 0 : yawDeg) * Math.PI / 180;
   const c = Math.cos(yaw), s = Math.sin(yaw);
-  const [cx, cy, scale] = toScreen(r.x_m, r.y_m);
+  const [cx, cy, scale] = toScreen(x, y);
   ctx.save(); ctx.fillStyle = color; ctx.strokeStyle = color; ctx.lineWidth = 2;
+  if (lastSeen) {
+    ctx.setLineDash([4, 3]); ctx.beginPath();
+    if (g.kind === "circle" || !g.points_m.length) ctx.arc(cx, cy, Math.max(5, (g.radius_m || 0.4) * scale), 0, 2 * Math.PI);
+    else g.points_m.forEach(([px, py], i) => {
+      const [sx, sy] = toScreen(x + c * px - s * py, y + s * px + c * py);
+      if (i) ctx.lineTo(sx, sy); else ctx.moveTo(sx, sy);
+    });
+    ctx.closePath(); ctx.stroke(); ctx.setLineDash([]);
+    ctx.fillStyle = "#000"; ctx.font = "11px sans-serif";
+    ctx.fillText(`${r.id} ${r.status} (last seen)`, cx + 8, cy - 8);
+    ctx.restore();
+    return { id: r.id, status: r.status, color: color, px: cx, py: cy, last_seen: true };
+  }
   if (g.kind === "circle" || !g.points_m.length) {
     ctx.beginPath(); ctx.arc(cx, cy, Math.max(4, (g.radius_m || 0.4) * scale), 0, 2 * Math.PI); ctx.fill();
   } else {
@@ -105,16 +124,30 @@ function drawTarget(r) {
   return { id: r.id, status: r.status, color: color, px: cx, py: cy };
 }
 
+let lastSnap = null;
+function zoom(step) {
+  const i = STEPS.indexOf(halfRangeM);
+  const k = Math.min(STEPS.length - 1, Math.max(0, (i < 0 ? 2 : i) + step));
+  manualHalfRangeM = STEPS[k];
+  if (lastSnap) drawView(lastSnap);
+}
+document.getElementById("zin").onclick = () => zoom(-1);
+document.getElementById("zout").onclick = () => zoom(1);
+document.getElementById("zauto").onclick = () => { manualHalfRangeM = null; if (lastSnap) drawView(lastSnap); };
+
 function drawView(snap) {
+  lastSnap = snap;
   chooseScale(snap.rows);
+  document.getElementById("zlabel").textContent =
+    `±${halfRangeM} m around the master (${manualHalfRangeM === null ? "auto" : "fixed"})`;
   drawGrid();
   drawLanes(snap.lanes || []);
   for (const r of snap.rows) drawTrail(snap.trails[r.id], colorOf(r.status));
   drawMaster(snap.master.id);
   const drawn = [];
   for (const r of snap.rows.slice().reverse()) {   // worst drawn last, on top
-    if (r.x_m === null || r.y_m === null) continue;
-    drawn.push(drawTarget(r));
+    if (r.x_m !== null && r.y_m !== null) drawn.push(drawTarget(r, false));
+    else if (r.last_x_m !== null && r.last_y_m !== null) drawn.push(drawTarget(r, true));
   }
   window.v2xposRendered = drawn;
 }

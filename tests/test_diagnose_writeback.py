@@ -1,0 +1,89 @@
+"""Calibration results written back: the [calibration] table of a fit, the dataset descriptor, the
+summary a person reads."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from v2xpos.diagnose.identify import Fit
+from v2xpos.diagnose.inject import N_PARAMS, P_GNSS_LATENCY, P_LEVER_ARM, P_MISALIGN, P_TIME_OFFSET
+from v2xpos.diagnose.writeback import calibration_table, theta_from_table, write_dataset
+
+DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+
+
+def _fit_vectors():
+    theta = np.zeros(N_PARAMS)
+    sd = np.full(N_PARAMS, 0.01)
+    theta[P_TIME_OFFSET], sd[P_TIME_OFFSET] = -0.025, 0.002
+    theta[P_MISALIGN] = np.radians([0.4, -0.6, -1.0])
+    sd[P_MISALIGN] = np.radians([0.5, 0.01, 0.02])
+    theta[P_LEVER_ARM], sd[P_LEVER_ARM] = [0.5, 0.3, 1.2], [0.02, 0.03, 0.45]
+    sig = np.zeros(N_PARAMS, bool)
+    sig[[P_TIME_OFFSET, P_MISALIGN.start + 1, P_MISALIGN.start + 2, P_LEVER_ARM.start, P_LEVER_ARM.start + 1]] = True
+    det = np.ones(N_PARAMS, bool)
+    det[[P_GNSS_LATENCY, P_LEVER_ARM.start + 2]] = False
+    prior = np.full(N_PARAMS, 0.02)
+    prior[P_LEVER_ARM] = 0.5
+    prior[P_GNSS_LATENCY] = 1e-3
+    return theta, sd, sig, det, prior
+
+
+def test_table_writes_significant_values_and_honest_sds():
+    theta, sd, sig, det, prior = _fit_vectors()
+    t = calibration_table(theta, sd, sig, det, prior, declared_lever_sd_m=0.02, source="B/dataset.toml",
+                          date="2026-11-24", software="v2xpos test")
+    e = t.effects
+    assert e["imu_time_offset_s"].value == -0.025 and e["imu_time_offset_s"].sd == 0.002
+    # roll not significant (0.4 deg at 0.5 deg sd): value 0, its sd kept; pitch/yaw in degrees
+    assert e["imu_misalignment_deg"].value == pytest.approx((0.0, -0.6, -1.0))
+    assert e["imu_misalignment_deg"].sd == pytest.approx((0.5, 0.01, 0.02))
+    # vertical lever arm not determined: no value, the declared sd stands
+    assert e["gnss_lever_arm_m"].value == pytest.approx((0.5, 0.3, 0.0))
+    assert e["gnss_lever_arm_m"].sd == pytest.approx((0.02, 0.03, 0.02))
+    # GNSS latency not determined: the prior's sd
+    assert e["gnss_latency_s"].value == 0.0 and e["gnss_latency_s"].sd == pytest.approx(1e-3)
+    th, s = theta_from_table(t)
+    assert th[P_TIME_OFFSET] == -0.025 and th[P_MISALIGN.start + 2] == pytest.approx(np.radians(-1.0))
+
+
+def test_written_descriptor_loads_with_paths_and_calibration(tmp_path):
+    src = DATA / "convoy_dev" / "B" / "dataset.toml"
+    if not src.exists():
+        pytest.skip(f"shared data missing: {src}")
+    from v2xpos.datasets import load_dataset
+    from v2xpos.datasets.loader import read_descriptor
+    theta, sd, sig, det, prior = _fit_vectors()
+    table = calibration_table(theta, sd, sig, det, prior, 0.02, source=str(src), date="2026-11-24", software="t")
+    out = write_dataset(src, tmp_path / "deeper" / "B_calibrated.toml", table)
+    d_in, d_out = read_descriptor(src), read_descriptor(out)
+    assert d_out["imu"]["imu_to_body"] == d_in["imu"]["imu_to_body"]
+    assert d_out["gnss"]["lever_arm_m"] == d_in["gnss"]["lever_arm_m"]
+    assert (out.parent / d_out["imu"]["file"]).resolve() == (src.parent / d_in["imu"]["file"]).resolve()
+    ds = load_dataset(out)
+    assert ds.calibration is not None and ds.calibration.date == "2026-11-24"
+    assert ds.calibration.effects["gnss_lever_arm_m"].value == pytest.approx((0.5, 0.3, 0.0))
+    assert len(ds.imu) == len(load_dataset(src).imu)
+    # writing again from the written file replaces its table, it does not add a second one
+    out2 = write_dataset(out, tmp_path / "again.toml", table)
+    assert out2.read_text().count("[calibration]") == 1
+
+
+def test_summary_shows_degrees_and_not_determined():
+    from types import SimpleNamespace
+    from v2xpos.diagnose.summary import summary_text
+    theta, sd, sig, det, prior = _fit_vectors()
+    f = Fit(theta=theta, cov=np.diag(sd ** 2), sd=sd, sd_stat=sd, cost_before=0.0, cost_after=0.0, n_rows=1,
+            reduced_chi2=1.0, significant=sig, determined=det)
+    cal = SimpleNamespace(fit=f, dataset="B", source="B/dataset.toml", problem=SimpleNamespace(active=np.ones(N_PARAMS, bool)),
+                          before={"outage_h_rms_m": 2.3, "outage_h_max_m": 3.7, "aided_h_rms_m": 0.13, "nis_mean": 2.2},
+                          after={"outage_h_rms_m": 1.6, "outage_h_max_m": 3.2, "aided_h_rms_m": 0.09, "nis_mean": 2.1},
+                          tuning={}, replays=30)
+    text = summary_text(cal)
+    line = {ln.split("  ")[0].strip(): ln for ln in text.splitlines() if "  " in ln}
+    assert "-0.6" in line["mounting pitch"] and "deg" in line["mounting pitch"] and "YES" in line["mounting pitch"]
+    assert "-25" in line["IMU time offset"] and "ms" in line["IMU time offset"]
+    assert "not determined" in line["lever arm z (down)"]
+    assert "2.300" in line["outage horizontal RMS"] and "1.600" in line["outage horizontal RMS"]
