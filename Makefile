@@ -1,4 +1,5 @@
-# Quick start: `make demo` runs the main job, `make test` runs the tests.
+# Quick start: `make demo` runs the main job, `make test` runs all the tests (what CI runs),
+# `make test-fast` the loop to run while developing (everything but the tests marked slow).
 # Each target creates .venv and installs the project (with its test extra) on first use.
 PY ?= python3
 VENV := .venv
@@ -28,4 +29,7 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
-.PHONY: install demo test browser-deps
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -m "not slow"
+
+.PHONY: install demo test test-fast browser-deps

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from v2xpos.quality.grade import _write_json
+from v2xpos.commands.grade import write_report_json
 from v2xpos.quality.grader import grade_units
 
 
@@ -101,7 +101,7 @@ def run_bench(args: argparse.Namespace) -> int:
             print(f"{k:<16} {det:<24} {r['healthy_fail']}/{r['healthy_units']:<11} {r['healthy_warn']}")
         print(f"({time.perf_counter() - t0:.1f} s)")
         if args.json:
-            _write_json(args.json, {"seeds": args.seeds, "faults": res}, args)
+            write_report_json(args.json, {"seeds": args.seeds, "faults": res}, args)
         ok = all(r["healthy_fail"] == 0 for r in res.values()) and \
             all(r["detected"] == r["runs"] for k, r in res.items() if k != "none")
         return 0 if ok else 1
@@ -118,6 +118,6 @@ def run_bench(args: argparse.Namespace) -> int:
             from v2xpos.quality.plots import plot_rate_check
             print(f"wrote {plot_rate_check(res['_results'], Path(args.plots) / 'rate_check.png')}")
         if args.json:
-            _write_json(args.json, {k: v for k, v in res.items() if not k.startswith("_")}, args)
+            write_report_json(args.json, {k: v for k, v in res.items() if not k.startswith("_")}, args)
         return 0
     return 2

@@ -262,7 +262,7 @@ def output_from_table(out: dict, path: str) -> dict:
     fd = take(can_t, "fd", bool, False, wc)
     if bitrates["data_bitrate"] is not None and not fd:
         raise ConfigError(f"{wc}.data_bitrate: only with fd = true")
-    from v2xpos.output.can import N_SLOTS
+    from v2xpos.output.can_dbc import N_SLOTS
     slots = take(can_t, "slots", dict, {}, wc)
     seen: dict = {}
     for vid, slot in slots.items():

@@ -1,7 +1,8 @@
-"""Live IMU grading for the master (issue 5 in the service): a worker process started by the master.
+"""Live IMU grading for the master: a worker process started by the master grades every vehicle's
+IMU units from the streamed samples (``FleetGrader``: one ``VehicleGrader`` per vehicle).
 
-Slaves publish their IMU units' raw samples on ``v2xpos/<fleet>/vehicle/<id>/imu`` (payload below);
-the worker keeps one ``v2xpos.quality.VehicleGrader`` per vehicle (units in their own axes, declared
+Slaves publish their IMU units' raw samples on ``v2xpos/<fleet>/vehicle/<id>/imu``
+(``v2xpos.wire.encode_imu_payload``); the worker keeps one ``v2xpos.quality.VehicleGrader`` per vehicle (units in their own axes, declared
 mountings), regrades every ``regrade_every_s`` of new data, and publishes the grades as JSON on
 ``v2xpos/<fleet>/master/<id>/grades``. The master subscribes to that key, marks the results of a
 vehicle with a failing unit ``degraded`` and shows ``imu_grades`` in its status and report.
@@ -9,10 +10,8 @@ vehicle with a failing unit ``degraded`` and shows ``imu_grades`` in its status 
 It runs in its own process so grading (tens to hundreds of ms of numpy per regrade) never holds
 the GIL of the master's message path.
 
-IMU payload (msgpack map): ``{"T": "imu", "ver": 1, "fleet": str, "id": str, "rate_hz": float,
-"mounting_xyz_deg": {unit: [x, y, z]}, "units": {unit: [[t_gps_s, ax, ay, az, gx, gy, gz], ...]}}``
-(m/s^2, rad/s, unit axes; mounting: X-Y-Z Euler angles unit -> vehicle body, ``docs/quality.md``).
-Malformed payloads are counted and skipped.
+The IMU payload is ``v2xpos.wire``'s IMU stream (``encode_imu_payload`` / ``decode_imu_payload``,
+docs/protocol.md). Malformed payloads are counted and skipped.
 
 No false degradation (``GradeHysteresis``, docs/quality.md §"Persistence"): what is published as a
 unit's grade is the grader's raw grade filtered over consecutive regrades. A unit is published
@@ -35,12 +34,11 @@ import sys
 import threading
 import time
 
-import msgpack
 import numpy as np
 
-MAX_ROWS = 10_000
+from v2xpos.wire import ImuPayloadError, decode_imu_payload
+
 GRADER_NICE = 10
-MAX_UNITS = 16
 FAIL_CONFIRM_REGRADES = 2
 """Consecutive regrades with a raw "fail" before a unit is published "fail" (the vehicle DEGRADED):
 the demo's false degradation was one regrade of raw "fail" on a healthy vehicle (docs/quality.md)."""
@@ -48,45 +46,6 @@ FAIL_CLEAR_REGRADES = 3
 """Consecutive regrades without a raw "fail" before a published "fail" is lifted."""
 HISTORY_REGRADES = 16
 """Regrades kept per vehicle in the published ``history`` (raw and published grades)."""
-
-
-class ImuPayloadError(ValueError):
-    pass
-
-
-def parse_imu_payload(data: bytes) -> dict:
-    """Validated IMU payload -> {"id", "fleet", "mounting", "units": {uid: (t, acc, gyro)}}."""
-    try:
-        m = msgpack.unpackb(data, raw=False, strict_map_key=True, max_array_len=MAX_ROWS)
-    except Exception as exc:  # msgpack raises many types, all mean "not a valid payload"
-        raise ImuPayloadError(f"not msgpack ({type(exc).__name__})") from None
-    if type(m) is not dict or m.get("T") != "imu" or m.get("ver") != 1:
-        raise ImuPayloadError("not an imu message of version 1")
-    vid, units = m.get("id"), m.get("units")
-    if type(vid) is not str or not vid or type(units) is not dict or not 0 < len(units) <= MAX_UNITS:
-        raise ImuPayloadError("missing id or units")
-    out = {}
-    for uid, rows in units.items():
-        try:
-            a = np.asarray(rows, dtype=float)
-        except (TypeError, ValueError):
-            raise ImuPayloadError(f"unit {uid!r}: rows are not numbers") from None
-        if a.ndim != 2 or a.shape[1] != 7 or not np.isfinite(a).all():
-            raise ImuPayloadError(f"unit {uid!r}: rows must be finite [t, ax, ay, az, gx, gy, gz]")
-        out[str(uid)] = (a[:, 0], a[:, 1:4], a[:, 4:7])
-    mounting = m.get("mounting_xyz_deg") or {}
-    if type(mounting) is not dict:
-        raise ImuPayloadError("mounting_xyz_deg is not a map")
-    angles = {}
-    for uid, v in mounting.items():
-        try:
-            a = np.asarray(v, dtype=float)
-        except (TypeError, ValueError):
-            raise ImuPayloadError(f"mounting_xyz_deg[{uid!r}]: not numbers") from None
-        if a.shape != (3,) or not np.isfinite(a).all() or np.abs(a).max() > 360.0:
-            raise ImuPayloadError(f"mounting_xyz_deg[{uid!r}]: need 3 finite angles in [-360, 360] deg")
-        angles[str(uid)] = a.tolist()
-    return {"id": vid, "fleet": m.get("fleet"), "units": out, "mounting": angles}
 
 
 class GradeHysteresis:
@@ -172,21 +131,21 @@ class FleetGrader:
     def add_payload(self, data: bytes) -> None:
         from v2xpos.quality import VehicleGrader
         try:
-            p = parse_imu_payload(data)
+            p = decode_imu_payload(data)
         except ImuPayloadError:
             self.malformed += 1
             return
         with self.lock:
-            g = self.graders.get(p["id"])
+            g = self.graders.get(p.vehicle_id)
             if g is None:
-                if len(p["units"]) < 2:
+                if len(p.units) < 2:
                     self.malformed += 1
                     return
-                g = self.graders[p["id"]] = VehicleGrader(
-                    sorted(p["units"]), history_s=self.history_s, min_history_s=self.min_history_s,
-                    regrade_every_s=self.regrade_every_s, mounting_xyz_deg=p["mounting"] or None)
-                self.filters[p["id"]] = GradeHysteresis(self.confirm_regrades, self.clear_regrades)
-        for uid, (t, acc, gyro) in p["units"].items():
+                g = self.graders[p.vehicle_id] = VehicleGrader(
+                    sorted(p.units), history_s=self.history_s, min_history_s=self.min_history_s,
+                    regrade_every_s=self.regrade_every_s, mounting_xyz_deg=p.mounting_xyz_deg or None)
+                self.filters[p.vehicle_id] = GradeHysteresis(self.confirm_regrades, self.clear_regrades)
+        for uid, (t, acc, gyro) in p.units.items():
             g.add(uid, t, gyro, acc)
 
     def _filtered(self, vid: str, r: dict) -> dict:
@@ -231,7 +190,8 @@ class FleetGrader:
 
 def run_worker(endpoint: str, fleet: str, master_id: str, period_s: float = 1.0,
                stop: threading.Event | None = None) -> int:
-    from v2xpos.link import Link, LinkConfig, grades_key
+    from v2xpos.link import Link, LinkConfig
+    from v2xpos.wire import grades_key
     from v2xpos.wire import imu_key
     stop = stop or threading.Event()
     parent = os.getppid()

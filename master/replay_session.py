@@ -23,8 +23,9 @@ from pathlib import Path
 from tqdm import tqdm
 
 from master.pipeline import MasterPipeline, PipelineConfig
-from v2xpos.output.recorder import (TOPIC_DEGRADED, TOPIC_NAV, TOPIC_RAW_RELATIVE, TOPIC_RAW_RX, TOPIC_TICK,
-                                    nav_from_dict, read_recording, read_session, recording_files)
+from v2xpos.output.recorder import read_recording, read_session, recording_files
+from v2xpos.output.recording_schema import (TOPIC_DEGRADED, TOPIC_NAV, TOPIC_RAW_RELATIVE, TOPIC_RAW_RX, TOPIC_TICK,
+                                            nav_from_dict)
 from v2xpos.security import MessageAuthenticator, parse_trust_list
 from v2xpos.wire import RelativeResult, encode_relative
 

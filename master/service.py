@@ -47,9 +47,9 @@ from master.config import MasterConfig
 from master.outputs import CanSink, UdpSink, ZenohSink, master_status, summary_provenance
 from master.pipeline import RECORD_FIELDS, MasterPipeline, PipelineConfig
 from v2xpos.config import ConfigError, config_dir
-from v2xpos.link import Link, LinkUnavailable, grades_key, status_key
+from v2xpos.link import Link, LinkUnavailable
 from v2xpos.sources import SourceContext, SourceError, make_source
-from v2xpos.wire import STATE_KEY_ALL, relative_key
+from v2xpos.wire import STATE_KEY_ALL, grades_key, relative_key, status_key
 
 GRADING_NICE = 10
 """CPU priority offset of the IMU grading worker: grading is background analysis (windows of

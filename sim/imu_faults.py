@@ -1,6 +1,6 @@
 """IMU faults injected into simulated units, and a multi-unit vehicle to grade.
 
-Faults (applied to one unit's ``ImuData``; magnitudes are the defaults of issue 5):
+Faults (applied to one unit's ``ImuData``; default magnitudes):
 
 - ``gyro_bias_step``: +0.5 deg/s on one gyro axis from ``t_start`` on;
 - ``gyro_scale``: gyro scale factor error of 3 % on all axes;

@@ -20,7 +20,8 @@ from typing import TextIO
 
 import numpy as np
 
-from v2xpos.link import Link, LinkConfig, status_key
+from v2xpos.link import Link, LinkConfig
+from v2xpos.wire import status_key
 from v2xpos.monitor.table import fit_number
 
 

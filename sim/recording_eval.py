@@ -24,11 +24,8 @@ from v2xpos import timebase
 
 def nav_states(toml: str | Path) -> list:
     """Every NavState the project's recording source produces for one dataset, oldest first."""
-    try:                    # the library's recording source (v2xpos.sources.recording) once it is on main
-        from v2xpos.sources.recording import RecordingSource as Source
-    except ImportError:     # until then the slave's
-        from slave.source import DatasetSource as Source  # type: ignore[no-redef]
-    return Source(str(toml)).advance(1e12)
+    from v2xpos.sources.recording import RecordingSource
+    return RecordingSource(str(toml)).advance(1e12)
 
 
 def _truth_speed(truth_csv: Path) -> tuple[np.ndarray, np.ndarray]:

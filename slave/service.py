@@ -31,14 +31,13 @@ import time
 from collections import deque
 from pathlib import Path
 
-import msgpack
 import numpy as np
 
 from slave.config import ConfigError, SlaveConfig
 from v2xpos.config import config_dir
 from v2xpos.link import Link, LinkUnavailable
 from v2xpos.sources import SourceContext, SourceError, Stopped, make_source, run_until_stopped
-from v2xpos.wire import StateMessage, encode_state, imu_key, state_key
+from v2xpos.wire import StateMessage, encode_imu_payload, encode_state, imu_key, state_key
 
 IMU_PERIOD_S = 0.25
 """IMU grading messages carry the samples of the last 0.25 s of every unit (full rate)."""
@@ -180,17 +179,14 @@ def _loop(cfg: SlaveConfig, source, clock, link: Link, signer, stop: _Stop, coun
 
 
 def _imu_payload(cfg: SlaveConfig, units: dict, mounting: dict, idx: dict, t_gps_s: float) -> bytes:
-    """Grading message with every unit's samples since the last one (layout in master/grading.py and
-    docs/protocol.md): msgpack map {T, ver, fleet, id, rate_hz, mounting_xyz_deg, units: {unit: rows}},
-    rows [t_gps_s, ax, ay, az, gx, gy, gz] (m/s^2, rad/s, unit axes)."""
-    out = {}
+    """IMU-stream message (``v2xpos.wire.encode_imu_payload``) with every unit's samples since the
+    last one (``idx``: each unit's first sample not yet sent, advanced here)."""
+    since_last = {}
     for uid, imu in units.items():
         i0 = idx[uid]
-        i1 = int(np.searchsorted(imu.t_s, t_gps_s, side="right"))
-        idx[uid] = i1
-        out[uid] = np.column_stack([imu.t_s[i0:i1], imu.acc_mps2[i0:i1], imu.gyro_rps[i0:i1]]).tolist()
-    return msgpack.packb({"T": "imu", "ver": 1, "fleet": cfg.fleet, "id": cfg.vehicle_id, "rate_hz": 100.0,
-                          "mounting_xyz_deg": mounting, "units": out}, use_bin_type=True)
+        i1 = idx[uid] = int(np.searchsorted(imu.t_s, t_gps_s, side="right"))
+        since_last[uid] = (imu.t_s[i0:i1], imu.acc_mps2[i0:i1], imu.gyro_rps[i0:i1])
+    return encode_imu_payload(cfg.fleet, cfg.vehicle_id, since_last, mounting, rate_hz=100.0)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -16,17 +16,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from tests.shared_data import SHARED_DATA, require_shared
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT / ".." / "shared" / "data"
+DATA = SHARED_DATA
 DRIVE = DATA / "drive_0708"
 QUAD = DATA / "quadrotor_mimu" / "path_1"
 
 
 def _require(p: Path) -> Path:
-    if not p.exists():
-        pytest.skip(f"shared data not found: {p}")
-    return p
+    return require_shared(p)
 
 
 def v2xpos(*args: str, env: dict | None = None, timeout: float = 300) -> subprocess.CompletedProcess:

@@ -1,4 +1,4 @@
-"""The bad-input corpus (``v2xpos.corpus``, also ``v2xpos bench corpus``): >= 500 deliberately broken
+"""The bad-input corpus (``bench.corpus``, also ``v2xpos bench corpus``): >= 500 deliberately broken
 inputs -- mutated ``dataset.toml`` (misspelt, missing, mistyped, misplaced keys; wrong matrices and
 vectors; unknown formats; missing files; broken TOML; a bad ``[calibration]``), IMU csv (truncated,
 cut in half, garbage lines, empty, header only, non-UTF-8, gaps, wrong units), ``.pos`` (headers
@@ -27,16 +27,16 @@ from pathlib import Path
 
 import pytest
 
-from v2xpos import corpus as corpus_mod
+from bench import corpus as corpus_mod
+from tests.shared_data import SHARED_DATA, require_shared
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT / ".." / "shared" / "data"
+DATA = SHARED_DATA
 
 
 def _require_data() -> None:
     for p in (DATA / "drive_0708" / "imu_1934.csv", DATA / "quadrotor_mimu" / "path_1" / "IMU_1.csv"):
-        if not p.exists():
-            pytest.skip(f"shared data not found: {p}")
+        require_shared(p)
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +51,7 @@ def test_corpus_bases_are_clean(built):
     corpus, work = built
     from v2xpos.datasets import load_dataset
     from v2xpos.datasets.checks import check_dataset
-    from v2xpos.quality.grade import prepare_recording
+    from v2xpos.quality.recording import prepare_recording
     chk = check_dataset(load_dataset(corpus.base["dataset"]))
     assert chk.findings == [], chk.findings
     assert prepare_recording(corpus.base["grade"])["coverage"]["warnings"] == []

@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 
 from v2xpos.launch import service_env
+from tests.shared_data import SHARED_DATA, require_shared
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT / ".." / "shared" / "data" / "convoy_dev"
+DATA = SHARED_DATA / "convoy_dev"
 ISSUE_COLUMNS = ["t_gps_s", "target", "status", "master_fix", "target_fix", "x_m", "y_m", "z_m", "sd_x_m", "sd_y_m",
                  "sd_z_m", "rel_roll_deg", "rel_pitch_deg", "rel_yaw_deg", "range_m", "age_ms"]
 
@@ -24,8 +25,7 @@ pytestmark = pytest.mark.slow
 
 
 def _convoy(out: Path, *extra: str) -> dict:
-    if not (DATA / "truth_rel.csv").exists():
-        pytest.skip(f"dataset missing: {DATA}")
+    require_shared(DATA / "truth_rel.csv")
     cmd = [sys.executable, "-m", "v2xpos.cli", "convoy", str(DATA / "A" / "dataset.toml"), str(DATA / "B" / "dataset.toml"),
            "--out", str(out), "--truth", str(DATA / "truth_rel.csv"), *extra]
     p = subprocess.run(cmd, capture_output=True, text=True, env=service_env(), cwd=str(ROOT), timeout=900)

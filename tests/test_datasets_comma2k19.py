@@ -8,15 +8,15 @@ from v2xpos import geo
 from v2xpos.datasets import load_dataset
 from v2xpos.datasets.comma2k19 import load_comma2k19
 from v2xpos.types import FixStatus
+from tests.shared_data import SHARED_DATA, require_shared
 
 ROOT = Path(__file__).resolve().parents[1]
-SEGMENT = ROOT / ".." / "shared" / "data" / "comma2k19_rav4_segment"
+SEGMENT = SHARED_DATA / "comma2k19_rav4_segment"
 
 
 @pytest.fixture(scope="module")
 def seg():
-    if not SEGMENT.exists():
-        pytest.skip(f"shared data not found: {SEGMENT} (see ../shared/data/README.md)")
+    require_shared(SEGMENT)
     return load_dataset(ROOT / "datasets" / "comma2k19.toml")
 
 
@@ -82,8 +82,7 @@ def test_folder_autodetect(seg):
 def test_gnss_stamp_jumping_ahead_drops_the_rows_behind_it(tmp_path):
     """One UTC stamp jumps ahead of the next rows: those rows are dropped and counted, and the GNSS
     times stay strictly increasing."""
-    if not SEGMENT.exists():
-        pytest.skip(f"shared data not found: {SEGMENT} (see ../shared/data/README.md)")
+    require_shared(SEGMENT)
     import shutil
     copy = tmp_path / "segment"
     shutil.copytree(SEGMENT, copy)

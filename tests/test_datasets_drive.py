@@ -9,14 +9,13 @@ from v2xpos.datasets import load_dataset
 from v2xpos.datasets.imu_csv import read_imu_csv
 from v2xpos.datasets.rtklib_pos import read_rtklib_pos
 from v2xpos.types import FixStatus
+from tests.shared_data import SHARED_DATA, require_shared
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+DATA = SHARED_DATA
 
 
 def _require(path: Path) -> Path:
-    if not path.exists():
-        pytest.skip(f"shared data not found: {path} (see ../shared/data/README.md)")
-    return path
+    return require_shared(path)
 
 
 def _pos_rows(path: Path) -> list[list[str]]:

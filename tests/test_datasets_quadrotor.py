@@ -6,15 +6,14 @@ import pytest
 
 from v2xpos.datasets import load_dataset, load_multi_imu
 from v2xpos.datasets.quadrotor import read_quadrotor_path
+from tests.shared_data import SHARED_DATA, require_shared
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT / ".." / "shared" / "data"
+DATA = SHARED_DATA
 
 
 def _require(path: Path) -> Path:
-    if not path.exists():
-        pytest.skip(f"shared data not found: {path} (see ../shared/data/README.md)")
-    return path
+    return require_shared(path)
 
 
 def _data_rows(path: Path) -> int:

@@ -11,14 +11,13 @@ from v2xpos.datasets.rtklib_pos import read_rtklib_pos
 from v2xpos.datasets.timetag import read_timetag
 from v2xpos.datasets.ubx import read_ubx
 from v2xpos import timebase
+from tests.shared_data import SHARED_DATA, require_shared
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+DATA = SHARED_DATA
 
 
 def _require(path: Path) -> Path:
-    if not path.exists():
-        pytest.skip(f"shared data not found: {path} (see ../shared/data/README.md)")
-    return path
+    return require_shared(path)
 
 
 def _mutate(rng: random.Random, b: bytes) -> bytes:
@@ -55,7 +54,32 @@ def test_mutated_inputs_never_crash(tmp_path, name):
         except ValueError as exc:
             assert str(path) in str(exc)
             continue
-        assert result is not None
+        _assert_well_formed(name, result, path)
+
+
+def _assert_well_formed(name: str, result, path: Path) -> None:
+    """What a reader returns from damaged input is still a valid result: one entry per record in
+    every array, finite times, no more records than the file could hold, skips counted as issues."""
+    n_lines = path.read_bytes().count(b"\n") + 1
+    if name == "timetag":
+        tag, issues = result
+        assert len(tag.t_s) == len(tag.byte_offset) and np.all(np.isfinite(tag.t_s))
+        assert np.all(np.diff(tag.byte_offset) >= 0)          # bytes received never decrease
+        assert issues.count >= 0
+        return
+    if name == "imu_csv":
+        imu, issues = result.imu, result.issues
+        n = len(imu.t_s)
+        assert imu.acc_mps2.shape == (n, 3) and imu.gyro_rps.shape == (n, 3)
+        assert np.all(np.isfinite(imu.t_s))
+        assert n + issues.count <= n_lines
+        return
+    gnss, issues = (result.gnss, result.issues) if name == "ubx" else result
+    n = len(gnss.t_s)
+    assert gnss.lla.shape == (n, 3) and len(gnss.fix) == n and gnss.sd_ned_m.shape == (n, 3)
+    assert np.all(np.isfinite(gnss.t_s)) and np.all(np.isfinite(gnss.lla))
+    if name == "rtklib_pos":
+        assert n + issues.count <= n_lines
 
 
 def test_counter_wrap_is_unwrapped(tmp_path):

@@ -8,15 +8,14 @@ from v2xpos.datasets import load_dataset
 from v2xpos.datasets.rtklib_pos import read_rtklib_pos
 from v2xpos.datasets.ubx import fix_status_from_nav_pvt, read_ubx
 from v2xpos.types import FixStatus
+from tests.shared_data import SHARED_DATA, require_shared
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+DATA = SHARED_DATA
 WALK = DATA / "walk_0827"
 
 
 def _require(path: Path) -> Path:
-    if not path.exists():
-        pytest.skip(f"shared data not found: {path} (see ../shared/data/README.md)")
-    return path
+    return require_shared(path)
 
 
 @pytest.fixture(scope="module")

@@ -2,8 +2,8 @@
 into pseudo-terminals at their recorded arrival times; ``v2xpos slave`` with ``[source] type =
 "device"`` reads them as serial ports, runs its filter on GPS time from the host clock (mapped
 onto the recording: emulation only) and publishes its states over zenoh; the states received by a
-router in this test give the same solution as ``v2xpos replay`` of the recording (issue 14:
-horizontal RMS difference <= 0.05 m)."""
+router in this test give the same solution as ``v2xpos replay`` of the recording (horizontal
+RMS difference <= 0.05 m)."""
 from __future__ import annotations
 
 import json

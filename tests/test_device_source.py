@@ -21,11 +21,12 @@ from v2xpos.rotation import dcm_from_euler
 from v2xpos.sources import SourceContext, SourceError, make_source
 from v2xpos.sources.device import DeviceSource
 from v2xpos.sources.gnss_clock import HostGnssClock
+from tests.shared_data import SHARED_DATA, needs_shared
 
-WALK = (Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "walk_0827").resolve()
-needs_walk = pytest.mark.skipif(not (WALK / "gnss_1730.ubx").is_file(), reason="../shared/data/walk_0827 not present")
+WALK = SHARED_DATA / "walk_0827"
+needs_walk = needs_shared(WALK / "gnss_1730.ubx")
 WALK_IMU_TO_BODY = [[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]
-RMS_BOUND_M = 0.05          # issue 14: a device slave on emulated walk_0827 vs v2xpos replay
+RMS_BOUND_M = 0.05          # a device slave on emulated walk_0827 vs v2xpos replay, horizontal
 
 
 def walk_ubx_descriptor(tmp: Path) -> Path:

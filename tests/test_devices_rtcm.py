@@ -16,8 +16,9 @@ from pyrtcm import RTCMReader
 from pyrtcm.rtcmhelpers import calc_crc24q
 
 from v2xpos.devices.rtcm import NtripClient, RtcmChecker, rtcm_message_type
-from v2xpos.sources.corrections import (CorrectionRelay, CorrectionSink, corrections_key,
-                                        parse_corrections)
+from v2xpos.launch import free_tcp_port
+from v2xpos.sources.corrections import CorrectionRelay, CorrectionSink, parse_corrections
+from v2xpos.wire import corrections_key
 
 
 # ------------------------------------------------------------------ RTCM3 frames built by hand
@@ -246,12 +247,6 @@ def test_corrections_config_is_strict():
 
 
 # ------------------------------------------------------------------ relay to two slaves' receivers
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _pty_receiver():
     """A pseudo-terminal standing in for a receiver: the device source opens ``path``; the test
     reads what was written to the receiver from ``master``."""
@@ -284,7 +279,7 @@ def test_relay_from_stand_in_caster_to_two_slave_receivers():
     stream = b"".join(frames[:3]) + bytes(bad) + b"\x00junk" + b"".join(frames[3:])
     good = b"".join(frames)
     caster = StandInCaster(stream, piece_s=0.005)
-    port = _free_port()
+    port = free_tcp_port()
     master = Link(LinkConfig(mode="router", listen=[loopback_endpoint(port)]))
     slaves, sources, sinks, ptys = [], [], [], []
     try:

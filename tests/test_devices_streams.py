@@ -10,7 +10,6 @@ import struct
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -32,11 +31,12 @@ from v2xpos.devices.transport import SerialTransport, TcpTransport
 from v2xpos.devices.ubx import UbxDecoder
 from v2xpos.sources.gnss_clock import HostGnssClock, clock_from_config
 from v2xpos.types import FixStatus
+from tests.shared_data import SHARED_DATA, needs_shared
 
-WALK = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "walk_0827"
+WALK = SHARED_DATA / "walk_0827"
 UBX_FILE, UBX_TAG = WALK / "gnss_1730.ubx", WALK / "gnss_1730.ubx.tag"
 IMU_FILE, IMU_TAG = WALK / "imu_1730.csv", WALK / "imu_1730.csv.tag"
-pytestmark = pytest.mark.skipif(not UBX_FILE.is_file(), reason="../shared/data/walk_0827 not present")
+pytestmark = needs_shared(UBX_FILE)
 
 
 @pytest.fixture(scope="module")

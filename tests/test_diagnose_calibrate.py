@@ -4,18 +4,18 @@ Cost control: one Estimator per recording (module fixtures): the Jacobian of the
 reused for the injected copies (two replays each)."""
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from sim.calibration_drive import simulated_recording
 from v2xpos.diagnose import calibrate as C
 from v2xpos.diagnose import identify
 from v2xpos.diagnose.inject import (N_PARAMS, PARAM_NAMES, P_ACCEL_SCALE, P_CLOCK_DRIFT, P_GNSS_LATENCY, P_GYRO_SCALE,
-                                    P_LEVER_ARM, P_MISALIGN, P_TIME_OFFSET, EffectSet, inject,
-                                    simulated_recording)
+                                    P_LEVER_ARM, P_MISALIGN, P_TIME_OFFSET, EffectSet, inject)
+from tests.shared_data import SHARED_DATA, require_shared
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+DATA = SHARED_DATA
 DRIVE = DATA / "drive_0708" / "dataset.toml"
 
 DEG = np.pi / 180.0
@@ -210,8 +210,7 @@ def test_sim_calibration_drive_paired_offset_and_antenna(eight_fit, param, value
 # ------------------------------------------------------------------ drive_0708 (real data)
 @pytest.fixture(scope="module")
 def drive_baseline():
-    if not DRIVE.exists():
-        pytest.skip(f"shared data missing: {DRIVE}")
+    require_shared(DRIVE)
     from v2xpos.datasets import load_dataset
     ds = load_dataset(DRIVE)
     est = C.Estimator(ds)

@@ -14,7 +14,7 @@ from v2xpos.diagnose.inject import P_LEVER_ARM, PARAM_NAMES
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1])
 def test_simulated_runs_cover_the_truth_and_report_nothing_absent(seed):
-    from sim.bench_calibration import fit_run, simulated_run
+    from bench.calibration import fit_run, simulated_run
     ds, truth, desc = simulated_run(seed, duration_s=200.0)
     r = fit_run(ds)
     th, sd = np.array(r["theta"]), np.array(r["sd"])

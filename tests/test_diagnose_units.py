@@ -140,8 +140,9 @@ def test_exact_epoch_replays_make_the_cost_continuous_in_the_imu_offset():
     simulator's grid, where each epoch sits one float ulp before a sample) must not make the
     replayed cost jump: measured before the exact-epoch replays, 48 on this drive; the offset
     itself is seen (+-3 ms cost > 100)."""
+    from sim.calibration_drive import simulated_recording
     from v2xpos.diagnose import calibrate as C
-    ds, _ = inject.simulated_recording(300.0, seed=3, effects=EffectSet(), imu_grade="tactical", gnss_rate_hz=10.0)
+    ds, _ = simulated_recording(300.0, seed=3, effects=EffectSet(), imu_grade="tactical", gnss_rate_hz=10.0)
     est = C.Estimator(ds)
     assert est.exact_epochs
     th0 = np.zeros(inject.N_PARAMS)

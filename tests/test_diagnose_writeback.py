@@ -2,7 +2,6 @@
 summary a person reads."""
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,8 +9,9 @@ import pytest
 from v2xpos.diagnose.identify import Fit
 from v2xpos.diagnose.inject import N_PARAMS, P_GNSS_LATENCY, P_LEVER_ARM, P_MISALIGN, P_TIME_OFFSET
 from v2xpos.diagnose.writeback import calibration_table, theta_from_table, write_dataset
+from tests.shared_data import SHARED_DATA, require_shared
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+DATA = SHARED_DATA
 
 
 def _fit_vectors():
@@ -51,8 +51,7 @@ def test_table_writes_significant_values_and_honest_sds():
 
 def test_written_descriptor_loads_with_paths_and_calibration(tmp_path):
     src = DATA / "convoy_dev" / "B" / "dataset.toml"
-    if not src.exists():
-        pytest.skip(f"shared data missing: {src}")
+    require_shared(src)
     from v2xpos.datasets import load_dataset
     from v2xpos.datasets.loader import read_descriptor
     theta, sd, sig, det, prior = _fit_vectors()

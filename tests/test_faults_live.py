@@ -1,22 +1,23 @@
-"""Fault scenarios over real zenoh sessions on loopback (v2xpos.security_bench): the master keeps
+"""Fault scenarios over real zenoh sessions on loopback (bench.trust, bench.trust_faults): the master keeps
 running and every target's status stays correct."""
 from __future__ import annotations
 
 import pytest
 
-from v2xpos import security_bench as sb
+from bench.trust import attack_forged_and_replayed
+from bench.trust_faults import FAULTS, FaultResult
 
 pytestmark = pytest.mark.slow
 
 
-def _run(name: str) -> sb.FaultResult:
-    result = sb.FAULTS[name]()
+def _run(name: str) -> FaultResult:
+    result = FAULTS[name]()
     print(result.detail)
     return result
 
 
 def test_forged_and_replayed_messages_are_never_accepted():
-    r = sb.attack_forged_and_replayed(n_each=30)
+    r = attack_forged_and_replayed(n_each=30)
     assert r["forged_sent"] == 120 and r["forged_accepted"] == 0
     assert r["replayed_sent"] > 80 and r["replayed_accepted"] == 0
     assert r["genuine_accepted"] == r["genuine_sent"]

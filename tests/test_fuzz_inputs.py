@@ -12,10 +12,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from v2xpos import fuzz
+from bench import fuzz
 from v2xpos.wire import WireError, decode_state, encode_state, pack_envelope
+from tests.shared_data import SHARED_DATA, require_shared
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+DATA = SHARED_DATA
 
 
 def test_mutation_fuzz_all_targets_zero_crashes():
@@ -118,8 +119,7 @@ def test_bad_geojson_names_file_feature_and_field(tmp_path):
 
 
 def test_real_data_seeds_are_used_when_present():
-    if not (DATA / "drive_0708" / "gnss_1934.pos").exists():
-        pytest.skip(f"shared data not found at {DATA}")
+    require_shared(DATA / "drive_0708" / "gnss_1934.pos")
     targets = {t.name: t for t in fuzz.build_targets(Path("/tmp"))}
     assert targets["rtklib_pos"].seeds[0].startswith(b"%")
     assert targets["timetag"].seeds[0].startswith(b"TIMETAG")

@@ -67,7 +67,8 @@ def test_applied_in_the_filter_equals_rewriting_the_recording():
     calibration navigates through GNSS outages as well as (or better than, its effect states start
     at the truth with tight sds) the filter on the recording rewritten by ``inject.correct``, and far
     better than with the declared values alone."""
-    from v2xpos.diagnose.inject import EffectSet, correct, simulated_recording
+    from sim.calibration_drive import simulated_recording
+    from v2xpos.diagnose.inject import EffectSet, correct
     from v2xpos.ins.replay import OutageSchedule, replay
     truth = EffectSet(imu_time_offset_s=-0.03, imu_misalignment_rad=np.radians([0.4, -0.6, -1.0]),
                       gnss_lever_arm_m=np.array([0.5, 0.3, 0.0]), gyro_scale=np.array([0, 0, -0.007]))

@@ -1,7 +1,6 @@
-"""Malformed inputs are counted and skipped, never fatal; seed 001 stop calibration; CLI."""
+"""Malformed inputs are counted and skipped, never fatal; the stop calibration; CLI."""
 import argparse
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,8 +11,9 @@ from v2xpos import geo
 from v2xpos.ins import InsConfig, InsFilter, StaticCalibrationConfig, StaticCalibrator
 from v2xpos.ins import replay as replay_cmd
 from v2xpos.types import FixStatus
+from tests.shared_data import SHARED_DATA, require_shared
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+DATA = SHARED_DATA
 
 
 def _started_filter():
@@ -115,8 +115,7 @@ def test_seed001_static_calibration_estimates_biases():
 
 def test_replay_cli_writes_json_and_plots(tmp_path):
     toml = DATA / "walk_0827" / "dataset.toml"
-    if not toml.exists():
-        pytest.skip(f"shared data not found: {toml}")
+    require_shared(toml)
     p = argparse.ArgumentParser()
     replay_cmd.add_arguments(p)
     args = p.parse_args([str(toml), "--json", str(tmp_path / "r.json"), "--plots", str(tmp_path / "plots"),
@@ -142,8 +141,7 @@ def test_replay_survives_a_truncated_and_corrupted_pos_file(tmp_path):
     """A copy of walk_0827 (outside the repo) whose .pos has a garbage line and is cut mid-line:
     the bad records are counted and the replay runs to the end."""
     src = DATA / "walk_0827"
-    if not (src / "dataset.toml").exists():
-        pytest.skip(f"shared data not found: {src}")
+    require_shared(src / "dataset.toml")
     import shutil
     for name in ("imu_1730.csv", "imu_1730.csv.tag"):
         shutil.copy(src / name, tmp_path / name)

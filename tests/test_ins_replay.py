@@ -1,21 +1,20 @@
-"""Replays of the measured recordings in ../shared/data through the EKF (issue 2 targets)."""
+"""Replays of the measured recordings in ../shared/data through the EKF: the accuracy targets of the README."""
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from v2xpos.ins.replay import OutageSchedule, replay
+from tests.shared_data import SHARED_DATA, require_shared
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+DATA = SHARED_DATA
 REQUIRED_KEYS = ("dataset", "imu_samples", "gnss_epochs", "malformed_lines", "outage_count", "outage_h_rms_m",
                  "outage_h_max_m", "outage_v_rms_m", "aided_h_rms_m", "wall_s", "imu_samples_per_s")
 
 
 def _dataset(rel: str):
     path = DATA / rel
-    if not path.exists():
-        pytest.skip(f"shared data not found: {path} (see ../shared/data/README.md)")
+    require_shared(path)
     from v2xpos.datasets import load_dataset
     return load_dataset(path)
 

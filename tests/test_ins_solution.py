@@ -7,16 +7,16 @@ from __future__ import annotations
 import csv
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from v2xpos import geo
 from v2xpos.cli import main
+from tests.shared_data import SHARED_DATA, needs_shared
 
-WALK = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "walk_0827" / "dataset.toml"
-pytestmark = pytest.mark.skipif(not WALK.exists(), reason="shared walk_0827 recording not present")
+WALK = SHARED_DATA / "walk_0827" / "dataset.toml"
+pytestmark = needs_shared(WALK)
 
 
 @pytest.fixture(scope="module")

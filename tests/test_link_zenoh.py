@@ -8,9 +8,9 @@ import time
 
 import pytest
 
-from sim.launcher import free_tcp_port
-from v2xpos.link import Link, LinkConfig, loopback_endpoint, status_key
-from v2xpos.wire import STATE_KEY_ALL, state_key
+from v2xpos.launch import free_tcp_port
+from v2xpos.link import Link, LinkConfig, loopback_endpoint
+from v2xpos.wire import STATE_KEY_ALL, state_key, status_key
 
 
 def test_config_is_loopback_only_and_validated():

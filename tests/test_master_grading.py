@@ -7,9 +7,9 @@ import msgpack
 import numpy as np
 import pytest
 
-from master.grading import (FAIL_CLEAR_REGRADES, FAIL_CONFIRM_REGRADES, FleetGrader, GradeHysteresis,
-                            ImuPayloadError, parse_imu_payload)
+from master.grading import FAIL_CLEAR_REGRADES, FAIL_CONFIRM_REGRADES, FleetGrader, GradeHysteresis
 from sim.imu_faults import simulate_vehicle
+from v2xpos.wire import ImuPayloadError, decode_imu_payload, encode_imu_payload
 
 
 def chunks(v, vid: str, n: int = 25):
@@ -33,10 +33,25 @@ def chunks(v, vid: str, n: int = 25):
 ])
 def test_malformed_imu_payloads_are_rejected(payload):
     with pytest.raises(ImuPayloadError):
-        parse_imu_payload(payload)
+        decode_imu_payload(payload)
     fg = FleetGrader()
     fg.add_payload(payload)
     assert fg.malformed == 1 and fg.graders == {}
+
+
+def test_imu_payload_encoder_writes_the_documented_map_and_decodes_back():
+    """The slave's encoder against the layout written out by hand (``chunks`` above, docs/protocol.md)."""
+    v = simulate_vehicle(2, "gyro_scale", seed=1, duration_s=2.0, grade="tactical")
+    mounting = {k: [float(x) for x in m] for k, m in v.mounting_xyz_deg.items()}
+    units = {u: (imu.t_s[:25], imu.acc_mps2[:25], imu.gyro_rps[:25]) for u, imu in v.units.items()}
+    data = encode_imu_payload("f", "car1", units, mounting)
+    assert msgpack.unpackb(data) == msgpack.unpackb(next(chunks(v, "car1")))
+    p = decode_imu_payload(data)
+    assert (p.vehicle_id, p.fleet, p.rate_hz, p.mounting_xyz_deg) == ("car1", "f", 100.0, mounting)
+    for u, (t, acc, gyro) in units.items():
+        np.testing.assert_array_equal(p.units[u][0], t)
+        np.testing.assert_array_equal(p.units[u][1], acc)
+        np.testing.assert_array_equal(p.units[u][2], gyro)
 
 
 def test_streamed_chunks_grade_the_faulty_unit():

@@ -89,7 +89,7 @@ def test_fix_transitions_change_status_and_stop_outputs(scenario):
 
     import cantools
 
-    from v2xpos.output.can import DBC_PATH, FRAMES_PER_KINEMATIC_UPDATE, FRAMES_PER_STATUS_UPDATE
+    from v2xpos.output.can_dbc import DBC_PATH, FRAMES_PER_KINEMATIC_UPDATE, FRAMES_PER_STATUS_UPDATE
     sc = scenario
     bus_rx = can.Bus(channel="test-fix", interface="virtual")
     can_sink = CanSink(channel="test-fix", interface="virtual")

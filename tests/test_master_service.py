@@ -12,9 +12,10 @@ import pytest
 
 from master.config import MasterConfig
 from master.service import MasterService
-from sim.launcher import free_tcp_port
-from v2xpos.link import Link, LinkConfig, loopback_endpoint, status_key
-from v2xpos.wire import StateMessage, TargetStatus, decode_relative, encode_state, relative_key, state_key
+from v2xpos.launch import free_tcp_port
+from v2xpos.link import Link, LinkConfig, loopback_endpoint
+from v2xpos.wire import (StateMessage, TargetStatus, decode_relative, encode_state, relative_key, state_key,
+                         status_key)
 
 
 def state_at(svc: MasterService, vid: str, seq: int, t: float) -> bytes:

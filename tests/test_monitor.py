@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sim.launcher import free_tcp_port
+from v2xpos.launch import free_tcp_port
 from v2xpos.link import LinkConfig
 from v2xpos.monitor import table
 from v2xpos.monitor.attach import MasterMonitor

@@ -37,7 +37,7 @@ def _browser(user_dir: str):
 
 def test_page_shows_the_demo_targets(tmp_path):
     from sim.demo import run_demo
-    from sim.launcher import free_tcp_port
+    from v2xpos.launch import free_tcp_port
     from v2xpos.link import LinkConfig
     from v2xpos.monitor.attach import MasterMonitor
     from v2xpos.monitor.web import WebServer

@@ -7,8 +7,9 @@ import can
 import numpy as np
 import pytest
 
-from v2xpos.output.can import (DBC_PATH, FRAMES_PER_KINEMATIC_UPDATE, FRAMES_PER_STATUS_UPDATE, N_SLOTS, CanBusError,
-                               CanOutput, SlotTable, decode_frames, generate_dbc, load_dbc)
+from v2xpos.output.can import CanBusError, CanOutput, SlotTable, decode_frames
+from v2xpos.output.can_dbc import (DBC_PATH, FRAMES_PER_KINEMATIC_UPDATE, FRAMES_PER_STATUS_UPDATE, N_SLOTS,
+                                   generate_dbc, load_dbc)
 from v2xpos.types import FixStatus
 from v2xpos.wire import FixSide, RelativeResult, TargetStatus
 

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 from cantools.autosar.end_to_end import apply_profile2_crc
 
-from v2xpos.output.can import (ID_ACC, ID_ATT, ID_GAP, ID_LANE, ID_MASTER, ID_MASTER_SIGMA, ID_OBJECT, ID_POS,
-                               ID_RANGE, ID_SIGMA, ID_STATUS, ID_VEL, FramePacker, load_dbc)
+from v2xpos.output.can import FramePacker
+from v2xpos.output.can_dbc import (ID_ACC, ID_ATT, ID_GAP, ID_LANE, ID_MASTER, ID_MASTER_SIGMA, ID_OBJECT, ID_POS,
+                                   ID_RANGE, ID_SIGMA, ID_STATUS, ID_VEL, load_dbc)
 
 
 @pytest.fixture(scope="module")

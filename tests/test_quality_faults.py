@@ -1,5 +1,5 @@
-"""Simulated faults in one of three units are graded fail; healthy units never fail (issue 5:
-gyro bias step 0.5 deg/s, scale 3 %, noise x5, stuck axis, 10 ms time skew; 20 seeds each)."""
+"""Simulated faults in one of three units are graded fail; healthy units never fail (gyro
+bias step 0.5 deg/s, scale 3 %, noise x5, stuck axis, 10 ms time skew; 20 seeds each)."""
 import numpy as np
 import pytest
 

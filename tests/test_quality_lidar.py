@@ -1,4 +1,4 @@
-"""Pose-aided angular-rate check end to end (seed 003): ray-cast lidar scans along a simulated turn,
+"""Pose-aided angular-rate check end to end: ray-cast lidar scans along a simulated turn,
 KISS-ICP odometry, rotation vectors of the relative poses -> angular rate. Recovers the true yaw
 rate within 1 % and flags a 3 % gyro scale error while the healthy gyro passes."""
 import numpy as np

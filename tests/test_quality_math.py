@@ -3,7 +3,7 @@ statistics, TLS scale, clock offset, stuck channel, rates from poses, bias stabi
 import numpy as np
 import pytest
 
-from v2xpos.quality import alignment as al
+from v2xpos.quality import unit_rotation
 from v2xpos.quality.bias import bias_stability, find_stops, stop_biases
 from v2xpos.quality.consistency import (box_stats, longest_constant_run_s, pcc_stats, relative_scale,
                                         sliding_window_metrics, tls_slope)
@@ -23,34 +23,34 @@ def _rich_rates(n: int, rate_hz: float, rng: np.random.Generator) -> tuple[np.nd
 def test_kabsch_recovers_known_rotation_despite_noise_and_bias():
     rng = np.random.default_rng(1)
     t, w_ref = _rich_rates(3000, 100.0, rng)
-    C_true = al.mounting_dcm([12.0, -35.0, 100.0])
+    C_true = unit_rotation.mounting_dcm([12.0, -35.0, 100.0])
     # unit-under-test rates: w_ut = C_true^T w_ref + bias + noise  ->  C_ref_ut = C_true
     w_ut = w_ref @ C_true + np.array([0.01, -0.02, 0.005]) + rng.normal(0, 0.002, w_ref.shape)
-    C_est = al.kabsch_rotation(w_ref, w_ut)
-    assert al.rotation_angle_deg(C_est.T @ C_true) < 0.05
-    np.testing.assert_allclose(al.euler_xyz_deg_from_dcm(C_est), [12.0, -35.0, 100.0], atol=0.1)
+    C_est = unit_rotation.kabsch_rotation(w_ref, w_ut)
+    assert unit_rotation.rotation_angle_deg(C_est.T @ C_true) < 0.05
+    np.testing.assert_allclose(unit_rotation.euler_xyz_deg_from_dcm(C_est), [12.0, -35.0, 100.0], atol=0.1)
     assert np.isclose(np.linalg.det(C_est), 1.0)
-    assert al.kabsch_condition(w_ut) > 0.2
+    assert unit_rotation.kabsch_condition(w_ut) > 0.2
 
 
 def test_kabsch_never_returns_a_reflection():
     rng = np.random.default_rng(2)
     a = rng.normal(size=(200, 3))
     b = a * np.array([1.0, 1.0, -1.0])  # a mirror image: the best proper rotation, not the mirror
-    C = al.kabsch_rotation(a, b)
+    C = unit_rotation.kabsch_rotation(a, b)
     assert np.isclose(np.linalg.det(C), 1.0)
 
 
 @pytest.mark.parametrize("angles", [[0, 0, 0], [10, 20, 30], [-170, 45, 90], [5, -89, -60]])
 def test_euler_xyz_roundtrip(angles):
-    C = al.mounting_dcm(angles)
-    np.testing.assert_allclose(al.mounting_dcm(al.euler_xyz_deg_from_dcm(C)), C, atol=1e-9)
+    C = unit_rotation.mounting_dcm(angles)
+    np.testing.assert_allclose(unit_rotation.mounting_dcm(unit_rotation.euler_xyz_deg_from_dcm(C)), C, atol=1e-9)
 
 
 def test_declared_mounting_gives_relative_rotation():
-    C_b_ref = al.mounting_dcm([0, 0, 90])
-    C_b_ut = al.mounting_dcm([180, 0, 0])
-    C_ref_ut = al.relative_from_mounting(C_b_ref, C_b_ut)
+    C_b_ref = unit_rotation.mounting_dcm([0, 0, 90])
+    C_b_ut = unit_rotation.mounting_dcm([180, 0, 0])
+    C_ref_ut = unit_rotation.relative_from_mounting(C_b_ref, C_b_ut)
     v_ut = np.array([1.0, 2.0, 3.0])
     np.testing.assert_allclose(C_b_ref @ (C_ref_ut @ v_ut), C_b_ut @ v_ut)
 
@@ -109,7 +109,7 @@ def test_tls_scale_is_unbiased_by_noise_in_both_signals():
 def test_clock_offset_recovered_from_the_data():
     rng = np.random.default_rng(5)
     t, w = _rich_rates(4000, 100.0, rng)
-    C = al.mounting_dcm([30.0, 10.0, -70.0])
+    C = unit_rotation.mounting_dcm([30.0, 10.0, -70.0])
     shift = 0.0123
     # unit b samples the same motion, but its stamps are late by `shift`
     wb = np.stack([np.interp(t - shift, t, w[:, k]) for k in range(3)], axis=1) @ C
@@ -117,7 +117,7 @@ def test_clock_offset_recovered_from_the_data():
     b = ImuData(t, np.zeros_like(w), wb + rng.normal(0, 1e-3, w.shape))
     off, peak = gyro_norm_offset_s(a, b)
     assert abs(off - shift) < 1e-3 and peak > 0.9
-    wb_al = al.rotate(b.gyro_rps, C)
+    wb_al = unit_rotation.rotate(b.gyro_rps, C)
     fine = vector_offset_s(t, a.gyro_rps, wb_al, max_lag_s=0.05)
     assert abs(fine - shift) < 3e-4
 

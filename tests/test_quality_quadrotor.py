@@ -8,16 +8,14 @@ from pathlib import Path
 import pytest
 
 from v2xpos.cli import main
-from v2xpos.quality.grade import grade_recording
+from v2xpos.quality.recording import grade_recording
+from tests.shared_data import SHARED_DATA, require_shared
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "quadrotor_mimu"
+DATA = SHARED_DATA / "quadrotor_mimu"
 
 
 def _path(name: str) -> Path:
-    p = DATA / name
-    if not (p / "IMU_1.csv").is_file():
-        pytest.skip(f"quadrotor_mimu data not found at {p}")
-    return p
+    return require_shared(DATA / name / "IMU_1.csv").parent
 
 
 @pytest.mark.parametrize("name", ["path_2", "path_3"])

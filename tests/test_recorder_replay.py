@@ -12,6 +12,7 @@ from master import replay_session as rs
 from master.pipeline import MasterPipeline, PipelineConfig
 from v2xpos import security as sec
 from v2xpos.output import recorder as rec
+from v2xpos.output import recording_schema as schema
 from v2xpos.types import FixStatus, NavState
 from v2xpos.wire import Geometry, StateMessage, decode_relative, encode_state, state_key
 
@@ -89,27 +90,27 @@ def test_everything_recorded_rotated_and_readable(recorded_session):
     files = rec.recording_files(path)
     assert len(files) >= 3 and files == recorder.files
     msgs = list(rec.read_recording(path))
-    by_topic = {t: [m for m in msgs if m.topic == t] for t in rec.SCHEMAS}
+    by_topic = {t: [m for m in msgs if m.topic == t] for t in schema.SCHEMAS}
     n_received = 400 * 2 - 40 + 11 + 2
-    assert len(by_topic[rec.TOPIC_RX]) == n_received == recorder.recorded[rec.TOPIC_RX]
-    assert len(by_topic[rec.TOPIC_RELATIVE]) == pipe.seq == recorder.recorded[rec.TOPIC_RELATIVE]
-    assert len(by_topic[rec.TOPIC_TICK]) == 40
+    assert len(by_topic[schema.TOPIC_RX]) == n_received == recorder.recorded[schema.TOPIC_RX]
+    assert len(by_topic[schema.TOPIC_RELATIVE]) == pipe.seq == recorder.recorded[schema.TOPIC_RELATIVE]
+    assert len(by_topic[schema.TOPIC_TICK]) == 40
     assert pipe.rejected["malformed"] == 11
     assert pipe.rejected[sec.REJECT_UNKNOWN_KEY] == 1
     # the replayed capture is stopped by the pipeline's sequence check or by the authenticator
     assert pipe.rejected[sec.REJECT_REPLAY] + pipe.rejected["out_of_order"] + pipe.rejected["duplicate"] >= 1
-    statuses = {m.doc["status"] for m in by_topic[rec.TOPIC_RELATIVE]}
+    statuses = {m.doc["status"] for m in by_topic[schema.TOPIC_RELATIVE]}
     assert {"valid", "fix_invalid", "timeout"} <= statuses
     # the outputs are readable JSON, and their raw bytes (replay reference) decode to the same
     raw = [decode_relative(__import__("base64").b64decode(m.doc["payload_b64"]))
-           for m in by_topic[rec.TOPIC_RAW_RELATIVE]]
-    assert [r.seq for r in raw] == [m.doc["seq"] for m in by_topic[rec.TOPIC_RELATIVE]]
-    first = by_topic[rec.TOPIC_RELATIVE][0].doc
+           for m in by_topic[schema.TOPIC_RAW_RELATIVE]]
+    assert [r.seq for r in raw] == [m.doc["seq"] for m in by_topic[schema.TOPIC_RELATIVE]]
+    first = by_topic[schema.TOPIC_RELATIVE][0].doc
     assert first["target_id"] in ("car1", "car2") and first["target_id"] == raw[0].target_id
-    valid = next(m.doc for m in by_topic[rec.TOPIC_RELATIVE] if m.doc["status"] == "valid")
+    valid = next(m.doc for m in by_topic[schema.TOPIC_RELATIVE] if m.doc["status"] == "valid")
     assert len(valid["rel_vel_body_mps"]) == 3 and len(valid["rel_roll_pitch_yaw_deg"]) == 3
     # received states decoded (no base64 in the readable channel); malformed ones say why
-    rx = by_topic[rec.TOPIC_RX]
+    rx = by_topic[schema.TOPIC_RX]
     assert sum(m.doc["error"] is not None for m in rx) == 11
     good = next(m.doc["message"] for m in rx if m.doc["message"] is not None)
     assert good["vehicle_id"] in ("car1", "car2") and good["fix"] == "FIXED" and good["signed"]
@@ -162,7 +163,7 @@ def test_replay_follows_the_recorded_degraded_set(tmp_path):
         if k % 10 == 0:
             wrapped.tick(t + 0.003, t)
     recorder.close()
-    outs = [m.doc for m in rec.read_recording(tmp_path / "d.mcap", topics=(rec.TOPIC_RELATIVE,))]
+    outs = [m.doc for m in rec.read_recording(tmp_path / "d.mcap", topics=(schema.TOPIC_RELATIVE,))]
     assert sum(d["degraded"] for d in outs) == 40
     report = rs.replay_session(tmp_path / "d.mcap")
     assert report.identical and report.matched == pipe.seq
@@ -180,8 +181,8 @@ def test_recording_cut_short_is_read_up_to_the_damage(recorded_session, tmp_path
     errors: list[str] = []
     msgs = list(rec.read_recording(path, errors=errors))
     assert errors and last.name in errors[0]
-    n_rx = sum(1 for m in msgs if m.topic == rec.TOPIC_RX)
-    assert 0 < n_rx <= recorder.recorded[rec.TOPIC_RX]
+    n_rx = sum(1 for m in msgs if m.topic == schema.TOPIC_RX)
+    assert 0 < n_rx <= recorder.recorded[schema.TOPIC_RX]
     assert len(msgs) < sum(recorder.recorded.values())      # the cut lost messages (of any topic)
     report = rs.replay_session(path)
     assert report.damaged and report.identical and report.matched == report.recorded_outputs > 0

@@ -1,23 +1,21 @@
 """Latency compensation on a real drive (drive_0708, RTK at 4 Hz): predict each epoch 250 ms ahead
 with CTRA from causal (backward-difference) rate and acceleration, compare with the next RTK fix."""
 import math
-from pathlib import Path
 
 import numpy as np
-import pytest
 
 from v2xpos.geo import lla_to_ned
 from v2xpos.relative import predict_state
 from v2xpos.types import FixStatus
 from v2xpos.wire import StateMessage
+from tests.shared_data import SHARED_DATA, require_shared
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+DATA = SHARED_DATA
 POS = DATA / "drive_0708" / "gnss_1934.pos"
 
 
 def test_ctra_beats_constant_velocity_on_real_drive():
-    if not POS.exists():
-        pytest.skip(f"shared data not found: {POS}")
+    require_shared(POS)
     from v2xpos.datasets.rtklib_pos import read_rtklib_pos
     gnss, _ = read_rtklib_pos(POS)
     t, lla, v = gnss.t_s, gnss.lla, gnss.vel_ned_mps

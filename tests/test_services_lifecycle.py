@@ -15,9 +15,10 @@ from pathlib import Path
 import pytest
 
 from v2xpos.launch import free_tcp_port, service_env, to_toml
+from tests.shared_data import SHARED_DATA, require_shared
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT / ".." / "shared" / "data" / "convoy_dev"
+DATA = SHARED_DATA / "convoy_dev"
 STOP_WITHIN_S = 1.0
 
 pytestmark = pytest.mark.slow
@@ -25,9 +26,7 @@ pytestmark = pytest.mark.slow
 
 def _dataset(name: str) -> str:
     p = DATA / name / "dataset.toml"
-    if not p.exists():
-        pytest.skip(f"dataset missing: {p}")
-    return str(p.resolve())
+    return str(require_shared(p).resolve())
 
 
 class Service:
@@ -134,7 +133,8 @@ def test_master_stops_in_every_phase(tmp_path, sig):
     s.wait_for_line("waiting for ['B']")
     rc, dt, out, err = s.stop(sig)
     _check(rc, dt, err)
-    from v2xpos.link import Link, LinkConfig, status_key
+    from v2xpos.link import Link, LinkConfig
+    from v2xpos.wire import status_key
     s = Service("master", master_cfg(port, a, []), tmp_path)        # running
     client = None
     try:

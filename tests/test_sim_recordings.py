@@ -11,8 +11,8 @@ import pytest
 from scipy.interpolate import CubicSpline
 
 from sim import recording_formats as fmt
-from sim.recordings import (Effects, apply_overrides, axis_mountings, draw_params, generate_convoy, relative_truth,
-                            simulate, write)
+from sim.recording_params import Effects, axis_mountings, draw_params
+from sim.recordings import apply_overrides, generate_convoy, relative_truth, simulate, write
 from v2xpos import geo, timebase
 from v2xpos.datasets.imu_csv import read_imu_csv
 from v2xpos.datasets.loader import load_dataset
@@ -20,9 +20,10 @@ from v2xpos.datasets.rtklib_pos import read_rtklib_pos
 from v2xpos.datasets.timetag import read_timetag
 from v2xpos.rotation import dcm_from_euler_batch
 from v2xpos.types import FixStatus
+from tests.shared_data import SHARED_DATA, needs_shared
 
 DURATION_S = 90.0
-CONVOY_DEV = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "convoy_dev"
+CONVOY_DEV = SHARED_DATA / "convoy_dev"
 
 
 def _truth(path: Path) -> np.ndarray:
@@ -159,7 +160,7 @@ def _check_rel(a: np.ndarray, b: np.ndarray, rel: np.ndarray, tol_m: float = 1e-
         assert dyaw == pytest.approx(rel[k, 4], abs=1e-5)
 
 
-@pytest.mark.skipif(not CONVOY_DEV.is_dir(), reason="../shared/data/convoy_dev not present")
+@needs_shared(CONVOY_DEV)
 def test_truth_rel_convention_is_convoy_devs():
     """The same recomputation reproduces convoy_dev's own truth_rel (the convention is shared), to
     2 mm: convoy_dev's z is exactly 0 where the exact geometry has the Earth's curvature
@@ -360,7 +361,7 @@ def test_three_cars_have_a_truth_rel_per_follower(tmp_path):
     assert set(_meta(tmp_path)["vehicles"]) == {"A", "B", "C"} and rec.seconds < 30
 
 
-@pytest.mark.skipif(not CONVOY_DEV.is_dir(), reason="../shared/data/convoy_dev not present")
+@needs_shared(CONVOY_DEV)
 def test_imu_noise_is_at_the_level_of_the_development_recording(dev_like):
     """White noise of the static start (sd of the first 0.9 s, quantisation included) within a
     factor 1.6 of what convoy_dev's static start shows, per sensor."""

@@ -5,7 +5,6 @@ on time over a real zenoh link."""
 from __future__ import annotations
 
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,15 +13,14 @@ from v2xpos import geo
 from v2xpos.sources import SourceContext, SourceError, make_source
 from v2xpos.sources.clock import ReplayClock
 from v2xpos.types import FixStatus
+from tests.shared_data import SHARED_DATA, require_shared
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+DATA = SHARED_DATA
 
 
 def _drive():
     path = DATA / "drive_0708" / "dataset.toml"
-    if not path.exists():
-        pytest.skip(f"dataset missing: {path}")
-    return path
+    return require_shared(path)
 
 
 def test_recording_source_on_its_own_gps_time_and_on_track():

@@ -1,7 +1,6 @@
 """Zenoh over TLS on loopback with certificates made by the test; mTLS refuses unknown clients."""
 from __future__ import annotations
 
-import socket
 import threading
 import time
 
@@ -9,13 +8,8 @@ import pytest
 from cryptography import x509
 
 from v2xpos import tls
+from v2xpos.launch import free_tcp_port
 from v2xpos.link import Link, LinkConfig, LinkError
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _exchange(router_cfg: LinkConfig, client_cfg: LinkConfig, n: int = 20, wait_s: float = 3.0) -> list[bytes]:
@@ -54,7 +48,7 @@ def test_certificates_have_the_fields_rustls_checks(tmp_path):
 
 def test_zenoh_tls_and_mtls_on_loopback(tmp_path):
     pki = tls.make_test_pki(tmp_path / "pki")
-    port = _free_port()
+    port = free_tcp_port()
     ep = tls.tls_endpoint(port)
     # as a service config table would give it ([link] mode/listen/extra_json5)
     router = LinkConfig.from_dict({"mode": "router", "listen": [ep],
@@ -69,7 +63,7 @@ def test_zenoh_tls_and_mtls_on_loopback(tmp_path):
     # a client whose certificate comes from another CA is refused by the mTLS router
     rogue = tls.make_ca(tmp_path / "rogue")
     rogue_client = tls.issue_cert(rogue, tmp_path / "rogue", "client")
-    port2 = _free_port()
+    port2 = free_tcp_port()
     ep2 = tls.tls_endpoint(port2)
     router2 = LinkConfig(mode="router", listen=[ep2],
                          extra_json5=tls.zenoh_tls_settings(pki.ca.cert_path, listen=pki.router,

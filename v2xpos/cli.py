@@ -17,6 +17,8 @@ import os
 import sys
 import traceback
 
+from v2xpos import stop_signals
+
 EXIT_INPUT = 2
 EXIT_INTERNAL = 3
 EXIT_INTERRUPTED = 130
@@ -24,28 +26,31 @@ EXIT_INTERRUPTED = 130
 COMMANDS: dict[str, tuple[str, str]] = {
     "replay": ("v2xpos.ins.replay", "replay a recorded drive through the GNSS/INS EKF with simulated outages"),
     "calibrate": ("v2xpos.diagnose.calibrate", "find missing model effects from residuals, estimate them, report before/after"),
-    "grade": ("v2xpos.quality.grade", "grade the IMU units of a multi-IMU recording"),
+    "grade": ("v2xpos.commands.grade", "grade the IMU units of a multi-IMU recording"),
     "demo": ("sim.demo", "run master, slaves and a pedestrian as processes on loopback; write a report"),
     "master": ("master.service", "run the master (hunter) service"),
     "slave": ("slave.service", "run a slave (target) service"),
-    "keys": ("v2xpos.security", "generate vehicle signing keys and manage the master's trust list"),
+    "keys": ("v2xpos.commands.keys", "generate vehicle signing keys and manage the master's trust list"),
     "replay-session": ("master.replay_session", "re-run the master pipeline from an MCAP recording"),
-    "convoy": ("v2xpos.commands.convoy", "run master and slaves on recorded drives as processes; write results.csv"),
-    "monitor": ("v2xpos.monitor.command", "live table and web bird's-eye view of a running master"),
-    "emulate": ("v2xpos.devices.emulate", "serve a recording's byte streams as live devices (pseudo-terminals or TCP)"),
+    "convoy": ("master.convoy", "run master and slaves on recorded drives as processes; write results.csv"),
+    "monitor": ("v2xpos.commands.monitor", "live table and web bird's-eye view of a running master"),
+    "emulate": ("v2xpos.commands.emulate", "serve a recording's byte streams as live devices (pseudo-terminals or TCP)"),
     "simulate": ("sim.recordings", "write simulated recordings in the shared formats (convoy: leader + followers, truth)"),
 }
+
+STOPS_CLEANLY = {"master.service", "slave.service"}
+"""Services that stop cleanly on a signal, also while their modules load (``v2xpos.stop_signals``)."""
 
 BENCHES: dict[str, tuple[str, str]] = {
     "replay": ("v2xpos.ins.replay", "EKF replay throughput [IMU samples/s]"),
     "fanin": ("bench.fanin", "slaves at 100 Hz one master core sustains with e2e p99 <= 10 ms"),
     "soak": ("bench.soak", "long run: sent / received / recorded / lost, memory growth"),
-    "trust": ("v2xpos.security_bench", "forged / replayed messages, fuzzing, fault scenarios"),
+    "trust": ("bench.trust", "forged / replayed messages, fuzzing, fault scenarios"),
     "grading": ("bench.grading", "IMU grading on simulated vehicles: fault sweep, lidar rate check"),
-    "fuzz": ("v2xpos.fuzz", "fuzz the message decoder and dataset readers"),
-    "monitor": ("v2xpos.monitor.command", "monitor CPU and status-change delay at N targets x rate"),
-    "corpus": ("v2xpos.corpus", "broken inputs through replay/calibrate/grade/config loading: tracebacks, silent exits"),
-    "calibration": ("sim.bench_calibration", "Monte-Carlo coverage of calibrate's estimates and sds (simulated drives)"),
+    "fuzz": ("bench.fuzz", "fuzz the message decoder and dataset readers"),
+    "monitor": ("bench.monitor", "monitor CPU and status-change delay at N targets x rate"),
+    "corpus": ("bench.corpus", "broken inputs through replay/calibrate/grade/config loading: tracebacks, silent exits"),
+    "calibration": ("bench.calibration", "Monte-Carlo coverage of calibrate's estimates and sds (simulated drives)"),
 }
 
 
@@ -64,6 +69,8 @@ def _dispatch(table: dict, argv: list[str], prog: str, entry: str) -> int:
     if name not in table:
         print(f"{prog}: unknown command {name!r}\n\n{_usage(table, prog)}", file=sys.stderr)
         return 2
+    if table[name][0] in STOPS_CLEANLY:
+        stop_signals.exit_until_handled(name)
     module = importlib.import_module(table[name][0])
     parser = argparse.ArgumentParser(prog=f"{prog} {name}", description=table[name][1])
     getattr(module, f"add_{entry}arguments")(parser)

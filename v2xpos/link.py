@@ -19,8 +19,7 @@ Configuration (zenoh 1.x JSON5 keys, see the zenoh ``DEFAULT_CONFIG.json5``):
   peers to mesh directly). Slaves, monitors and the grading worker are therefore ``client``s of the
   master's router; ``peer`` is for a master that joins a standalone router mesh.
 
-Key expressions live in ``v2xpos.wire`` (``state_key``, ``relative_key``, ``imu_key``) and are
-re-exported here together with the service keys (``status_key``, ``grades_key``).
+Key expressions live in ``v2xpos.wire``.
 
 Threading: zenoh calls subscriber callbacks on its own threads. ``AsyncSubscriber`` hands each
 sample over to an asyncio loop with ``loop.call_soon_threadsafe`` (the only thread-safe entry
@@ -40,8 +39,6 @@ from typing import Any, Callable
 
 import numpy as np
 import zenoh
-
-from v2xpos.wire import STATE_KEY_ALL, imu_key, relative_key, state_key  # noqa: F401  (re-exported)
 
 MODES = ("router", "peer", "client")
 
@@ -72,21 +69,6 @@ def open_error(config: "LinkConfig", exc: BaseException) -> LinkError:
         hint = " (is the master's router running? see connect_timeout_ms)"
     return LinkError(f"zenoh {config.mode} cannot open ({' and '.join(where) or 'no endpoints'}): "
                      f"{reason}{hint}")
-
-
-def status_key(fleet: str, master_id: str) -> str:
-    """Key on which a master publishes its periodic status (JSON, for monitors and the demo table)."""
-    return f"v2xpos/{fleet}/master/{master_id}/status"
-
-
-def grades_key(fleet: str, master_id: str) -> str:
-    """Key on which a master publishes IMU grades (JSON)."""
-    return f"v2xpos/{fleet}/master/{master_id}/grades"
-
-
-def relative_key_all(fleet: str) -> str:
-    """Key expression matching every master's relative results in a fleet."""
-    return f"v2xpos/{fleet}/master/*/relative"
 
 
 def loopback_endpoint(port: int, host: str = "127.0.0.1") -> str:

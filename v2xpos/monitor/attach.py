@@ -1,6 +1,6 @@
 """Attach a ``MonitorState`` to a running master over zenoh, without adding work on the master.
 
-It reads what every master already publishes: the status JSON (``v2xpos.link.status_key``, at the
+It reads what every master already publishes: the status JSON (``v2xpos.wire.status_key``, at the
 master's ``status_hz``) and the results republish (``v2xpos.wire.relative_key``, one message per
 result when ``[output.zenoh] enabled``, the default), and once per target one of that target's own
 state messages (``v2xpos.wire.state_key``) for its outline, after which that subscription is
@@ -22,9 +22,9 @@ from typing import Callable
 import msgpack
 import zenoh
 
-from v2xpos.link import Link, LinkConfig, status_key
+from v2xpos.link import Link, LinkConfig
 from v2xpos.monitor.state import MonitorState
-from v2xpos.wire import MAX_MESSAGE_BYTES, WireError, decode_state, relative_key, state_key
+from v2xpos.wire import MAX_MESSAGE_BYTES, WireError, decode_state, relative_key, state_key, status_key
 
 FIFO_CAPACITY = 65536
 GEOMETRY_RETRY_S = 10.0

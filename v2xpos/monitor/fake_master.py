@@ -13,9 +13,9 @@ import time
 
 import numpy as np
 
-from v2xpos.link import Link, LinkConfig, status_key
+from v2xpos.link import Link, LinkConfig
 from v2xpos.types import FixStatus
-from v2xpos.wire import FixSide, RelativeResult, TargetStatus, encode_relative, relative_key
+from v2xpos.wire import FixSide, RelativeResult, TargetStatus, encode_relative, relative_key, status_key
 
 
 def result(i: int, status: TargetStatus, seq: int, t_gps_s: float) -> RelativeResult:

@@ -31,7 +31,8 @@ from typing import Any, BinaryIO
 
 import msgpack
 
-from v2xpos.output.recorder import FOXGLOVE_TOPICS, SCHEMAS, McapRecorder, nav_to_dict
+from v2xpos.output.recorder import McapRecorder
+from v2xpos.output.recording_schema import FOXGLOVE_TOPICS, SCHEMAS, nav_to_dict
 from v2xpos.wire import RelativeResult, encode_relative
 
 _U32 = struct.Struct("<I")

@@ -1,4 +1,4 @@
-"""IMU grading (issue 5; seeds 000, 001, 003): time sync, attitude alignment, window consistency
+"""IMU grading: time sync, attitude alignment, window consistency
 (RMSE / PCC), fused-solution differences, bias stability between stops, pose-aided rate check,
 verdict. Public API::
 
@@ -8,7 +8,7 @@ verdict. Public API::
 
 Methods, equations and thresholds: docs/quality.md.
 """
-from .fleet import GradeConfig
+from .unit_comparison import GradeConfig
 from .grader import UnitGrader, VehicleGrader, grade_units, public_report
 from .verdict import Thresholds
 

@@ -1,13 +1,13 @@
-"""Bias stability between stops (seed 001 static detection, used for grading).
+"""Bias stability between stops (the static detection of the navigation filter, used for grading).
 
-Static test per sample (seed 001): with the rates and specific force averaged over a short
+Static test per sample: with the rates and specific force averaged over a short
 window, |w| < ``gyro_thr_dps`` and | |f| - g | < ``acc_thr_mps2``. Runs of static samples longer
 than ``min_stop_s`` are stops; over each stop (trimmed by ``trim_s`` at both ends) the mean gyro
 output is the bias estimate of that stop (plus the Earth rate projection, <= 0.004 deg/s, which
 changes between stops only with the heading). The stability is the spread max - min of the
 per-stop means, per axis.
 
-When the navigation filter's online calibration (``v2xpos.ins``, seed 001) provides per-stop
+When the navigation filter's online calibration (``v2xpos.ins.StaticCalibrator``) provides per-stop
 bias estimates, they can be passed to ``bias_stability`` directly instead of the means.
 """
 from __future__ import annotations
@@ -68,7 +68,7 @@ def bias_stability(per_stop_bias_rps: np.ndarray) -> dict:
 
 def calibrator_stop_biases(imu: ImuData, C_body_imu: np.ndarray | None = None,
                            chunk: int = 50) -> tuple[np.ndarray, list]:
-    """Per-stop gyro biases [rad/s] (unit axes) from the navigation filter's seed 001 calibrator
+    """Per-stop gyro biases [rad/s] (unit axes) from the navigation filter's stop calibrator
     (``v2xpos.ins.StaticCalibrator``) fed with the unit's samples in body axes; and the stop spans."""
     from v2xpos.ins import StaticCalibrator
 
@@ -84,7 +84,7 @@ def calibrator_stop_biases(imu: ImuData, C_body_imu: np.ndarray | None = None,
 
 
 def unit_bias_stability(imu: ImuData, C_body_imu: np.ndarray | None = None, **kw) -> dict:
-    """``bias_stability`` of one unit from its stops: the seed 001 calibrator's per-stop estimates
+    """``bias_stability`` of one unit from its stops: the stop calibrator's per-stop estimates
     (``calibrator_stop_biases``); when it finds no level stop (e.g. unknown, tilted mounting), the
     means over ``find_stops`` stops (keyword arguments of ``find_stops``)."""
     biases, spans = calibrator_stop_biases(imu, C_body_imu)

@@ -1,4 +1,4 @@
-"""First parameter (seed 000): sliding-window deviation and similarity of two aligned streams.
+"""First parameter: sliding-window deviation and similarity of two aligned streams.
 
 For a window W of n samples and one axis, with reference x and unit under test y:
 

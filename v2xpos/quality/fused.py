@@ -1,4 +1,4 @@
-"""Second parameter (seed 000): fuse every unit separately with position fixes, compare the fused
+"""Second parameter: fuse every unit separately with position fixes, compare the fused
 solutions of unit under test and reference.
 
 Each unit drives its own ``v2xpos.ins.InsFilter`` (platform "generic") with the same position
@@ -15,7 +15,7 @@ Initial attitude (the mounting of the units on the vehicle is not declared): in-
 by Wahba's problem over the first ``align_s`` seconds (optimisation-based alignment, Wu & Pan
 2013, IEEE TAES 49(2)): with C_b0_bk from integrating the gyro, over intervals i
     alpha_i = int C_b0_b f_b dt  (body frame at t0),   beta_i = dv_n,i - g_n dt_i  (NED, from fixes)
-and beta_i = C_n_b0 alpha_i, solved with ``alignment.kabsch_rotation``.
+and beta_i = C_n_b0 alpha_i, solved with ``unit_rotation.kabsch_rotation``.
 """
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ from v2xpos import geo
 from v2xpos.rotation import dcm_from_euler, euler_from_dcm, exp_so3, log_so3
 from v2xpos.types import FixStatus, ImuData
 
-from .alignment import kabsch_rotation
+from .unit_rotation import kabsch_rotation
 
 NOMINAL_ORIGIN_LLA = np.array([np.radians(45.0), 0.0, 0.0])
 """Origin given to positions known only in a local NED frame (the result does not depend on it

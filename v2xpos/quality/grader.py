@@ -1,6 +1,6 @@
 """Grading of a vehicle's IMU units: batch (``grade_units``) and incremental (``VehicleGrader``).
 
-``grade_units`` runs ``fleet.compare_units`` (time sync, alignment, first parameter for every
+``grade_units`` runs ``unit_comparison.compare_units`` (time sync, alignment, first parameter for every
 pair), scores every unit by consensus, adds the optional second parameter (fused-solution
 differences), the pose-aided rate check and the bias stability between stops, and returns a
 plain dict (the ``v2xpos grade`` JSON). ``VehicleGrader`` keeps a bounded history of samples per
@@ -14,10 +14,10 @@ import numpy as np
 
 from v2xpos.types import ImuData
 
-from . import alignment as al
+from . import unit_rotation
 from .bias import unit_bias_stability
 from .consistency import box_stats, pcc_stats
-from .fleet import AXES, FleetComparison, GradeConfig, compare_units
+from .unit_comparison import AXES, UnitComparison, GradeConfig, compare_units
 from .verdict import Thresholds, accel_pcc_check, check, fused_checks, unit_checks, worst
 
 
@@ -25,7 +25,7 @@ def _per_axis(values: np.ndarray, scale: float = 1.0) -> list[float]:
     return [float(v) * scale for v in values]
 
 
-def _pair_block(fc: FleetComparison, ref: str, uid: str, cfg: GradeConfig,
+def _pair_block(fc: UnitComparison, ref: str, uid: str, cfg: GradeConfig,
                 mounting: dict | None) -> dict:
     """Per-axis first-parameter values of uid against ref (ref's axes)."""
     p = fc.pair_direct(ref, uid, cfg, mounting)
@@ -47,15 +47,15 @@ def _pair_block(fc: FleetComparison, ref: str, uid: str, cfg: GradeConfig,
         "relative_rotation": {
             "frame": f"{uid} axes -> {ref} axes",
             "C_ref_unit": p.C_ref_ut.tolist(),
-            "euler_xyz_deg": al.euler_xyz_deg_from_dcm(p.C_ref_ut).tolist(),
-            "angle_deg": al.rotation_angle_deg(p.C_ref_ut),
+            "euler_xyz_deg": unit_rotation.euler_xyz_deg_from_dcm(p.C_ref_ut).tolist(),
+            "angle_deg": unit_rotation.rotation_angle_deg(p.C_ref_ut),
             "source": p.rotation_source,
             "kabsch_condition": p.kabsch_condition,
         },
     }
     if p.C_declared is not None:
-        block["relative_rotation"]["declared_euler_xyz_deg"] = al.euler_xyz_deg_from_dcm(p.C_declared).tolist()
-        block["relative_rotation"]["residual_vs_declared_deg"] = al.rotation_angle_deg(p.C_declared.T @ p.C_ref_ut)
+        block["relative_rotation"]["declared_euler_xyz_deg"] = unit_rotation.euler_xyz_deg_from_dcm(p.C_declared).tolist()
+        block["relative_rotation"]["residual_vs_declared_deg"] = unit_rotation.rotation_angle_deg(p.C_declared.T @ p.C_ref_ut)
     return block
 
 
@@ -123,7 +123,7 @@ def grade_units(units: dict[str, ImuData], reference: str | None = None,
             checks.append(extra_checks[uid])
         if bias_stops:
             m = (mounting_xyz_deg or {}).get(uid)
-            bs = unit_bias_stability(fc.units[uid], None if m is None else al.mounting_dcm(m))
+            bs = unit_bias_stability(fc.units[uid], None if m is None else unit_rotation.mounting_dcm(m))
             entry["bias_stability"] = bs
             if bs["max_spread_dps"] is not None:
                 checks.append(check("bias_stability", bs["max_spread_dps"], th.bias_spread_warn_dps,

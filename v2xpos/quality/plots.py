@@ -1,4 +1,4 @@
-"""Figures of the first parameter (seed 000): boxplots of window RMSE, histograms of window PCC,
+"""Figures of the first parameter: boxplots of window RMSE, histograms of window PCC,
 and the pose-aided rate curves. matplotlib with the Agg backend, PNG files."""
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .fleet import AXES, FleetComparison, GradeConfig
+from .unit_comparison import AXES, UnitComparison, GradeConfig
 
 
 def _plt():
@@ -16,7 +16,7 @@ def _plt():
     return plt
 
 
-def plot_first_parameter(fc: FleetComparison, reference: str, out_dir: str | Path,
+def plot_first_parameter(fc: UnitComparison, reference: str, out_dir: str | Path,
                          cfg: GradeConfig | None = None, mounting: dict | None = None) -> list[Path]:
     """rmse_boxplot_{gyro,accel}.png and pcc_hist_{gyro,accel}.png of every unit against the
     reference (per axis); returns the written paths."""

@@ -1,4 +1,4 @@
-"""Pose-aided angular-rate check (seed 003).
+"""Pose-aided angular-rate check: a unit's gyro against the rates differentiated from a pose source.
 
 From consecutive poses T(k) (4x4, sensor -> world) of any pose source (lidar odometry such as
 KISS-ICP, another INS, a reference):

@@ -1,4 +1,4 @@
-"""Time sync between IMU units (seed 000): one time grid, clock offsets estimated from the data.
+"""Time sync between IMU units: one time grid, clock offsets estimated from the data.
 
 All streams carry GPS seconds (``v2xpos.timebase`` maps device clocks, UTC and GPS week/TOW onto
 that axis). What remains between two units of one vehicle is an unknown offset of their clocks. It

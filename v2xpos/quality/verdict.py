@@ -110,7 +110,7 @@ def ratio_check(name: str, score: float, baseline: float | None, floor: float, w
 
 def unit_checks(unit: str, scores: dict, stuck_s: float, pcc_min: float | None,
                 th: Thresholds) -> list[dict]:
-    """The first-parameter checks of one unit from its consensus scores (``FleetComparison.scores``)."""
+    """The first-parameter checks of one unit from its consensus scores (``UnitComparison.scores``)."""
     s = scores
     out = [
         check("stuck_channel", stuck_s, th.stuck_warn_s, th.stuck_fail_s, "s"),

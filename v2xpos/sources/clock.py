@@ -27,6 +27,8 @@ import threading
 import time
 from typing import Any, Callable
 
+from v2xpos.wire import clock_key, ready_key
+
 from .base import SessionClock
 
 CLOCK_PERIOD_S = 0.1
@@ -35,16 +37,6 @@ START_LEAD_S = 0.3
 """The leader anchors its first sample this long after everyone is ready, so that followers
 have its clock before the first state is due."""
 MODES = ("leader", "follower", "alone")
-
-
-def clock_key(fleet: str) -> str:
-    """Key of the session clock published by a recording master."""
-    return f"v2xpos/{fleet}/session/clock"
-
-
-def ready_key(fleet: str, vehicle_id: str) -> str:
-    """Key on which a recording slave says it is ready for the session clock."""
-    return f"v2xpos/{fleet}/session/ready/{vehicle_id}"
 
 
 class ReplayClock(SessionClock):

@@ -51,16 +51,12 @@ from typing import Callable
 
 from v2xpos.datasets.calibration import did_you_mean
 from v2xpos.devices.rtcm import NtripClient, RtcmChecker
+from v2xpos.wire import corrections_key
 
 ATTACHMENT = struct.Struct("<Qd")
 SOURCES = ("ntrip", "serial", "tcp")
 KEYS = ("source", "caster", "mountpoint", "user", "password", "ntrip_version", "gga", "gga_interval_s",
         "port", "baud", "tcp", "receive", "key", "rate_window_s")
-
-
-def corrections_key(fleet: str) -> str:
-    """Zenoh key of a fleet's correction stream."""
-    return f"v2xpos/{fleet}/corrections"
 
 
 @dataclass

@@ -35,10 +35,10 @@ from pathlib import Path
 
 import numpy as np
 
+from sim.calibration_drive import simulated_recording
 from sim.trajectory import Segment, generate
 from v2xpos.diagnose.inject import (N_PARAMS, P_ACCEL_SCALE, P_CLOCK_DRIFT, P_GNSS_LATENCY, P_GYRO_SCALE,
-                                    P_LEVER_ARM, P_MISALIGN, P_TIME_OFFSET, PARAM_NAMES, EffectSet,
-                                    simulated_recording)
+                                    P_LEVER_ARM, P_MISALIGN, P_TIME_OFFSET, PARAM_NAMES, EffectSet)
 from v2xpos.types import FixStatus
 
 MOUNTINGS = {

@@ -1,24 +1,11 @@
-"""``v2xpos bench trust --json FILE``: attack, fault and robustness report of the V2V link.
-
-Everything runs over real zenoh sessions on loopback: a master session embedding the router
-(``tcp/127.0.0.1:PORT``) subscribes to the fleet's state key and runs
-``master.pipeline.MasterPipeline`` with a ``MessageAuthenticator`` (trust list of the test
-vehicles) on every sample; slave sessions publish signed StateMessages at 100 Hz. Link
-impairments are applied at the sender (a held message = delay; swapped = reordering; re-sent =
-duplicate; shifted time of validity = clock fault). The router-restart fault uses a standalone
-router process that is killed (SIGKILL) and restarted on the same port.
-
-Report keys (issue 6): ``forged_sent``, ``forged_accepted``, ``replayed_sent``,
-``replayed_accepted``, ``fuzz_inputs``, ``fuzz_crashes``, ``faults`` (``name``, ``passed``,
-``detail``) and the soak's ``sent``, ``received``, ``recorded``, ``lost``, ``rss_growth_pct``.
-"""
+"""Fault scenarios of the trust bench over a live loopback rig (``bench.live_rig``): slave dropout and
+return, slave restart, delay spikes and jitter, reordering and duplicates, clock jump and drift,
+GNSS outage and fix downgrades, and the router killed (SIGKILL) and restarted on the same port by a
+standalone router process. Each scenario returns a ``FaultResult``: the master keeps running and
+every target's status agrees with what it was sent."""
 from __future__ import annotations
 
-import argparse
-import json
-import math
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -30,19 +17,10 @@ from typing import Callable
 
 import numpy as np
 
-from v2xpos.types import FixStatus, NavState
-from v2xpos.wire import Geometry, StateMessage, TargetStatus, encode_state, state_key
-
-FLEET = "fault"
-EPOCH_GPS_S = 1.4e9
-RATE_HZ = 100.0
-DEFAULT_TIMEOUT_S = 0.2
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from bench.live_rig import DEFAULT_TIMEOUT_S, Delivered, LiveRig, fresh_rig, paced, wait_connected
+from v2xpos.launch import free_tcp_port
+from v2xpos.types import FixStatus
+from v2xpos.wire import TargetStatus
 
 
 @dataclass
@@ -56,206 +34,6 @@ class FaultResult:
         return {"name": self.name, "passed": bool(self.passed), "detail": self.detail}
 
 
-@dataclass
-class Delivered:
-    """A result the master produced: its status and the payload that caused it (None for ticks)."""
-    t_now_gps_s: float
-    result: object
-    payload: bytes | None
-    t_arrival_wall_s: float = math.nan
-    master_fix: FixStatus | None = None
-
-
-def _nav(t: float, fix: FixStatus, lat0: float = 0.6981317, lon0: float = -1.8325957) -> NavState:
-    """Master state: straight north at 20 m/s from (lat0, lon0) at EPOCH_GPS_S."""
-    return NavState(t_s=t, lla=np.array([lat0 + 20.0 * (t - EPOCH_GPS_S) / 6.38e6, lon0, 1600.0]),
-                    v_ned_mps=np.array([20.0, 0.0, 0.0]), acc_body_mps2=np.zeros(3),
-                    rate_body_rps=np.zeros(3), rpy_rad=np.zeros(3), pos_sd_m=np.full(3, 0.01),
-                    vel_sd_mps=np.full(3, 0.02), att_sd_rad=np.full(3, 1e-3), fix=fix)
-
-
-class LiveRig:
-    """Master (router + pipeline + authenticator) and slave sessions on loopback.
-
-    ``send(vid, seq, t_valid_s, fix)`` publishes a signed state of vehicle ``vid`` now;
-    ``master_fix`` sets the master's own fix; ``delivered`` collects every result with the
-    payload behind it; ``accepted_payloads`` is the set of payloads that produced a result.
-    """
-
-    def __init__(self, vehicles=("car1", "car2"), timeout_s: float = DEFAULT_TIMEOUT_S, port: int | None = None,
-                 master_mode: str = "router", router_endpoint: str | None = None):
-        from master.pipeline import MasterPipeline, PipelineConfig
-        from v2xpos.link import Link, LinkConfig
-        from v2xpos.security import Ed25519PrivateKey, MessageAuthenticator, MessageSigner, TrustList
-
-        self.port = port or free_port()
-        self.endpoint = router_endpoint or f"tcp/127.0.0.1:{self.port}"
-        self.signers = {v: MessageSigner(Ed25519PrivateKey.generate()) for v in vehicles}
-        trust = TrustList()
-        for v, s in self.signers.items():
-            trust.add(v, s.public_key)
-        self.auth = MessageAuthenticator(trust)
-        self.delivered: list[Delivered] = []
-        self.accepted_payloads: set[bytes] = set()
-        self.pipe = MasterPipeline(PipelineConfig(fleet=FLEET, master_id="ego", timeout_s=timeout_s,
-                                                  measurement_point_m=(3.8, 0.0, 0.0), known_vehicles=tuple(vehicles)),
-                                   [], authenticator=self.auth)
-        self.master_fix = FixStatus.FIXED
-        self.lock = threading.Lock()
-        self.t0 = time.time()
-        if master_mode == "router":
-            self.master_link = Link(LinkConfig(mode="router", listen=[self.endpoint]))
-        else:
-            self.master_link = Link(LinkConfig(mode=master_mode, connect=[self.endpoint]))
-        self.master_link.subscribe(f"v2xpos/{FLEET}/vehicle/*/state", self._on_sample)
-        self.slave_link = Link(LinkConfig(mode="peer" if master_mode == "router" else "client",
-                                          connect=[self.endpoint]))
-        self.pubs = {v: self.slave_link.publisher(state_key(FLEET, v)) for v in vehicles}
-        self.geometry = Geometry.box(3.8, 1.0, 0.9)
-        self.last_arrival_wall_s = math.nan
-
-    def now(self) -> float:
-        return EPOCH_GPS_S + (time.time() - self.t0)
-
-    def _on_sample(self, payload: bytes, key: str, att, t_arr: float) -> None:
-        with self.lock:
-            self.last_arrival_wall_s = t_arr
-            now = self.now()
-            fix = self.master_fix
-            res = self.pipe.handle(payload, key, _nav(now, fix), now, t_arr)
-            if res is not None:
-                self.accepted_payloads.add(payload)
-                self.delivered.append(Delivered(now, res, payload, t_arr, fix))
-
-    def tick(self) -> None:
-        with self.lock:
-            now = self.now()
-            for res in self.pipe.tick(now, now):
-                self.delivered.append(Delivered(now, res, None))
-
-    def state(self, vid: str, seq: int, t_valid_s: float, fix: FixStatus = FixStatus.FIXED) -> StateMessage:
-        idx = list(self.signers).index(vid) if vid in self.signers else 0
-        n = _nav(t_valid_s, fix)
-        n.lla = n.lla + np.array([(15.0 + 10.0 * idx) / 6.38e6, (3.5 * (idx % 2)) / 4.9e6, 0.0])
-        return StateMessage.from_nav_state(n, FLEET, vid, seq, geometry=self.geometry, t_sent_wall_s=time.time())
-
-    def encode(self, vid: str, seq: int, t_valid_s: float, fix: FixStatus = FixStatus.FIXED,
-               signer=None) -> bytes:
-        return encode_state(self.state(vid, seq, t_valid_s, fix), sign=signer or self.signers[vid])
-
-    def put(self, vid: str, payload: bytes) -> None:
-        self.pubs[vid].put(payload)
-
-    def results(self, vid: str) -> list[Delivered]:
-        return [d for d in self.delivered if d.result.target_id == vid]
-
-    def settle(self, s: float = 0.3) -> None:
-        time.sleep(s)
-
-    def close(self) -> None:
-        self.slave_link.close()
-        self.master_link.close()
-
-
-def _paced(n_steps: int, rate: float = RATE_HZ):
-    """Yield step indices at ``rate`` Hz (absolute schedule)."""
-    t0 = time.time()
-    for k in range(n_steps):
-        delay = t0 + k / rate - time.time()
-        if delay > 0:
-            time.sleep(delay)
-        yield k
-
-
-def _wait_connected(rig: LiveRig, vid: str = "car1", timeout_s: float = 5.0) -> None:
-    """Send probes until the master receives one (routes established)."""
-    deadline = time.time() + timeout_s
-    seq = 0
-    while time.time() < deadline:
-        rig.put(vid, rig.encode(vid, 10 ** 9 + seq, rig.now() - 0.002))
-        seq += 1
-        time.sleep(0.05)
-        if rig.delivered:
-            break
-    with rig.lock:
-        rig.delivered.clear()
-        rig.accepted_payloads.clear()
-
-
-def _fresh_rig(**kw) -> LiveRig:
-    """A connected rig whose master has forgotten the connection probes."""
-    from master.pipeline import TargetTrack
-    rig = LiveRig(**kw)
-    _wait_connected(rig)
-    with rig.lock:
-        for v in rig.signers:
-            rig.pipe.tracks[v] = TargetTrack(v)
-        rig.auth._windows.clear()
-        rig.pipe.rejected.clear()
-    return rig
-
-
-# ----------------------------------------------------------------------------- attacks
-
-def attack_forged_and_replayed(n_each: int = 50) -> dict:
-    """Forged messages (unknown key, another vehicle's key, tampered body, signature moved to
-    another body, unsigned) and replays (captured payloads re-sent 0.05-2 s later, and after
-    the age window) over zenoh; counts how many the master accepted."""
-    from v2xpos.security import Ed25519PrivateKey, MessageSigner
-    from v2xpos.wire import pack_envelope, unpack_envelope
-
-    rig = _fresh_rig()
-    outsider = MessageSigner(Ed25519PrivateKey.generate())
-    forged: list[bytes] = []
-    replayed: list[bytes] = []
-    captured: list[bytes] = []
-    try:
-        seq = 0
-        for k in _paced(4 * n_each):
-            now = rig.now()
-            good = rig.encode("car1", seq, now - 0.003)
-            rig.put("car1", good)
-            rig.put("car2", rig.encode("car2", seq, now - 0.003))
-            captured.append(good)
-            seq += 1
-            now += 0.001  # forgeries look fresher than the genuine message, so only authentication stops them
-            kind = k % 4
-            if kind == 0:
-                f = rig.encode("car1", seq + 5000, now - 0.003, signer=outsider)
-            elif kind == 1:
-                f = rig.encode("car1", seq + 5000, now - 0.003, signer=rig.signers["car2"])
-            elif kind == 2:
-                env = unpack_envelope(rig.encode("car1", seq + 5000, now - 0.003))
-                tampered = rig.encode("car1", seq + 5000, now - 0.003, fix=FixStatus.FLOAT)
-                f = pack_envelope(unpack_envelope(tampered).body, env.sig, env.key_id)
-            else:
-                f = encode_state(rig.state("car1", seq + 5000, now - 0.003))
-            forged.append(f)
-            rig.put("car1", f)
-            if k >= 10 and k % 2 == 0:  # replay a capture from 50 ms to 2 s ago
-                r = captured[max(0, k - 5 - 25 * (k % 8))]
-                replayed.append(r)
-                rig.put("car1", r)
-        time.sleep(5.2)  # beyond the 5 s age window: replay a batch of old captures
-        for r in captured[: n_each]:
-            replayed.append(r)
-            rig.put("car1", r)
-        rig.settle()
-        with rig.lock:
-            forged_acc = sum(1 for f in forged if f in rig.accepted_payloads)
-            # a replay is accepted if its delivery produced a second result for the same payload
-            per_payload = Counter(d.payload for d in rig.delivered if d.payload is not None)
-            replay_acc = sum(1 for r in set(replayed) if per_payload[r] > 1)
-            genuine = sum(1 for c in captured if c in rig.accepted_payloads)
-            rejected = dict(rig.pipe.rejected)
-    finally:
-        rig.close()
-    return {"forged_sent": len(forged), "forged_accepted": forged_acc, "replayed_sent": len(replayed),
-            "replayed_accepted": replay_acc, "genuine_sent": len(captured), "genuine_accepted": genuine,
-            "rejected": rejected}
-
-
-# ----------------------------------------------------------------------------- faults
 
 def _statuses(items: list[Delivered]) -> Counter:
     return Counter(d.result.status.name.lower() for d in items)
@@ -271,11 +49,11 @@ def _inconsistent(items: list[Delivered], timeout_s: float = DEFAULT_TIMEOUT_S) 
 
 def fault_dropout_and_return() -> FaultResult:
     """car2 silent for 1 s (link drop; sequence continues), then back; car1 unaffected."""
-    rig = _fresh_rig()
+    rig = fresh_rig()
     try:
         gap = range(100, 200)
         t_return = None
-        for k in _paced(300):
+        for k in paced(300):
             now = rig.now()
             rig.put("car1", rig.encode("car1", k, now - 0.003))
             if k not in gap:
@@ -306,9 +84,9 @@ def fault_dropout_and_return() -> FaultResult:
 def fault_slave_restart() -> FaultResult:
     """car2's process restarts after a 0.2 s gap: its sequence starts again at 0 (it was at
     about 5000, i.e. it had run for a minute); time keeps increasing."""
-    rig = _fresh_rig()
+    rig = fresh_rig()
     try:
-        for k in _paced(200):
+        for k in paced(200):
             now = rig.now()
             rig.put("car1", rig.encode("car1", k, now - 0.003))
             if k < 80:
@@ -334,12 +112,12 @@ def fault_delay_spikes_and_jitter(spike_s: float = 0.3) -> FaultResult:
     timeout on arrival must give TIMEOUT, no VALID result may be older than the timeout, and the
     spike must not be mistaken for clock skew."""
     rng = np.random.default_rng(3)
-    rig = _fresh_rig()
+    rig = fresh_rig()
     held: list[tuple[float, bytes]] = []
     spiked: set[bytes] = set()
     last_release = 0.0
     try:
-        for k in _paced(300):
+        for k in paced(300):
             now_wall = time.time()
             now = rig.now()
             p = rig.encode("car1", k, now - 0.003)
@@ -380,11 +158,11 @@ def fault_delay_spikes_and_jitter(spike_s: float = 0.3) -> FaultResult:
 def fault_reorder_and_duplicates() -> FaultResult:
     """car1: every 10th pair of messages swapped, every 7th message sent twice; car2 clean.
     Late and repeated messages are rejected and counted; car1's outputs stay in time order."""
-    rig = _fresh_rig()
+    rig = fresh_rig()
     injected_dup = injected_swap = 0
     try:
         pending = None
-        for k in _paced(300):
+        for k in paced(300):
             now = rig.now()
             p = rig.encode("car1", k, now - 0.003)
             rig.put("car2", rig.encode("car2", k, now - 0.003))
@@ -422,10 +200,10 @@ def fault_reorder_and_duplicates() -> FaultResult:
 def fault_clock_jump_and_drift() -> FaultResult:
     """car1's clock drifts +3000 ppm; car2's clock jumps back 150 ms at 2.5 s and ahead 300 ms
     at 4 s. Both must be reported as clock skew (not only as latency); a clean run is not."""
-    rig = _fresh_rig()
+    rig = fresh_rig()
     try:
         t_start = rig.now()
-        for k in _paced(600):
+        for k in paced(600):
             now = rig.now()
             t1 = t_start + (now - t_start) * (1 + 3e-3) - 0.003
             rig.put("car1", rig.encode("car1", k, t1))
@@ -450,7 +228,7 @@ def fault_clock_jump_and_drift() -> FaultResult:
 def fault_gnss_outage_and_fix_downgrades() -> FaultResult:
     """Master fix FIXED->FLOAT->SINGLE->NONE(outage)->FIXED and car1 FIXED->DEAD_RECKONING->FIXED;
     every result must carry the status and failing side the gate implies."""
-    rig = _fresh_rig()
+    rig = fresh_rig()
     master_fix = {range(0, 50): FixStatus.FIXED, range(50, 100): FixStatus.FLOAT, range(100, 150): FixStatus.SINGLE,
                   range(150, 200): FixStatus.NONE, range(200, 350): FixStatus.FIXED}
     car1_fix = {range(0, 250): FixStatus.FIXED, range(250, 300): FixStatus.DEAD_RECKONING,
@@ -460,7 +238,7 @@ def fault_gnss_outage_and_fix_downgrades() -> FaultResult:
         return next(v for r, v in table.items() if k in r)
     expected: dict[bytes, tuple] = {}
     try:
-        for k in _paced(350):
+        for k in paced(350):
             with rig.lock:
                 rig.master_fix = at(master_fix, k)
             now = rig.now()
@@ -510,7 +288,7 @@ def _router_main(port: int) -> int:
 
 def _start_router(port: int) -> subprocess.Popen:
     repo = Path(__file__).resolve().parents[1]
-    p = subprocess.Popen([sys.executable, "-m", "v2xpos.security_bench", "--router", str(port)], cwd=repo,
+    p = subprocess.Popen([sys.executable, "-m", "bench.trust_faults", "--router", str(port)], cwd=repo,
                          stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     p.stdout.readline()
     return p
@@ -520,7 +298,7 @@ def fault_router_restart(down_s: float = 0.5) -> FaultResult:
     """Standalone router killed (SIGKILL) and restarted on the same port while the slave keeps
     publishing at 100 Hz; master and slave are zenoh clients with the link's connect/retry
     (100 ms initial, 500 ms max). Delivery must resume within 1 s of the new router listening."""
-    port = free_port()
+    port = free_tcp_port()
     router = {"p": _start_router(port)}
     rig = LiveRig(master_mode="client", router_endpoint=f"tcp/127.0.0.1:{port}")
     ready: dict[str, float] = {}
@@ -529,14 +307,14 @@ def fault_router_restart(down_s: float = 0.5) -> FaultResult:
         router["p"] = _start_router(port)
         ready["t"] = time.time()
     try:
-        _wait_connected(rig)
+        wait_connected(rig)
         with rig.lock:
             rig.pipe.tracks.clear()
-            rig.auth._windows.clear()
+            rig.auth.reset_replay_windows()
         t_kill = None
         restarter = None
         seq = 0
-        for k in _paced(100000):
+        for k in paced(100000):
             rig.put("car1", rig.encode("car1", seq, rig.now() - 0.003))
             seq += 1
             if k == 100:
@@ -596,56 +374,9 @@ def run_faults(names: list[str] | None = None) -> list[FaultResult]:
     return out
 
 
-# ----------------------------------------------------------------------------- CLI
-
-def add_bench_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--json", help="write the report here")
-    parser.add_argument("--fuzz-inputs", type=int, default=100_000)
-    parser.add_argument("--soak-json", help="use this soak report (from `v2xpos bench soak --json`) instead of "
-                                            "running the soak")
-    parser.add_argument("--soak-slaves", type=int, default=32)
-    parser.add_argument("--soak-rate", type=float, default=100.0)
-    parser.add_argument("--soak-duration", type=float, default=60.0)
-    parser.add_argument("--skip-soak", action="store_true")
-    parser.add_argument("--faults", nargs="*", help="fault names to run (default all)")
-
-
-def run_bench(args: argparse.Namespace) -> int:
-    from v2xpos.fuzz import run_fuzz
-    report: dict = {}
-    print("attacks: forged and replayed messages over zenoh ...", file=sys.stderr)
-    report.update(attack_forged_and_replayed())
-    print("faults ...", file=sys.stderr)
-    faults = run_faults(args.faults)
-    report["faults"] = [f.as_dict() for f in faults]
-    print(f"fuzz: {args.fuzz_inputs} inputs ...", file=sys.stderr)
-    fz = run_fuzz(args.fuzz_inputs)
-    report["fuzz_inputs"], report["fuzz_crashes"] = fz["fuzz_inputs"], fz["fuzz_crashes"]
-    report["fuzz_targets"] = {k: {kk: v[kk] for kk in ("inputs", "decoded", "rejected", "crashes")}
-                              for k, v in fz["targets"].items()}
-    soak = None
-    if args.soak_json:
-        soak = json.loads(Path(args.soak_json).read_text())
-    elif not args.skip_soak:
-        from bench.soak import run_soak
-        print("soak ...", file=sys.stderr)
-        soak = run_soak(args.soak_slaves, args.soak_rate, args.soak_duration, "out/soak")
-    for k in ("sent", "received", "recorded", "lost", "rss_growth_pct"):
-        report[k] = None if soak is None else soak.get(k)
-    if soak is not None:
-        report["soak"] = soak
-    text = json.dumps(report, indent=1)
-    print(text)
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(text)
-    ok = (report["forged_accepted"] == 0 and report["replayed_accepted"] == 0 and report["fuzz_crashes"] == 0
-          and all(f.passed for f in faults))
-    return 0 if ok else 1
-
 
 if __name__ == "__main__":
     if len(sys.argv) == 3 and sys.argv[1] == "--router":
         sys.exit(_router_main(int(sys.argv[2])))
-    print("usage: v2xpos bench trust --json FILE", file=sys.stderr)
+    print("usage: python -m bench.trust_faults --router PORT", file=sys.stderr)
     sys.exit(2)

@@ -1,4 +1,4 @@
-"""Attitude alignment between IMU units (seed 000).
+"""The rotation between the axes of two IMU units on one body (their relative mounting).
 
 Two units on one rigid body measure the same angular rate in different axes:
 ``w_ref = C_ref_ut @ w_ut`` where ``C_ref_ut`` takes vectors from the unit under test (ut) to the

@@ -1,10 +1,6 @@
-"""``v2xpos monitor``: a live view of any running master -- a terminal table and, with ``--web``, a
-page with a bird's-eye view and the same table -- and ``v2xpos bench monitor``, what that costs.
-
-The monitor is a zenoh client of the master's router (``--connect``, the master's listen
-endpoint); it reads only what the master publishes anyway (see ``v2xpos.monitor.attach``), so
-attaching one adds no work to the master.
-"""
+"""``v2xpos bench monitor``: what watching a master with ``v2xpos monitor`` costs -- the monitor
+process's CPU and the delay from a target's status change to the snapshot and the table showing it,
+at N targets x rate, against a fake master (``v2xpos.monitor.fake_master``) in a child process."""
 from __future__ import annotations
 
 import argparse
@@ -18,91 +14,12 @@ import time
 import urllib.request
 from pathlib import Path
 
+from v2xpos.launch import free_tcp_port, service_env
 from v2xpos.link import LinkConfig
 from v2xpos.monitor.attach import MasterMonitor
 from v2xpos.monitor.table import render
-from v2xpos.monitor.web import WebServer, parse_host_port
+from v2xpos.monitor.web import WebServer
 
-PLAIN_EVERY_S = 5.0
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--connect", default="tcp/127.0.0.1:7447",
-                        help="the master's zenoh endpoint (its [link] listen), default tcp/127.0.0.1:7447")
-    parser.add_argument("--master", default=None,
-                        help="master id (default: the first master of the fleet that publishes its status)")
-    parser.add_argument("--fleet", default="demo", help="fleet name (default demo)")
-    parser.add_argument("--web", nargs="?", const="127.0.0.1:8080", default=None, metavar="HOST:PORT",
-                        help="serve the live page on HOST:PORT (default 127.0.0.1:8080; port 0: any free port)")
-    parser.add_argument("--no-table", action="store_true", help="no terminal table (with --web)")
-    parser.add_argument("--rows", type=int, default=64, help="most target lines in the terminal table (default 64)")
-    parser.add_argument("--refresh-hz", type=float, default=5.0, help="snapshots per second (default 5)")
-    parser.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: Ctrl-C)")
-    parser.add_argument("--connect-timeout-ms", type=int, default=10000,
-                        help="how long to wait for the master's router at start (default 10000; -1 forever)")
-
-
-class _TableOut:
-    """Redraws in place on a terminal; on a pipe or file prints one block every PLAIN_EVERY_S."""
-
-    def __init__(self, out=sys.stdout, rows: int = 64):
-        self.out = out
-        self.rows = rows
-        self.tty = out.isatty()
-        self._last = 0.0
-
-    def __call__(self, snap: dict) -> None:
-        if not snap["rows"] and snap["master"]["id"] is None:
-            return   # nothing heard from the master yet
-        text = render(snap, self.rows)
-        if self.tty:
-            self.out.write("\x1b[H\x1b[J" + text + "\n")
-            self.out.flush()
-        elif time.time() - self._last >= PLAIN_EVERY_S:
-            self._last = time.time()
-            self.out.write(text + "\n\n")
-            self.out.flush()
-
-
-def run(args: argparse.Namespace) -> int:
-    try:
-        link_cfg = LinkConfig(mode="client", connect=[args.connect], connect_timeout_ms=args.connect_timeout_ms)
-        web_addr = parse_host_port(args.web) if args.web else None
-    except ValueError as exc:
-        print(f"v2xpos monitor: {exc}", file=sys.stderr)
-        return 2
-    if args.refresh_hz <= 0 or args.rows < 1:
-        print("v2xpos monitor: --refresh-hz must be > 0 and --rows >= 1", file=sys.stderr)
-        return 2
-    table = None if args.no_table else _TableOut(rows=args.rows)
-    mon = MasterMonitor(link_cfg, args.fleet, args.master, refresh_period_s=1.0 / args.refresh_hz, on_snapshot=table)
-    try:
-        mon.start()
-    except Exception as exc:   # zenoh could not reach the router
-        print(f"v2xpos monitor: cannot connect to {args.connect}: {exc}", file=sys.stderr)
-        return 2
-    web = None
-    try:
-        if web_addr is not None:
-            try:
-                web = WebServer(mon.snapshot, *web_addr).start()
-            except OSError as exc:
-                print(f"v2xpos monitor: --web {args.web}: {exc}", file=sys.stderr)
-                return 2
-            print(f"v2xpos monitor: page on {web.url}", file=sys.stderr, flush=True)
-        t_end = time.time() + args.duration if args.duration else float("inf")
-        while time.time() < t_end:
-            time.sleep(min(0.2, max(0.0, t_end - time.time())))
-    except KeyboardInterrupt:
-        pass
-    finally:
-        if web is not None:
-            web.close()
-        mon.close()
-    return 0
-
-
-# ----------------------------------------------------------------------------- bench
 
 def add_bench_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--targets", type=int, default=64, help="targets (default 64)")
@@ -119,17 +36,13 @@ def run_bench(args: argparse.Namespace) -> int:
     and this process as the monitor, with the web page polled at 5 Hz and the table rendered at
     every snapshot, as a user would run it. Reports the monitor process's CPU [% of one core] and
     the delay from a flip's first result to the first snapshot / table showing it."""
-    import socket
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    endpoint = f"tcp/127.0.0.1:{port}"
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     warm_s = 3.0
     pub = subprocess.Popen([sys.executable, "-m", "v2xpos.monitor.fake_master", "--endpoint", endpoint,
                             "--targets", str(args.targets), "--rate-hz", str(args.rate_hz),
                             "--duration", str(args.duration + warm_s + 2.0), "--flip-every", str(args.flip_every)],
                            stdout=subprocess.PIPE, text=True,
-                           env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])})
+                           env=service_env())
     flips: list[tuple[float, str]] = []
     flip_target = None
 

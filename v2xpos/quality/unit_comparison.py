@@ -1,11 +1,12 @@
-"""Grade the IMU units of one vehicle against each other (seed 000 first parameter + extensions).
+"""Compare the IMU units of one vehicle pairwise and score each unit against the others (the first
+parameter: window consistency of the aligned angular rates, plus scale and bias stability).
 
 Pipeline for every pair of units (u, v):
 
 1. time sync: clock offset from the gyro-norm cross-correlation (``timesync``), v resampled
    onto u's grid at ``t + offset``; refined after alignment with the per-axis correlation;
 2. attitude alignment: declared mounting (``C_u_v = C_body_u^T C_body_v``) or, when not declared,
-   the Kabsch fit of v's angular rates onto u's (``alignment``);
+   the Kabsch fit of v's angular rates onto u's (``unit_rotation``);
 3. first parameter: sliding-window RMSE / PCC / mean difference per axis (``consistency``), plus
    the relative scale factor (TLS slope on low-passed rates) and the bias stability (spread of the
    window mean differences over the run).
@@ -25,7 +26,7 @@ import numpy as np
 
 from v2xpos.types import ImuData
 
-from . import alignment as al
+from . import unit_rotation
 from .consistency import (WindowSeries, longest_constant_run_s, relative_scale,
                           turning_mask, robust_range,
                           sliding_window_metrics)
@@ -42,7 +43,7 @@ class GradeConfig:
     searched [s]; sync_cutoff_hz: low-pass before the offset correlation; scale_cutoff_hz and
     min_scale_signal_dps: low-pass and minimum reference rate s.d. for the scale estimate;
     estimate_offsets: False to trust the time stamps as they are; min_kabsch_condition: below
-    this conditioning of the angular rates (``alignment.kabsch_condition``) the rotation is not
+    this conditioning of the angular rates (``unit_rotation.kabsch_condition``) the rotation is not
     estimated from the data and the declared mounting is used (identity, reported as not
     observable, when there is none); min_align_motion_dps: likewise when the rates' RMS along their
     second principal direction is below this (noise alone would give a random rotation); min_sync_motion_dps / min_sync_corr: the clock offset is
@@ -156,24 +157,24 @@ def compare_pair(ref_id: str, ref: ImuData, ut_id: str, ut: ImuData, cfg: GradeC
     C_decl = None if C_ref_ut_declared is None else np.asarray(C_ref_ut_declared, float)
 
     def align(g_u: np.ndarray) -> tuple[np.ndarray, str, float]:
-        cond = al.kabsch_condition(g_u)
-        second_dps = float(np.degrees(al.principal_rates_rps(g_u)[1]))
+        cond = unit_rotation.kabsch_condition(g_u)
+        second_dps = float(np.degrees(unit_rotation.principal_rates_rps(g_u)[1]))
         if cond < cfg.min_kabsch_condition or second_dps < cfg.min_align_motion_dps:
             if C_decl is not None:
                 return C_decl, "declared", cond
             return np.eye(3), "not observable (identity assumed)", cond
-        return al.kabsch_rotation(g_ref, g_u), "estimated", cond
+        return unit_rotation.kabsch_rotation(g_ref, g_u), "estimated", cond
 
     C, source, cond = align(g_ut)
     if sync and len(grid) > 8 * cfg.window_s * rate:
-        fine = vector_offset_s(grid, g_ref, al.rotate(g_ut, C), max_lag_s=min(0.05, cfg.max_offset_s),
+        fine = vector_offset_s(grid, g_ref, unit_rotation.rotate(g_ut, C), max_lag_s=min(0.05, cfg.max_offset_s),
                                cutoff_hz=cfg.sync_cutoff_hz)
         if abs(fine) > 0.0:
             offset += fine
             g_ut, a_ut = ut_at(offset)
             C, source, cond = align(g_ut)
-    g_al = al.rotate(g_ut, C)
-    a_al = al.rotate(a_ut, C)
+    g_al = unit_rotation.rotate(g_ut, C)
+    a_al = unit_rotation.rotate(a_ut, C)
     wn = max(2, int(round(cfg.window_s * rate)))
     sn = max(1, int(round(cfg.step_s * rate)))
     gw = sliding_window_metrics(grid, g_ref, g_al, wn, sn)
@@ -207,7 +208,7 @@ def _swap(p: PairResult) -> PairResult:
 
 
 @dataclass
-class FleetComparison:
+class UnitComparison:
     """All pairwise comparisons of a vehicle's units plus per-unit raw-data checks."""
     unit_ids: list[str]
     pairs: dict[tuple[str, str], PairResult]
@@ -230,7 +231,7 @@ class FleetComparison:
         if (ref, ut) in self.pairs:
             return self.pairs[(ref, ut)]
         m = mounting_xyz_deg or {}
-        C = (al.relative_from_mounting(al.mounting_dcm(m[ref]), al.mounting_dcm(m[ut]))
+        C = (unit_rotation.relative_from_mounting(unit_rotation.mounting_dcm(m[ref]), unit_rotation.mounting_dcm(m[ut]))
              if m.get(ref) is not None and m.get(ut) is not None else None)
         p = compare_pair(ref, self.units[ref], ut, self.units[ut], cfg, C)
         self.pairs[(ref, ut)] = p
@@ -263,7 +264,7 @@ class FleetComparison:
 
 
 def compare_units(units: dict[str, ImuData], cfg: GradeConfig | None = None,
-                  mounting_xyz_deg: dict[str, np.ndarray | None] | None = None) -> FleetComparison:
+                  mounting_xyz_deg: dict[str, np.ndarray | None] | None = None) -> UnitComparison:
     """Run ``compare_pair`` on every pair of units and the raw-data checks on every unit.
 
     mounting_xyz_deg: declared mounting angles per unit (X-Y-Z order, deg, unit -> body); pairs
@@ -281,7 +282,7 @@ def compare_units(units: dict[str, ImuData], cfg: GradeConfig | None = None,
     pairs = {}
     for a, b in combinations(ids, 2):
         ma, mb = mounting_xyz_deg.get(a), mounting_xyz_deg.get(b)
-        C_decl = (al.relative_from_mounting(al.mounting_dcm(ma), al.mounting_dcm(mb))
+        C_decl = (unit_rotation.relative_from_mounting(unit_rotation.mounting_dcm(ma), unit_rotation.mounting_dcm(mb))
                   if ma is not None and mb is not None else None)
         pairs[(a, b)] = compare_pair(a, clean[a], b, clean[b], cfg, C_decl)
     flat = {}
@@ -292,6 +293,6 @@ def compare_units(units: dict[str, ImuData], cfg: GradeConfig | None = None,
                    "accel": longest_constant_run_s(c.t_s, c.acc_mps2, turning)}
     t0 = max(float(c.t_s[0]) for c in clean.values())
     t1 = min(float(c.t_s[-1]) for c in clean.values())
-    return FleetComparison(unit_ids=ids, pairs=pairs, flatline=flat, units=clean, dropped_samples=dropped,
+    return UnitComparison(unit_ids=ids, pairs=pairs, flatline=flat, units=clean, dropped_samples=dropped,
                            rate_hz={u: median_rate_hz(clean[u].t_s) for u in ids},
                            duration_s=max(0.0, t1 - t0))

@@ -411,7 +411,7 @@ def _pipeline_target(seeds: list[bytes], trust) -> Target:
     def consume(data: bytes) -> str | None:
         counter["i"] += 1
         pipe.tracks.clear()
-        auth._windows.clear()
+        auth.reset_replay_windows()
         before = Counter(pipe.rejected)
         res = pipe.handle(data, keys[counter["i"] % len(keys)], nav, T_SEED + 3.01, 1.7e9)
         if res is not None:

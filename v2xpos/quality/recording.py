@@ -1,9 +1,8 @@
-"""``v2xpos grade``: grade the IMU units of a multi-IMU recording (or of simulated vehicles).
+"""Grade the IMU units of a multi-IMU recording (the logic behind ``v2xpos grade``, whose command
+line is ``v2xpos.commands.grade``): load the recording and its ``[grade]`` table, check each unit's
+coverage, grade the units with ``v2xpos.quality.grader``.
 
-    v2xpos grade CONFIG_OR_DIR [--reference UNIT] [--json FILE] [--plots DIR]
-    (simulated vehicles: ``v2xpos bench grading faults|lidar``, bench/grading.py)
-
-CONFIG_OR_DIR: a quadrotor_mimu path folder, or a dataset toml (``layout = "quadrotor_mimu"``) that
+The recording: a quadrotor_mimu path folder, or a dataset toml (``layout = "quadrotor_mimu"``) that
 may carry a ``[grade]`` table: ``reference = "IMU_1"``, ``window_s``, ``step_s`` and
 ``[grade.mounting_xyz_deg]`` with ``UNIT = [a, b, c]`` (X-Y-Z order, deg, unit -> body). Unknown
 keys are errors naming the file, the table and the key.
@@ -17,18 +16,14 @@ naming the file.
 """
 from __future__ import annotations
 
-import argparse
-import json
-import sys
 from pathlib import Path
-from typing import TextIO
 
 import numpy as np
 
 from v2xpos.types import MultiImuRecording
 
-from .fleet import GradeConfig
-from .grader import grade_units, public_report
+from .grader import grade_units
+from .unit_comparison import GradeConfig
 
 GRADE_KEYS = ("reference", "window_s", "step_s", "mounting_xyz_deg")
 COVERAGE_WARN = 0.95
@@ -37,57 +32,6 @@ MIN_COMMON_S = 5.0
 """Shortest span all units must share to be graded [s] (a few sliding windows and the clock
 offset search margins)."""
 MIN_UNIT_SAMPLES = 16
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("path", nargs="?", help="quadrotor_mimu path folder or dataset toml")
-    parser.add_argument("--reference", help="reference unit id (default: the unit agreeing best with the others)")
-    parser.add_argument("--json", type=Path, help="write the report as JSON to this file")
-    parser.add_argument("--plots", type=Path, help="write PNG figures to this folder")
-    parser.add_argument("--window-s", type=float, default=None, help="sliding window length [s] (default 1)")
-    parser.add_argument("--step-s", type=float, default=None, help="sliding window step [s] (default 0.5)")
-    parser.add_argument("--no-fusion", action="store_true", help="skip the second parameter (fused differences)")
-    parser.add_argument("--check", action="store_true",
-                        help="only check the inputs (files, [grade] table, each unit's coverage): exit 2 "
-                             "on an error, 0 otherwise (warnings printed and in --json)")
-
-
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer, np.bool_)):
-        return o.item()
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
-
-
-def _finite(o):
-    """Replace non-finite floats by None (strict JSON), recursively."""
-    if isinstance(o, dict):
-        return {k: _finite(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_finite(v) for v in o]
-    if isinstance(o, np.ndarray):
-        return _finite(o.tolist())
-    if isinstance(o, (float, np.floating)):
-        return float(o) if np.isfinite(o) else None
-    return o
-
-
-def _write_json(path: Path, obj: dict, args: argparse.Namespace | None = None) -> None:
-    """The report as strict JSON, with a ``provenance`` object (``v2xpos.provenance``: the graded
-    recording's descriptor hash, the options, seeds of a simulation)."""
-    if args is not None:
-        from v2xpos.provenance import provenance
-        configs: dict = {"options": {k: (str(v) if isinstance(v, Path) else v) for k, v in sorted(vars(args).items())
-                                     if k not in ("path", "json", "plots")}}
-        if args.path:
-            p = Path(args.path)
-            configs["recording"] = p if p.is_file() else str(p)
-        seeds = {"seeds": list(range(args.seeds))} if getattr(args, "seeds", None) else None
-        obj = {**obj, "provenance": provenance("grade", configs, seeds=seeds)}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(_finite(obj), indent=1, default=_json_default, allow_nan=False))
-    print(f"wrote {path}")
 
 
 def load_recording(path: str | Path) -> tuple[MultiImuRecording, dict]:
@@ -208,31 +152,10 @@ def _mounting(opts: dict, source: str) -> dict | None:
     return out
 
 
-def print_table(report: dict, out: TextIO | None = None) -> None:
-    """One line per unit: grade, gyro RMSE and PCC per axis, clock offset, rotation, failed checks."""
-    out = out or sys.stdout
-    print(f"reference: {report['reference']} ({report['reference_chosen']}), {report['n_units']} units, "
-          f"{report['duration_s']:.1f} s", file=out)
-    print(f"{'unit':<8} {'grade':<5} {'gyro RMSE x/y/z [dps]':<23} {'gyro PCC x/y/z':<21} "
-          f"{'dt [ms]':>7}  {'rotation XYZ [deg]':<22} {'fused att/pos P90':<18} {'rate chk':<9} notes", file=out)
-    for u in report["units"]:
-        rm = "/".join(f"{v:.2f}" for v in u["rmse"]["gyro"])
-        pc = "/".join(f"{v:.3f}" for v in u["pcc"]["gyro"])
-        rot = "/".join(f"{v:.2f}" for v in u["relative_rotation"]["euler_xyz_deg"])
-        fd = u.get("fused_diff")
-        fds = f"{fd['att_deg']['p90']:.2f} deg/{fd['pos_m']['p90']:.2f} m" if fd else "-"
-        notes = ", ".join(f"{c['name']}={c['value']:.3g} {c['grade']}" for c in u["checks"]
-                          if c["grade"] != "pass" and c["value"] is not None)
-        tag = " (ref)" if u["reference"] else ""
-        rc = u.get("rate_check")
-        rcs = f"{100 * rc['relative_diff']:+.2f}%" if rc else "-"
-        print(f"{u['id'] + tag:<8} {u['grade']:<5} {rm:<23} {pc:<21} {u['time_offset_ms']:7.2f}  "
-              f"{rot:<22} {fds:<18} {rcs:<9} {notes}", file=out)
-
 
 def reference_rate_checks(rec: MultiImuRecording, window_s: float | None = None) -> dict | None:
-    """Pose-aided rate check of every unit with the recording's reference attitude as the pose
-    source (seed 003 with "another INS" as pose source). The quadrotor reference attitude comes at
+    """Pose-aided rate check (``rate_check``) of every unit with the recording's reference attitude
+    as the pose source. The quadrotor reference attitude comes at
     10 Hz with 0.1 deg resolution, so by default the whole run is one window."""
     from v2xpos.rotation import dcm_from_euler_batch
 
@@ -295,43 +218,3 @@ def grade_recording(path: str | Path, reference: str | None = None, cfg: GradeCo
     rep["warnings"] = coverage["warnings"]
     return rep
 
-
-def run(args: argparse.Namespace) -> int:
-    cfg = GradeConfig()
-    if args.window_s:
-        cfg.window_s = args.window_s
-    if args.step_s:
-        cfg.step_s = args.step_s
-    if not args.path:
-        print("v2xpos grade: give CONFIG_OR_DIR (simulated vehicles: v2xpos bench grading faults|lidar)",
-              file=sys.stderr)
-        return 2
-    if args.check:
-        try:
-            prep = prepare_recording(args.path, args.reference, cfg)
-        except (ValueError, OSError) as exc:
-            print(f"v2xpos grade: {' '.join(str(exc).split())}", file=sys.stderr)
-            return 2
-        cov = prep["coverage"]
-        for w in cov["warnings"]:
-            print(f"v2xpos grade: warning: {w}", file=sys.stderr)
-        print(f"v2xpos grade: inputs OK: {len(prep['rec'].units)} units, common span {cov['common_s']:.1f} s "
-              f"of {cov['recording_s']:.1f} s, {len(cov['warnings'])} warning(s)")
-        if args.json:
-            _write_json(args.json, {"recording": prep["rec"].name, "coverage": cov, "warnings": cov["warnings"]})
-        return 0
-    try:
-        rep = grade_recording(args.path, args.reference, cfg, fusion=not args.no_fusion)
-    except (ValueError, OSError) as exc:
-        print(f"v2xpos grade: {' '.join(str(exc).split())}", file=sys.stderr)
-        return 2
-    for w in rep.get("warnings", []):
-        print(f"v2xpos grade: warning: {w}", file=sys.stderr)
-    print_table(rep)
-    if args.plots:
-        from .plots import plot_first_parameter
-        for p in plot_first_parameter(rep["_comparison"], rep["reference"], args.plots, cfg):
-            print(f"wrote {p}")
-    if args.json:
-        _write_json(args.json, public_report(rep), args)
-    return 0 if all(u["grade"] != "fail" for u in rep["units"]) else 1

@@ -83,7 +83,8 @@ def write_configs(out: Path, master: tuple, slaves: list[tuple], speed: float, f
 
 def _status_watch(fleet: str, master_id: str, port: int):
     """A zenoh client on the master's status key (for progress lines); None if it cannot connect."""
-    from v2xpos.link import Link, LinkConfig, LinkUnavailable, status_key
+    from v2xpos.link import Link, LinkConfig, LinkUnavailable
+    from v2xpos.wire import status_key
     latest: dict = {}
     try:
         link = Link(LinkConfig(mode="client", connect=[f"tcp/127.0.0.1:{port}"], connect_timeout_ms=2000))
