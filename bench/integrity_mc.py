@@ -2,7 +2,7 @@
 
 For every (preset, seed[, mounting]) case: ``sim.recordings`` writes a recording of the convoy_dev
 kind (cached under ``--work``), the pair goes through ``v2xpos convoy --in-process`` (the master
-pipeline in one process, ``v2xpos.commands.convoy.run_in_process``) and the results are scored
+pipeline in one process, ``master.convoy.run_in_process``) and the results are scored
 against the truth (``v2xpos.diagnose.truth``). One line per case and the pooled figures:
 
 * VALID fraction, h RMS while both move, the largest |mean| per axis (a bias);
@@ -51,7 +51,7 @@ def make_recording(work: Path, preset: str, seed: int, mountings: list[str], eff
 
 def run_case(rec: Path, out: Path) -> dict:
     """In-process convoy of ``rec`` (A master, B slave) scored against its truth."""
-    from v2xpos.commands.convoy import dataset_identity, run_in_process
+    from master.convoy import dataset_identity, run_in_process
     from v2xpos.diagnose.truth import score_results_csv
     a, b = dataset_identity(rec / "A"), dataset_identity(rec / "B")
     out.mkdir(parents=True, exist_ok=True)

@@ -56,9 +56,11 @@ def test_results_csv_columns_and_statuses(runs):
     t_drive_off = a.t_s[np.argmax(a.cols["speed_mps"] > 0.5)]
     assert not np.any(status[t < t_drive_off] == "VALID")
     assert (status[t < t_drive_off] == "ATTITUDE_UNCERTAIN").sum() > 100
-    # B's float spell is on the output, in the target_fix column of VALID rows
+    # B's float spell is on the output, in the target_fix column of the rows with kinematics (B has
+    # undeclared effects: its rows are mostly flagged INCONSISTENT / SIGMA_EXCEEDED, docs/integrity.md)
     target_fix = np.array([r[4] for r in body])
-    assert {"FIXED", "FLOAT"} <= set(target_fix[status == "VALID"])
+    computed = np.array([r[5] != "" for r in body])
+    assert {"FIXED", "FLOAT"} <= set(target_fix[computed])
     assert set(np.array([r[3] for r in body])) <= {"FIXED", "FLOAT", "SINGLE", "DR", "NONE"}
     assert runs["processes"]["exit_codes"] == {"A": 0, "B": 0}
 
@@ -66,7 +68,8 @@ def test_results_csv_columns_and_statuses(runs):
 def test_processes_lose_nothing_against_in_process(runs):
     p = runs["processes"]["score"]["targets"]["B"]
     r = runs["in_process"]["score"]["targets"]["B"]
-    mp, mr = p["moving"], r["moving"]
+    # every computed result, VALID or flagged: the flags of B (undeclared effects) leave few VALID rows
+    mp, mr = p["moving_computed"], r["moving_computed"]
     assert mp["n"] > 0.9 * mr["n"], (mp["n"], mr["n"])
     assert abs(mp["h_rms_m"] - mr["h_rms_m"]) < 0.005, (mp, mr)
     assert abs(mp["x_mean_m"] - mr["x_mean_m"]) < 0.005 and abs(mp["y_mean_m"] - mr["y_mean_m"]) < 0.005

@@ -31,8 +31,16 @@ def _run_monitor(bias_body_m: np.ndarray, yaw_rate_rps: float, seconds: float = 
         d = rng.normal(0.0, sd_m, 3) + C_nb @ bias_body_m
         nis = float(d @ np.linalg.solve(S, d))
         mon.feed_update("gnss_pos", t, nis, 3, d, S, C_nb)
+        _feed_velocity(mon, rng, t, C_nb)
         mon.feed_motion(t, 0.1, yaw_rate_rps, 10.0)
     return mon
+
+
+def _feed_velocity(mon: ConsistencyMonitor, rng, t: float, C_nb: np.ndarray, sd_mps: float = 0.025) -> None:
+    """A consistent (pessimistic x2) GNSS velocity update: it sets the test's velocity sd."""
+    S = np.eye(3) * (2 * sd_mps) ** 2
+    d = rng.normal(0.0, sd_mps, 3)
+    mon.feed_update("gnss_vel", t, float(d @ np.linalg.solve(S, d)), 3, d, S, C_nb)
 
 
 def test_consistent_innovations_pass_and_verify_only_after_turning():
@@ -43,6 +51,11 @@ def test_consistent_innovations_pass_and_verify_only_after_turning():
     assert turning.failures == 0
     assert turning.state == VERIFIED
     assert turning.variance_ratio() == 1.0                 # a pessimistic filter is never shrunk
+    # 10 deg/s: the test finds (4.28 x 0.05 m/s) / (0.17 rad/s x sqrt(50)) = 0.17 m of lever arm
+    assert turning.detectable_lever_arm_m(math.radians(10.0)) == pytest.approx(0.17, abs=0.01)
+    # a gentle curve (2 deg/s for 60 s, 120 deg in all) would hide 0.9 m: it does not verify
+    gentle = _run_monitor(np.zeros(3), math.radians(2.0))
+    assert gentle.failures == 0 and gentle.state == UNVERIFIED
 
 
 def test_a_body_frame_bias_fails_the_mean_test_and_stays_inconsistent_while_it_lasts():
@@ -134,3 +147,25 @@ def test_a_failed_test_reopens_the_horizontal_lever_arm():
     assert flt.P[k, k] == pytest.approx(flt.cfg.effect_initial_sd["gnss_vel_latency"] ** 2)
     flt._on_inconsistency()                                 # already open: not reset again
     assert flt.counts["lever_arm_reopened"] == 1
+
+
+@pytest.mark.parametrize("reverify,final", [(False, INCONSISTENT), (True, VERIFIED)])
+def test_a_failure_is_latched_unless_reverification_is_configured(reverify, final):
+    """A bias for 20 s, then consistent innovations while the car keeps turning: the failure stays
+    (latched, the default) or is lifted by 45 deg of passing turns (``reverify``)."""
+    rng = np.random.default_rng(4)
+    mon = ConsistencyMonitor(window_s=5.0, verify_turn_deg=45.0, reverify=reverify)
+    mon.restart(0.0)
+    S = np.eye(3) * 0.02 ** 2
+    rate = math.radians(10.0)
+    for k in range(600):
+        t = 0.1 * k
+        c, s = math.cos(rate * t), math.sin(rate * t)
+        C_nb = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        bias = C_nb @ np.array([0.03, 0.0, 0.0]) if t < 20.0 else np.zeros(3)
+        d = rng.normal(0.0, 0.01, 3) + bias
+        mon.feed_update("gnss_pos", t, float(d @ np.linalg.solve(S, d)), 3, d, S, C_nb)
+        _feed_velocity(mon, rng, t, C_nb)
+        mon.feed_motion(t, 0.1, rate, 10.0)
+    assert mon.failures > 0
+    assert mon.state == final

@@ -17,7 +17,7 @@ SEED = 11
 
 def _case(tmp: Path, name: str, effects: list[str]) -> dict:
     from sim.recordings import apply_overrides, draw_params, simulate, write
-    from v2xpos.commands.convoy import dataset_identity, run_in_process
+    from master.convoy import dataset_identity, run_in_process
     from v2xpos.diagnose.truth import score_results_csv
     rec = tmp / name
     p = draw_params(SEED, "clean")

@@ -69,6 +69,8 @@ class InsConfig:
     consistency_window_s: float = 5.0
     consistency_false_alarm: float = 1e-4         # of the windowed NIS test (chi-square quantile 1 - this)
     consistency_mean_z: float = 3.0               # limit of the windowed body-frame innovation mean (N(0, 1) units)
+    consistency_reverify: bool = False            # a failure is lifted by verify_turn_deg of passing turns (else latched)
+    verify_detectable_lever_arm_m: float = 0.3    # turning counts while the test would find a lever-arm error this size
     verify_turn_deg: float = 45.0                 # turning that must pass the test before the solution is verified
     reopen_on_inconsistency: bool = False         # a failed test reopens the effect states (_on_inconsistency)
     undeclared_lever_arm_sd_m: float = 0.5        # horizontal lever-arm sd the filter reopens to when its test fails
@@ -167,7 +169,8 @@ class InsFilter:
         self.noise_meter = (ImuNoiseMeter(c.imu_noise_window_s, c.imu_gyro_noise_scale, c.imu_accel_noise_scale,
                                           c.gyro_noise_rps_rthz, c.accel_noise_mps2_rthz) if c.imu_noise_from_data else None)
         self.consistency = ConsistencyMonitor(c.consistency_window_s, c.consistency_false_alarm, c.verify_turn_deg,
-                                              mean_z_limit=c.consistency_mean_z)
+                                              mean_z_limit=c.consistency_mean_z, reverify=c.consistency_reverify,
+                                              detectable_m=c.verify_detectable_lever_arm_m)
         self._t_motion_s: float | None = None
         self.kidx = self.layout.kernel_index()
         self.fx = EffectValues(c.lever_arm_m)
