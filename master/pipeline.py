@@ -87,8 +87,8 @@ class PipelineConfig:
     the unpredicted target (for the demo's comparison; costs one more transform per message).
     record: keep one row per result for the report (``records``).
     Validity limits (docs/integrity.md): max_sigma_h_m / max_sigma_yaw_deg: a result whose predicted
-    1-sigma horizontal position (sqrt(sd_x^2 + sd_y^2)) or relative yaw exceeds them is
-    SIGMA_EXCEEDED; require_consistency: a result is INCONSISTENT while either vehicle's filter
+    1-sigma horizontal position (sqrt(sd_x^2 + sd_y^2)) or relative yaw (vehicle targets) exceeds
+    them is SIGMA_EXCEEDED; require_consistency: a result is INCONSISTENT while either vehicle's filter
     failed its own consistency test or has not yet passed it through enough turning (state flags).
     """
     fleet: str = "demo"
@@ -280,7 +280,10 @@ class MasterPipeline:
             return TargetStatus.INCONSISTENT
         sd = res.rel_pos_sd_m
         sigma_h = math.hypot(float(sd[0]), float(sd[1]))
-        if not sigma_h <= cfg.max_sigma_h_m or not math.degrees(res.rel_yaw_sd_rad) <= cfg.max_sigma_yaw_deg:
+        if not sigma_h <= cfg.max_sigma_h_m:
+            return TargetStatus.SIGMA_EXCEEDED
+        # a pedestrian's yaw (its walking direction) is no reference quantity: only a vehicle's is limited
+        if msg.kind == "vehicle" and not math.degrees(res.rel_yaw_sd_rad) <= cfg.max_sigma_yaw_deg:
             return TargetStatus.SIGMA_EXCEEDED
         return TargetStatus.VALID
 

@@ -49,7 +49,7 @@ def test_clean_pair_sigma_is_honest_and_not_inflated(scores):
 
 def test_undeclared_lever_arm_is_never_valid_and_wrong(scores):
     s = scores["lever"]
-    assert s["violations"] == 0, s["violation_examples"]
+    assert s.get("violations", 0) == 0, s.get("violation_examples")
     # the filter's own test found it: a large part of the run is flagged, not VALID
     assert s["status_counts"].get("INCONSISTENT", 0) + s["status_counts"].get("SIGMA_EXCEEDED", 0) > 1000, s
     if s["moving"]["n"]:

@@ -64,3 +64,11 @@ def test_predicted_sigma_beyond_the_configured_limits_is_sigma_exceeded():
     # the master's yaw sd moves the target sideways by range x yaw sd: 20 m x 0.5 deg = 0.17 m
     assert _result(_nav(100.0, yaw_sd_rad=math.radians(0.5)), _nav(99.98, north_m=-20.0)).status \
         == TargetStatus.SIGMA_EXCEEDED
+
+
+def test_the_yaw_limit_applies_to_vehicle_targets_only():
+    target = _nav(99.98, north_m=-20.0, yaw_sd_rad=math.radians(5.0))
+    pipe = MasterPipeline(PipelineConfig(fleet=FLEET, master_id="ego"), clock_wall=lambda: 1.0)
+    for kind, status in (("vehicle", TargetStatus.SIGMA_EXCEEDED), ("pedestrian", TargetStatus.VALID)):
+        msg = decode_state(encode_state(StateMessage.from_nav_state(target, FLEET, kind[0] + "1", 1, kind=kind)))
+        assert pipe.handle_message(msg, _nav(100.0), 100.0, 1.0).status == status
