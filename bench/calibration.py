@@ -1,7 +1,7 @@
 """``v2xpos bench calibration``: Monte-Carlo coverage of ``v2xpos calibrate``'s estimates and sds.
 
 For each seed a simulated car drive with known, undeclared effects is fitted by the calibration
-estimator (``v2xpos.diagnose.calibrate.Estimator``: tuning, Gauss-Newton, refinement, backward
+estimator (``v2xpos.diagnose.estimator.Estimator``: tuning, Gauss-Newton, refinement, backward
 elimination; no before/after replays), and every effect is compared with its truth:
 
 * coverage: the truth within 2 reported sd (a Gaussian estimate covers 95.4 %; the issue asks

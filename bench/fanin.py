@@ -154,7 +154,8 @@ def run_bench(args: argparse.Namespace) -> int:
     if args.generate:
         return _generate(args)
     from master.pipeline import RECORD_FIELDS
-    from sim.launcher import free_tcp_port, free_udp_port, release_when_ready, to_toml
+    from sim.launcher import release_when_ready
+    from v2xpos.launch import free_tcp_port, free_udp_port, to_toml
 
     stages = [int(x) for x in str(args.slaves).split(",") if x.strip()]
     out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="v2xpos_fanin_"))

@@ -1,6 +1,6 @@
 """``v2xpos bench monitor``: what watching a master with ``v2xpos monitor`` costs -- the monitor
 process's CPU and the delay from a target's status change to the snapshot and the table showing it,
-at N targets x rate, against a fake master (``v2xpos.monitor.fake_master``) in a child process."""
+at N targets x rate, against a fake master (``bench.fake_master``) in a child process."""
 from __future__ import annotations
 
 import argparse
@@ -38,7 +38,7 @@ def run_bench(args: argparse.Namespace) -> int:
     the delay from a flip's first result to the first snapshot / table showing it."""
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     warm_s = 3.0
-    pub = subprocess.Popen([sys.executable, "-m", "v2xpos.monitor.fake_master", "--endpoint", endpoint,
+    pub = subprocess.Popen([sys.executable, "-m", "bench.fake_master", "--endpoint", endpoint,
                             "--targets", str(args.targets), "--rate-hz", str(args.rate_hz),
                             "--duration", str(args.duration + warm_s + 2.0), "--flip-every", str(args.flip_every)],
                            stdout=subprocess.PIPE, text=True,

@@ -22,7 +22,6 @@ import json
 import math
 import os
 import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -32,6 +31,8 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from v2xpos.launch import free_tcp_port
+
 SOAK_FLEET = "soak"
 
 
@@ -39,12 +40,6 @@ def rss_bytes() -> int:
     """Resident set size of this process [bytes] (Linux /proc/self/statm)."""
     with open("/proc/self/statm") as fh:
         return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 # ----------------------------------------------------------------------------- master role
@@ -212,7 +207,7 @@ def run_soak(slaves: int = 32, rate: float = 100.0, duration: float = 60.0, out_
                 out / "master_stats.json", out / "master_stats.progress"]:
         if old.exists():
             old.unlink()
-    port = free_port()
+    port = free_tcp_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     cfg = {"service": {"fleet": SOAK_FLEET, "master_id": "ego", "duration_s": duration + 600.0, "status_hz": 1.0,
                        "tick_hz": 2.0},

@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from sim import evaluate
-from sim.launcher import Fleet, FleetPlan, free_tcp_port, free_udp_port, release_when_ready, write_configs
+from sim.launcher import Fleet, FleetPlan, release_when_ready, write_configs
+from v2xpos.launch import free_tcp_port, free_udp_port
 from sim.scenarios import build, check_rtk_vertical_factor
 from v2xpos.provenance import provenance
 

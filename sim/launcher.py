@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from sim.scenarios import Scenario
-from v2xpos.launch import ServiceProcesses, free_tcp_port, free_udp_port, to_toml  # noqa: F401 (re-exported)
+from v2xpos.launch import ServiceProcesses, to_toml
 
 SIM_FACTORY = "sim.source:from_config"
 

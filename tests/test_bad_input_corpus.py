@@ -84,7 +84,7 @@ def test_corpus_harness_catches_what_it_must(built, monkeypatch):
     """An exception a command lets out is a traceback; exit 2 without the file named is 'unnamed'."""
     corpus, work = built
     case = next(c for c in corpus.cases if c.name.startswith("csv 1 garbage"))
-    from v2xpos.ins import replay
+    from v2xpos.commands import replay
 
     def broken_check(*_a, **_k):
         raise IndexError("boom")

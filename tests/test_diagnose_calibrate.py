@@ -15,6 +15,8 @@ from v2xpos.diagnose.inject import (N_PARAMS, PARAM_NAMES, P_ACCEL_SCALE, P_CLOC
                                     P_LEVER_ARM, P_MISALIGN, P_TIME_OFFSET, EffectSet, inject)
 from tests.shared_data import SHARED_DATA, require_shared
 
+pytestmark = pytest.mark.slow   # every test fits a 300 s drive: 10-100 CPU-s each
+
 DATA = SHARED_DATA
 DRIVE = DATA / "drive_0708" / "dataset.toml"
 

@@ -9,7 +9,7 @@ from sim.sensors import ImuErrorModel, simulate_imu
 from sim.trajectory import Segment, generate, static
 from v2xpos import geo
 from v2xpos.ins import InsConfig, InsFilter, StaticCalibrationConfig, StaticCalibrator
-from v2xpos.ins import replay as replay_cmd
+from v2xpos.commands import replay as replay_cmd
 from v2xpos.types import FixStatus
 from tests.shared_data import SHARED_DATA, require_shared
 

@@ -18,7 +18,7 @@ from v2xpos.launch import free_tcp_port
 from v2xpos.link import LinkConfig
 from v2xpos.monitor import table
 from v2xpos.monitor.attach import MasterMonitor
-from v2xpos.monitor.fake_master import result
+from bench.fake_master import result
 from v2xpos.monitor.state import MonitorState, status_reason
 from v2xpos.monitor.web import WebServer, parse_host_port
 from v2xpos.types import FixStatus
@@ -138,7 +138,7 @@ def test_attach_to_a_master_shows_changes_within_half_a_second():
     table and /api/state within 0.5 s."""
     port = free_tcp_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    pub = subprocess.Popen([sys.executable, "-m", "v2xpos.monitor.fake_master", "--endpoint", endpoint,
+    pub = subprocess.Popen([sys.executable, "-m", "bench.fake_master", "--endpoint", endpoint,
                             "--targets", "16", "--duration", "9", "--flip-every", "1.3"],
                            stdout=subprocess.PIPE, text=True, cwd=ROOT)
     seen: list[tuple[float, str]] = []

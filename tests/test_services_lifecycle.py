@@ -56,14 +56,21 @@ class Service:
         t0 = time.time()
         self.proc.send_signal(sig)
         try:
-            out, _ = self.proc.communicate(timeout=15)
+            self.proc.wait(timeout=15)
         except subprocess.TimeoutExpired:
             self.proc.kill()
-            out, _ = self.proc.communicate()
-            return -9, time.time() - t0, out, "".join(self.err)
+            self.proc.wait()
+            self._t.join(2)
+            return -9, time.time() - t0, self.proc.stdout.read(), "".join(self.err)
         dt = time.time() - t0
+        self._t.join(2)                  # the reader thread owns stderr (communicate would race it)
+        return self.proc.returncode, dt, self.proc.stdout.read(), "".join(self.err)
+
+    def wait(self, timeout_s: float) -> str:
+        """Wait for the process to end by itself; its stdout."""
+        self.proc.wait(timeout=timeout_s)
         self._t.join(2)
-        return self.proc.returncode, dt, out, "".join(self.err)
+        return self.proc.stdout.read()
 
 
 def slave_cfg(port: int, dataset: str, sync: str = "auto") -> dict:
@@ -162,8 +169,7 @@ def test_master_port_in_use_is_one_line(tmp_path):
     holder = Link(LinkConfig(mode="router", listen=[f"tcp/127.0.0.1:{port}"]))
     try:
         s = Service("master", master_cfg(port, a, []), tmp_path)
-        out, _ = s.proc.communicate(timeout=60)
-        s._t.join(2)
+        s.wait(60)
         err = "".join(s.err)
         assert s.proc.returncode == 2 and "Traceback" not in err
         assert f"tcp/127.0.0.1:{port}" in err and "[link]" in err

@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 
 from master.config import MasterConfig
-from sim.launcher import to_toml
 from slave.config import ConfigError, SlaveConfig
+from v2xpos.launch import to_toml
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -24,8 +24,8 @@ EXIT_INTERNAL = 3
 EXIT_INTERRUPTED = 130
 
 COMMANDS: dict[str, tuple[str, str]] = {
-    "replay": ("v2xpos.ins.replay", "replay a recorded drive through the GNSS/INS EKF with simulated outages"),
-    "calibrate": ("v2xpos.diagnose.calibrate", "find missing model effects from residuals, estimate them, report before/after"),
+    "replay": ("v2xpos.commands.replay", "replay a recorded drive through the GNSS/INS EKF with simulated outages"),
+    "calibrate": ("v2xpos.commands.calibrate", "find missing model effects from residuals, estimate them, report before/after"),
     "grade": ("v2xpos.commands.grade", "grade the IMU units of a multi-IMU recording"),
     "demo": ("sim.demo", "run master, slaves and a pedestrian as processes on loopback; write a report"),
     "master": ("master.service", "run the master (hunter) service"),
@@ -42,7 +42,7 @@ STOPS_CLEANLY = {"master.service", "slave.service"}
 """Services that stop cleanly on a signal, also while their modules load (``v2xpos.stop_signals``)."""
 
 BENCHES: dict[str, tuple[str, str]] = {
-    "replay": ("v2xpos.ins.replay", "EKF replay throughput [IMU samples/s]"),
+    "replay": ("bench.replay", "EKF replay throughput [IMU samples/s]"),
     "fanin": ("bench.fanin", "slaves at 100 Hz one master core sustains with e2e p99 <= 10 ms"),
     "soak": ("bench.soak", "long run: sent / received / recorded / lost, memory growth"),
     "trust": ("bench.trust", "forged / replayed messages, fuzzing, fault scenarios"),
@@ -107,10 +107,23 @@ def run_command(argv: list[str]) -> int:
 def main(argv: list[str] | None = None) -> int:
     """Run one command; never lets an exception out as a traceback (see the module doc for the
     exit codes). ``V2XPOS_DEBUG=1`` adds the traceback of an unexpected error."""
+    as_program = argv is None
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0] == "--version":
         print(f"v2xpos {version()}")
         return 0
+    rc = _guarded(argv)
+    if as_program and argv and COMMANDS.get(argv[0], ("",))[0] in STOPS_CLEANLY:
+        # A service has closed its link, outputs and recorder and printed its counters. The
+        # interpreter's own shutdown with zenoh's native threads still running took 1-3 s on a
+        # loaded machine (past the 1 s a stop may take) and could abort: leave at once instead.
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(rc)
+    return rc
+
+
+def _guarded(argv: list[str]) -> int:
     prog = _prog(argv)
     try:
         return run_command(argv)

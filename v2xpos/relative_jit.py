@@ -7,7 +7,8 @@ the same order, in one compiled function on scalars (the interpreted version cos
 target on the 2.1 GHz reference machine, mostly interpreter overhead on 3-vectors; this one ~5 us
 including the call). ``tests/test_relative_fastpath.py`` checks it against the interpreted
 composition on random states for every outline kind. Source of the equations: the docstrings of
-``v2xpos.relative`` (Groves 2013; Barfoot 2017; Goldstein et al. 2002).
+``v2xpos.relative`` (Groves 2013; Barfoot 2017; Goldstein et al. 2002). The Earth model, rotations
+and SO(3) integrals are the compiled ones of ``v2xpos.kernels`` (shared with the strapdown).
 
 Output vector layout (``OUT_*`` indices): rel_pos_body_m (3), rel_pos_sd_m (3), rel_vel_body_mps
 (3), rel_acc_body_mps2 (3), rel_rpy_rad (3), range_m, range_sd_m, bearing_rad, elevation_rad,
@@ -21,7 +22,8 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-from v2xpos.geo import A_M, E2
+from v2xpos.kernels import (c_en, cross, dcm_from_euler, euler_from_dcm, lla_to_ecef, matmul, mtv, mv, quadratic_form,
+                            radii, so3_integrals)
 from v2xpos.wire import Geometry, RelativeResult
 
 OUT_POS, OUT_POS_SD, OUT_VEL, OUT_ACC, OUT_RPY = 0, 3, 6, 9, 12
@@ -35,135 +37,27 @@ CLOSING_EPS_MPS = 1.0e-3
 
 
 @njit(cache=True)
-def _dcm(r, p, y):
-    cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), math.sin(y)
-    C = np.empty(9)
-    C[0], C[1], C[2] = cp * cy, -cr * sy + sr * sp * cy, sr * sy + cr * sp * cy
-    C[3], C[4], C[5] = cp * sy, cr * cy + sr * sp * sy, -sr * cy + cr * sp * sy
-    C[6], C[7], C[8] = -sp, sr * cp, cr * cp
-    return C
-
-
-@njit(cache=True)
-def _mm(A, B):
-    C = np.empty(9)
-    for i in range(3):
-        for j in range(3):
-            C[3 * i + j] = A[3 * i] * B[j] + A[3 * i + 1] * B[3 + j] + A[3 * i + 2] * B[6 + j]
-    return C
-
-
-@njit(cache=True)
-def _mtm(A, B):
-    """A^T B."""
-    C = np.empty(9)
-    for i in range(3):
-        for j in range(3):
-            C[3 * i + j] = A[i] * B[j] + A[3 + i] * B[3 + j] + A[6 + i] * B[6 + j]
-    return C
-
-
-@njit(cache=True)
-def _mmt(A, B):
-    """A B^T."""
-    C = np.empty(9)
-    for i in range(3):
-        for j in range(3):
-            C[3 * i + j] = A[3 * i] * B[3 * j] + A[3 * i + 1] * B[3 * j + 1] + A[3 * i + 2] * B[3 * j + 2]
-    return C
-
-
-@njit(cache=True)
-def _mv(M, x, y, z):
-    return (M[0] * x + M[1] * y + M[2] * z, M[3] * x + M[4] * y + M[5] * z, M[6] * x + M[7] * y + M[8] * z)
-
-
-@njit(cache=True)
-def _mtv(M, x, y, z):
-    return (M[0] * x + M[3] * y + M[6] * z, M[1] * x + M[4] * y + M[7] * z, M[2] * x + M[5] * y + M[8] * z)
-
-
-@njit(cache=True)
-def _cross(a0, a1, a2, b0, b1, b2):
-    return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
-
-
-@njit(cache=True)
-def _euler(C):
-    c6 = max(-1.0, min(1.0, C[6]))
-    return math.atan2(C[7], C[8]), -math.asin(c6), math.atan2(C[3], C[0])
-
-
-@njit(cache=True)
-def _c_en(lat, lon):
-    sl, cl, so, co = math.sin(lat), math.cos(lat), math.sin(lon), math.cos(lon)
-    C = np.empty(9)
-    C[0], C[1], C[2], C[3], C[4], C[5], C[6], C[7], C[8] = -sl * co, -sl * so, cl, -so, co, 0.0, -cl * co, -cl * so, -sl
-    return C
-
-
-@njit(cache=True)
-def _ecef(lat, lon, h):
-    sl, cl = math.sin(lat), math.cos(lat)
-    r_n = A_M / math.sqrt(1.0 - E2 * sl * sl)
-    return (r_n + h) * cl * math.cos(lon), (r_n + h) * cl * math.sin(lon), (r_n * (1.0 - E2) + h) * sl
-
-
-@njit(cache=True)
-def _poly_so3(x, y, z, c0, c1, c2):
-    a2 = x * x + y * y + z * z
-    M = np.empty(9)
-    M[0], M[1], M[2] = c0 + c2 * (x * x - a2), -c1 * z + c2 * x * y, c1 * y + c2 * x * z
-    M[3], M[4], M[5] = c1 * z + c2 * x * y, c0 + c2 * (y * y - a2), -c1 * x + c2 * y * z
-    M[6], M[7], M[8] = -c1 * y + c2 * x * z, c1 * x + c2 * y * z, c0 + c2 * (z * z - a2)
-    return M
-
-
-@njit(cache=True)
-def _quad(Q, c0, c1, c2):
-    q0, q1, q2 = _mv(Q, c0, c1, c2)
-    return c0 * q0 + c1 * q1 + c2 * q2
-
-
-@njit(cache=True)
 def evaluate_kernel(m_lla, m_v, m_a, m_w, m_rpy, m_psd, m_asd,
                     s_lla, s_v, s_a, s_w, s_rpy, s_psd, s_vsd, s_asd,
                     outline_pts, outline_kind, radius, p_m, dt, acc_sd, rate_sd):
     """predict_state(slave, dt) then relative_kinematics(master, predicted, p_m); see module doc."""
     out = np.empty(OUT_SIZE)
     # ---- CTRA prediction of the slave (relative._predict_core)
-    C = _dcm(s_rpy[0], s_rpy[1], s_rpy[2])
-    px, py, pz = s_w[0] * dt, s_w[1] * dt, s_w[2] * dt
-    a2 = px * px + py * py + pz * pz
-    if a2 < 1e-8:
-        e1, e2 = 1.0 - a2 / 6.0, 0.5 - a2 / 24.0
-        c1, c2 = 0.5 - a2 / 24.0, 1.0 / 6.0 - a2 / 120.0
-        d2 = 1.0 / 24.0 - a2 / 720.0
-    else:
-        aa = math.sqrt(a2)
-        sa, ca = math.sin(aa), math.cos(aa)
-        e1, e2 = sa / aa, (1.0 - ca) / a2
-        c1, c2 = (1.0 - ca) / a2, (aa - sa) / (a2 * aa)
-        d2 = (0.5 * a2 + ca - 1.0) / (a2 * a2)
-    E = _poly_so3(px, py, pz, 1.0, e1, e2)
-    G1 = _poly_so3(px, py, pz, 1.0, c1, c2)
-    G2 = _poly_so3(px, py, pz, 0.5, c2, d2)
-    g0, g1, g2 = _mv(G1, s_a[0], s_a[1], s_a[2])
-    dv0, dv1, dv2 = _mv(C, g0, g1, g2)
-    g0, g1, g2 = _mv(G2, s_a[0], s_a[1], s_a[2])
-    da0, da1, da2 = _mv(C, g0, g1, g2)
+    C = dcm_from_euler(s_rpy[0], s_rpy[1], s_rpy[2])
+    E, G1, G2 = so3_integrals(s_w[0] * dt, s_w[1] * dt, s_w[2] * dt)
+    g0, g1, g2 = mv(G1, s_a[0], s_a[1], s_a[2])
+    dv0, dv1, dv2 = mv(C, g0, g1, g2)
+    g0, g1, g2 = mv(G2, s_a[0], s_a[1], s_a[2])
+    da0, da1, da2 = mv(C, g0, g1, g2)
     dt2 = dt * dt
     sr0, sr1, sr2 = da0 * dt2, da1 * dt2, da2 * dt2
     sv0, sv1, sv2 = dv0 * dt, dv1 * dt, dv2 * dt
     dr0, dr1, dr2 = s_v[0] * dt + sr0, s_v[1] * dt + sr1, s_v[2] * dt + sr2
     vn0, vn1, vn2 = s_v[0] + sv0, s_v[1] + sv1, s_v[2] + sv2
-    C_new = _mm(C, E)
-    CG2 = _mm(C, G2)
+    C_new = matmul(C, E)
+    CG2 = matmul(C, G2)
     lat, lon, h = s_lla[0], s_lla[1], s_lla[2]
-    sl = math.sin(lat)
-    w = 1.0 - E2 * sl * sl
-    r_n_ = A_M / math.sqrt(w)
-    r_m_ = r_n_ * (1.0 - E2) / w
+    r_m_, r_n_ = radii(lat)
     lat_s = lat + dr0 / (r_m_ + h)
     lon_s = lon + dr1 / ((r_n_ + h) * math.cos(lat))
     lon_s = (lon_s + math.pi) % (2.0 * math.pi) - math.pi
@@ -180,27 +74,27 @@ def evaluate_kernel(m_lla, m_v, m_a, m_w, m_rpy, m_psd, m_asd,
     ps0 = math.sqrt(s_psd[0] * s_psd[0] + dt2 * (s_vsd[0] * s_vsd[0]) + ssd0 + qa * dt4 * gr0)
     ps1 = math.sqrt(s_psd[1] * s_psd[1] + dt2 * (s_vsd[1] * s_vsd[1]) + ssd1 + qa * dt4 * gr1)
     ps2 = math.sqrt(s_psd[2] * s_psd[2] + dt2 * (s_vsd[2] * s_vsd[2]) + ssd2 + qa * dt4 * gr2)
-    sroll, spitch, syaw = _euler(C_new)
+    sroll, spitch, syaw = euler_from_dcm(C_new)
 
     # ---- transform into the master body frame (relative.relative_kinematics)
     lat_m, lon_m, h_m = m_lla[0], m_lla[1], m_lla[2]
-    C_en_m = _c_en(lat_m, lon_m)
-    C_nm_ns = _mmt(C_en_m, _c_en(lat_s, lon_s))
-    em0, em1, em2 = _ecef(lat_m, lon_m, h_m)
-    es0, es1, es2 = _ecef(lat_s, lon_s, h_s)
-    x, y, z = _mv(C_en_m, es0 - em0, es1 - em1, es2 - em2)
-    C_nm = _dcm(m_rpy[0], m_rpy[1], m_rpy[2])
-    C_ns = _mm(C_nm_ns, _dcm(sroll, spitch, syaw))
-    C_ms = _mtm(C_nm, C_ns)
+    C_en_m = c_en(lat_m, lon_m)
+    C_nm_ns = matmul(C_en_m, c_en(lat_s, lon_s), False, True)
+    em0, em1, em2 = lla_to_ecef(lat_m, lon_m, h_m)
+    es0, es1, es2 = lla_to_ecef(lat_s, lon_s, h_s)
+    x, y, z = mv(C_en_m, es0 - em0, es1 - em1, es2 - em2)
+    C_nm = dcm_from_euler(m_rpy[0], m_rpy[1], m_rpy[2])
+    C_ns = matmul(C_nm_ns, dcm_from_euler(sroll, spitch, syaw))
+    C_ms = matmul(C_nm, C_ns, True)
     wm0, wm1, wm2 = m_w[0], m_w[1], m_w[2]
-    vs0, vs1, vs2 = _mv(C_nm_ns, vn0, vn1, vn2)
-    rb0, rb1, rb2 = _mtv(C_nm, x, y, z)
-    db0, db1, db2 = _mtv(C_nm, vs0 - m_v[0], vs1 - m_v[1], vs2 - m_v[2])
-    wr0, wr1, wr2 = _cross(wm0, wm1, wm2, rb0, rb1, rb2)
+    vs0, vs1, vs2 = mv(C_nm_ns, vn0, vn1, vn2)
+    rb0, rb1, rb2 = mtv(C_nm, x, y, z)
+    db0, db1, db2 = mtv(C_nm, vs0 - m_v[0], vs1 - m_v[1], vs2 - m_v[2])
+    wr0, wr1, wr2 = cross(wm0, wm1, wm2, rb0, rb1, rb2)
     vr0, vr1, vr2 = db0 - wr0, db1 - wr1, db2 - wr2
-    as0, as1, as2 = _mv(C_ms, s_a[0], s_a[1], s_a[2])
-    co0, co1, co2 = _cross(wm0, wm1, wm2, db0, db1, db2)
-    ce0, ce1, ce2 = _cross(wm0, wm1, wm2, wr0, wr1, wr2)
+    as0, as1, as2 = mv(C_ms, s_a[0], s_a[1], s_a[2])
+    co0, co1, co2 = cross(wm0, wm1, wm2, db0, db1, db2)
+    ce0, ce1, ce2 = cross(wm0, wm1, wm2, wr0, wr1, wr2)
     out[OUT_ACC] = as0 - m_a[0] - 2.0 * co0 + ce0
     out[OUT_ACC + 1] = as1 - m_a[1] - 2.0 * co1 + ce1
     out[OUT_ACC + 2] = as2 - m_a[2] - 2.0 * co2 + ce2
@@ -221,12 +115,12 @@ def evaluate_kernel(m_lla, m_v, m_a, m_w, m_rpy, m_psd, m_asd,
     Q[7] = -y * z * p0
     Q[8] = ps2 ** 2 + m_psd[2] ** 2 + y * y * p0 + x * x * p1
     for i in range(3):
-        out[OUT_POS_SD + i] = math.sqrt(max(_quad(Q, C_nm[i], C_nm[3 + i], C_nm[6 + i]), 0.0))
+        out[OUT_POS_SD + i] = math.sqrt(max(quadratic_form(Q, C_nm[i], C_nm[3 + i], C_nm[6 + i]), 0.0))
     if rng > 0:
         u0, u1, u2 = x / rng, y / rng, z / rng
     else:
         u0, u1, u2 = C_nm[0], C_nm[3], C_nm[6]
-    out[OUT_RANGE_SD] = math.sqrt(max(_quad(Q, u0, u1, u2), 0.0))
+    out[OUT_RANGE_SD] = math.sqrt(max(quadratic_form(Q, u0, u1, u2), 0.0))
 
     n = outline_pts.shape[0]
     if outline_kind == OUTLINE_CIRCLE or n == 0:
@@ -240,7 +134,7 @@ def evaluate_kernel(m_lla, m_v, m_a, m_w, m_rpy, m_psd, m_asd,
         qxs = np.empty(n)
         qys = np.empty(n)
         for i in range(n):
-            q0, q1, q2 = _mv(C_ms, outline_pts[i, 0], outline_pts[i, 1], outline_pts[i, 2])
+            q0, q1, q2 = mv(C_ms, outline_pts[i, 0], outline_pts[i, 1], outline_pts[i, 2])
             qxs[i], qys[i] = rb0 + q0, rb1 + q1
         px_, py_ = p_m[0], p_m[1]
         best_d2, ia, ib, t, bqx, bqy = math.inf, 0, 0, 0.0, qxs[0], qys[0]
@@ -272,10 +166,10 @@ def evaluate_kernel(m_lla, m_v, m_a, m_w, m_rpy, m_psd, m_asd,
         else:
             dxy0, dxy1 = bqx - p_m[0], bqy - p_m[1]
         gap = math.hypot(dxy0, dxy1)
-        c0, c1_, c2_ = _cross(s_w[0], s_w[1], s_w[2], pp0, pp1, pp2)
-        sp0, sp1, sp2 = _mv(C_ms, c0, c1_, c2_)
-        q0, q1, q2 = _mv(C_ms, pp0, pp1, pp2)
-        dg0, dg1, dg2 = _cross(wm0, wm1, wm2, q0, q1, q2)
+        c0, c1_, c2_ = cross(s_w[0], s_w[1], s_w[2], pp0, pp1, pp2)
+        sp0, sp1, sp2 = mv(C_ms, c0, c1_, c2_)
+        q0, q1, q2 = mv(C_ms, pp0, pp1, pp2)
+        dg0, dg1, dg2 = cross(wm0, wm1, wm2, q0, q1, q2)
         up0, up1 = vr0 + sp0 - dg0, vr1 + sp1 - dg1
     if gap > 0:
         closing = -(dxy0 * up0 + dxy1 * up1) / gap
@@ -283,7 +177,7 @@ def evaluate_kernel(m_lla, m_v, m_a, m_w, m_rpy, m_psd, m_asd,
         closing = -(rb0 * up0 + rb1 * up1) / max(rho_ref, 1e-9)
     out[OUT_POS], out[OUT_POS + 1], out[OUT_POS + 2] = rb0, rb1, rb2
     out[OUT_VEL], out[OUT_VEL + 1], out[OUT_VEL + 2] = vr0, vr1, vr2
-    r_, p_, y_ = _euler(C_ms)
+    r_, p_, y_ = euler_from_dcm(C_ms)
     out[OUT_RPY], out[OUT_RPY + 1], out[OUT_RPY + 2] = r_, p_, y_
     out[OUT_RANGE] = rng
     out[OUT_LONGITUDINAL], out[OUT_LATERAL], out[OUT_GAP] = dxy0, dxy1, gap

@@ -141,6 +141,33 @@ def exp_so3(phi: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(a) / a * K + (1.0 - np.cos(a)) / a ** 2 * K @ K
 
 
+def so3_integrals(phi: np.ndarray) -> tuple:
+    """exp([phi x]) and its first and second integrals over the rotation, with K = [phi x], a = |phi|:
+
+        Gamma1 = int_0^1 exp(s K) ds = I + (1 - cos a)/a^2 K + (a - sin a)/a^3 K^2,
+        Gamma2 = int_0^1 int_0^s exp(u K) du ds = I/2 + (a - sin a)/a^3 K + (a^2/2 + cos a - 1)/a^4 K^2.
+
+    Gamma1 is the left Jacobian of SO(3) (Barfoot, *State Estimation for Robotics*, 2017, ch. 7);
+    Gamma2 = int_0^1 (1 - s) exp(s K) ds follows from the same Rodrigues series (the integrals of
+    IMU preintegration, Forster et al., IEEE T-RO 2017). Below a = 0.1 the coefficients are their
+    Taylor series to a^6 (the closed forms cancel there: ~1e-16 / a^4 in the last one). With constant body rate w and body acceleration
+    f over t: C(t) = C exp([w t x]), v(t) = v + C Gamma1(w t) f t, r(t) = r + v t + C Gamma2(w t) f t^2.
+    """
+    phi = np.asarray(phi, dtype=float)
+    a2 = float(phi @ phi)
+    if a2 < 1e-2:
+        series = np.array([[1 / 2, -1 / 24, 1 / 720, -1 / 40320],
+                           [1 / 6, -1 / 120, 1 / 5040, -1 / 362880],
+                           [1 / 24, -1 / 720, 1 / 40320, -1 / 3628800]])
+        k1, k2, k3 = series @ a2 ** np.arange(4)
+    else:
+        a = np.sqrt(a2)
+        k1, k2, k3 = (1.0 - np.cos(a)) / a2, (a - np.sin(a)) / (a2 * a), (0.5 * a2 + np.cos(a) - 1.0) / a2 ** 2
+    K = skew(phi)
+    K2 = K @ K
+    return exp_so3(phi), np.eye(3) + k1 * K + k2 * K2, 0.5 * np.eye(3) + k2 * K + k3 * K2
+
+
 def log_so3(C: np.ndarray) -> np.ndarray:
     """Rotation vector [rad] of the DCM C (inverse Rodrigues), robust near 0 and pi."""
     return rotvec_from_quat(quat_from_dcm(C))

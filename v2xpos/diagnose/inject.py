@@ -29,7 +29,7 @@ from v2xpos import geo
 from v2xpos.rotation import dcm_from_euler, dcm_from_euler_batch
 from v2xpos.types import Dataset, GnssData, ImuData
 
-# parameter vector layout shared by identify.py and calibrate.py
+# parameter vector layout shared by identify.py, estimator.py and calibrate.py
 P_TIME_OFFSET = 0
 P_CLOCK_DRIFT = 1
 P_GNSS_LATENCY = 2

@@ -19,6 +19,7 @@ JGCD 21(1-2)), as in KF-GINS:
                C_nb,k   = exp(-[zeta x]) C_nb,{k-1} exp([phi_k x])             (Rodrigues)
 
 Mid-interval Earth and transport rates use the previous position and the extrapolated velocity.
+Gravity, radii of curvature and the SO(3) exponential are the compiled ones of ``v2xpos.kernels``.
 
 The same loop accumulates the error-state dynamics matrix (see ``ekf.py``) as
 ``A += F(t_k) dt`` so that covariance propagation can run at a lower rate with
@@ -31,15 +32,7 @@ import math
 import numpy as np
 from numba import njit
 
-from v2xpos import geo
-
-_A = geo.A_M
-_E2 = geo.E2
-_WIE = geo.OMEGA_IE_RPS
-_GE = geo.GAMMA_E_MPS2
-_GK = geo.GAMMA_K
-_F = geo.F
-_MGRAV = geo.OMEGA_IE_RPS ** 2 * geo.A_M ** 2 * geo.B_M / geo.GM_M3PS2
+from v2xpos.kernels import OMEGA_IE_RPS, cross_into, exp_so3_into, normal_gravity, radii
 
 # nav vector layout: lat_rad, lon_rad, h_m, vN, vE, vD [m/s]
 NAV_LAT, NAV_LON, NAV_H, NAV_VEL = 0, 1, 2, 3
@@ -51,50 +44,6 @@ MEM_W, MEM_F, MEM_DTH, MEM_DV, MEM_FN, MEM_AN, MEM_VALID = 0, 3, 6, 9, 12, 15, 1
 MEM_SIZE = 19
 # index vector for the error-state blocks passed to the kernel (-1 = block absent)
 IDX_POS, IDX_VEL, IDX_ATT, IDX_BG, IDX_BA, IDX_SG, IDX_SA = 0, 1, 2, 3, 4, 5, 6
-
-
-@njit(cache=True, fastmath=False)
-def _gravity(lat: float, h: float) -> float:
-    s2 = math.sin(lat) ** 2
-    g0 = _GE * (1.0 + _GK * s2) / math.sqrt(1.0 - _E2 * s2)
-    return g0 * (1.0 - 2.0 / _A * (1.0 + _F + _MGRAV - 2.0 * _F * s2) * h + 3.0 * h * h / (_A * _A))
-
-
-@njit(cache=True)
-def _radii(lat: float) -> tuple:
-    s2 = math.sin(lat) ** 2
-    w = 1.0 - _E2 * s2
-    return _A * (1.0 - _E2) / w ** 1.5, _A / math.sqrt(w)
-
-
-@njit(cache=True)
-def _cross(a, b, out):
-    out[0] = a[1] * b[2] - a[2] * b[1]
-    out[1] = a[2] * b[0] - a[0] * b[2]
-    out[2] = a[0] * b[1] - a[1] * b[0]
-
-
-@njit(cache=True)
-def _rodrigues(phi, out):
-    """exp([phi x]) into out (3x3)."""
-    a2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
-    if a2 < 1e-16:
-        s = 1.0 - a2 / 6.0
-        c = 0.5 - a2 / 24.0
-    else:
-        a = math.sqrt(a2)
-        s = math.sin(a) / a
-        c = (1.0 - math.cos(a)) / a2
-    x, y, z = phi[0], phi[1], phi[2]
-    out[0, 0] = 1.0 - c * (y * y + z * z)
-    out[0, 1] = -s * z + c * x * y
-    out[0, 2] = s * y + c * x * z
-    out[1, 0] = s * z + c * x * y
-    out[1, 1] = 1.0 - c * (x * x + z * z)
-    out[1, 2] = -s * x + c * y * z
-    out[2, 0] = -s * y + c * x * z
-    out[2, 1] = s * x + c * y * z
-    out[2, 2] = 1.0 - c * (x * x + y * y)
 
 
 @njit(cache=True)
@@ -129,9 +78,9 @@ def strapdown_batch(t_s, acc_mps2, gyro_rps, i0, i1, t_prev_s, nav, C_nb, corr, 
     cor = np.empty(3)
     fn = np.empty(3)
     vmid = np.empty(3)
-    Cb = np.empty((3, 3))
-    Cn = np.empty((3, 3))
     M = np.empty((3, 3))
+    Cb = np.empty(9)
+    Cn = np.empty(9)
     w = np.empty(3)
     f = np.empty(3)
     p_pos, p_vel, p_att, p_bg, p_ba, p_sg, p_sa = idx[0], idx[1], idx[2], idx[3], idx[4], idx[5], idx[6]
@@ -164,9 +113,9 @@ def strapdown_batch(t_s, acc_mps2, gyro_rps, i0, i1, t_prev_s, nav, C_nb, corr, 
         # mid-interval velocity extrapolated with the last kinematic acceleration
         for j in range(3):
             vmid[j] = nav[NAV_VEL + j] + 0.5 * mem[MEM_AN + j] * dt
-        rm, rn = _radii(lat)
+        rm, rn = radii(lat)
         cl, sl = math.cos(lat), math.sin(lat)
-        w_ie[0], w_ie[1], w_ie[2] = _WIE * cl, 0.0, -_WIE * sl
+        w_ie[0], w_ie[1], w_ie[2] = OMEGA_IE_RPS * cl, 0.0, -OMEGA_IE_RPS * sl
         w_en[0] = vmid[1] / (rn + h)
         w_en[1] = -vmid[0] / (rm + h)
         w_en[2] = -vmid[1] * sl / cl / (rn + h)
@@ -174,25 +123,25 @@ def strapdown_batch(t_s, acc_mps2, gyro_rps, i0, i1, t_prev_s, nav, C_nb, corr, 
             w_in[j] = w_ie[j] + w_en[j]
             zeta[j] = w_in[j] * dt
         # specific-force increment with rotation and sculling corrections, in b
-        _cross(dth, dv, tmp)
+        cross_into(dth, dv, tmp)
         for j in range(3):
             tmp[j] = dv[j] + 0.5 * tmp[j]
-        _cross(mem[MEM_DTH:MEM_DTH + 3], dv, tmp2)
+        cross_into(mem[MEM_DTH:MEM_DTH + 3], dv, tmp2)
         for j in range(3):
             tmp[j] += tmp2[j] / 12.0
-        _cross(mem[MEM_DV:MEM_DV + 3], dth, tmp2)
+        cross_into(mem[MEM_DV:MEM_DV + 3], dth, tmp2)
         for j in range(3):
             tmp[j] += tmp2[j] / 12.0
         # to n with the previous attitude and half the frame rotation
         for i in range(3):
             fn[i] = C_nb[i, 0] * tmp[0] + C_nb[i, 1] * tmp[1] + C_nb[i, 2] * tmp[2]
-        _cross(zeta, fn, tmp2)
+        cross_into(zeta, fn, tmp2)
         for i in range(3):
             fn[i] = fn[i] - 0.5 * tmp2[i]
-        g = _gravity(lat, h)
+        g = normal_gravity(lat, h)
         for j in range(3):
             cor[j] = 2.0 * w_ie[j] + w_en[j]
-        _cross(cor, vmid, tmp2)
+        cross_into(cor, vmid, tmp2)
         v_old0, v_old1, v_old2 = vN, vE, vD
         nav[3] = vN + fn[0] - tmp2[0] * dt
         nav[4] = vE + fn[1] - tmp2[1] * dt
@@ -208,24 +157,22 @@ def strapdown_batch(t_s, acc_mps2, gyro_rps, i0, i1, t_prev_s, nav, C_nb, corr, 
         h_mid = 0.5 * (h + h_new)
         lat_new = lat + vmN / (rm + h_mid) * dt
         lat_mid = 0.5 * (lat + lat_new)
-        rm2, rn2 = _radii(lat_mid)
+        rm2, rn2 = radii(lat_mid)
         nav[NAV_LON] += vmE / ((rn2 + h_mid) * math.cos(lat_mid)) * dt
         nav[NAV_LAT] = lat_new
         nav[NAV_H] = h_new
         # attitude: body rotation with coning, frame rotation
-        _cross(mem[MEM_DTH:MEM_DTH + 3], dth, tmp2)
+        cross_into(mem[MEM_DTH:MEM_DTH + 3], dth, tmp2)
         for j in range(3):
             tmp[j] = dth[j] + tmp2[j] / 12.0
-        _rodrigues(tmp, Cb)
-        for j in range(3):
-            tmp[j] = -zeta[j]
-        _rodrigues(tmp, Cn)
+        exp_so3_into(tmp[0], tmp[1], tmp[2], Cb)
+        exp_so3_into(-zeta[0], -zeta[1], -zeta[2], Cn)
         for i in range(3):
             for j in range(3):
-                M[i, j] = C_nb[i, 0] * Cb[0, j] + C_nb[i, 1] * Cb[1, j] + C_nb[i, 2] * Cb[2, j]
+                M[i, j] = C_nb[i, 0] * Cb[j] + C_nb[i, 1] * Cb[3 + j] + C_nb[i, 2] * Cb[6 + j]
         for i in range(3):
             for j in range(3):
-                C_nb[i, j] = Cn[i, 0] * M[0, j] + Cn[i, 1] * M[1, j] + Cn[i, 2] * M[2, j]
+                C_nb[i, j] = Cn[3 * i] * M[0, j] + Cn[3 * i + 1] * M[1, j] + Cn[3 * i + 2] * M[2, j]
         for j in range(3):
             mem[MEM_W + j] = w[j]
             mem[MEM_F + j] = f[j]
