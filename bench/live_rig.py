@@ -14,7 +14,7 @@ import numpy as np
 
 from v2xpos.launch import free_tcp_port
 from v2xpos.types import FixStatus, NavState
-from v2xpos.wire import Geometry, StateMessage, encode_state, state_key
+from v2xpos.wire import STATE_KEY_ALL, Geometry, StateMessage, encode_state, state_key
 
 FLEET = "fault"
 EPOCH_GPS_S = 1.4e9
@@ -73,7 +73,7 @@ class LiveRig:
             self.master_link = Link(LinkConfig(mode="router", listen=[self.endpoint]))
         else:
             self.master_link = Link(LinkConfig(mode=master_mode, connect=[self.endpoint]))
-        self.master_link.subscribe(f"v2xpos/{FLEET}/vehicle/*/state", self._on_sample)
+        self.master_link.subscribe(STATE_KEY_ALL(FLEET), self._on_sample)
         self.slave_link = Link(LinkConfig(mode="peer" if master_mode == "router" else "client",
                                           connect=[self.endpoint]))
         self.pubs = {v: self.slave_link.publisher(state_key(FLEET, v)) for v in vehicles}

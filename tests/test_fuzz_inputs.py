@@ -129,10 +129,11 @@ def test_bad_slave_config_and_dataset_toml_name_file_and_field(tmp_path):
     from slave.config import ConfigError, SlaveConfig
     from v2xpos.datasets.loader import load_dataset
     p = tmp_path / "slave.toml"
-    p.write_text('[service]\nrate_hz = "fast"\n')
+    source = '[source]\ntype = "sim"\nmodel = "truth_noise"\n'      # required; valid here
+    p.write_text(source + '[service]\nrate_hz = "fast"\n')
     with pytest.raises(ConfigError, match=r"slave.toml.*rate_hz"):
         SlaveConfig.load(p)
-    p.write_text('[security]\nkey_file = 3\n')
+    p.write_text(source + '[security]\nkey_file = 3\n')
     with pytest.raises(ConfigError, match=r"slave.toml.*key_file"):
         SlaveConfig.load(p)
     seed = fuzz._dataset_toml_seed(tmp_path, fuzz._synthetic_imu_csv(), fuzz._synthetic_pos()).decode()

@@ -139,8 +139,13 @@ def test_signals_decode_to_the_result_and_the_target_id(db):
         assert sig[name] == pytest.approx(value, abs=s.scale / 2 + 1e-9), name
 
 
+SIM_SOURCE = {"type": "sim", "model": "truth_noise"}
+"""A valid ``[source]`` table (required in every service config; not what these tests are about)."""
+
+
 def _master_config(slots: dict, channel: str) -> MasterConfig:
-    return MasterConfig.from_dict({"output": {"can": {"enabled": True, "interface": "virtual", "channel": channel,
+    return MasterConfig.from_dict({"source": SIM_SOURCE,
+                                   "output": {"can": {"enabled": True, "interface": "virtual", "channel": channel,
                                                       "rate_hz": 0, "slots": slots}}}, "master.toml")
 
 
@@ -180,10 +185,9 @@ def test_bad_slot_tables_are_config_errors(slots, match):
 
 
 def test_bus_options_from_config_and_unavailable_socketcan_is_one_line():
-    cfg = MasterConfig.from_dict({"output": {"can": {"enabled": True, "interface": "socketcan",
-                                                     "channel": "v2xpos-absent0", "bitrate": 500000, "fd": True,
-                                                     "data_bitrate": 2000000, "receive_own_messages": True}}},
-                                 "m.toml")
+    can_table = {"enabled": True, "interface": "socketcan", "channel": "v2xpos-absent0", "bitrate": 500000,
+                 "fd": True, "data_bitrate": 2000000, "receive_own_messages": True}
+    cfg = MasterConfig.from_dict({"source": SIM_SOURCE, "output": {"can": can_table}}, "m.toml")
     assert cfg.can_bus_kwargs() == {"bitrate": 500000, "fd": True, "data_bitrate": 2000000,
                                     "receive_own_messages": True}
     with pytest.raises(ConfigError) as info:
@@ -192,9 +196,9 @@ def test_bus_options_from_config_and_unavailable_socketcan_is_one_line():
     assert text.startswith("m.toml: [output.can]: CAN interface 'socketcan' channel 'v2xpos-absent0': cannot open")
     assert "\n" not in text
     with pytest.raises(ConfigError, match="did you mean 'socketcan'"):
-        MasterConfig.from_dict({"output": {"can": {"interface": "socketcann"}}}, "m.toml")
+        MasterConfig.from_dict({"source": SIM_SOURCE, "output": {"can": {"interface": "socketcann"}}}, "m.toml")
     with pytest.raises(ConfigError, match="data_bitrate: only with fd"):
-        MasterConfig.from_dict({"output": {"can": {"data_bitrate": 2000000}}}, "m.toml")
+        MasterConfig.from_dict({"source": SIM_SOURCE, "output": {"can": {"data_bitrate": 2000000}}}, "m.toml")
 
 
 def test_master_status_from_a_filter_state(db):

@@ -103,13 +103,13 @@ class ReplayClock(SessionClock):
         return self._start_follower(stop)
 
     def _start_leader(self, stop: Callable[[], bool]) -> bool:
-        prefix = f"v2xpos/{self.fleet}/session/ready/"
+        prefix = ready_key(self.fleet, "")      # the vehicle id follows
 
         def on_ready(payload: bytes, key: str, att: Any, t_arr: float) -> None:
             with self._lock:
                 self._ready.add(key[len(prefix):])
 
-        self.link.subscribe(prefix + "*", on_ready)
+        self.link.subscribe(ready_key(self.fleet, "*"), on_ready)
         t_end = time.monotonic() + self.wait_timeout_s
         said = False
         while not stop():
