@@ -72,6 +72,14 @@ def ins_config(platform: str, imu_to_body: np.ndarray, lever_arm_m: np.ndarray, 
     if integrity:
         kw["imu_noise_from_data"] = "gyro_noise_rps_rthz" not in kw and "accel_noise_mps2_rthz" not in kw
         kw["reopen_on_inconsistency"] = True
+        # The calibration's noise is the sensor's white noise, as the online meter measures it; a
+        # service's filter takes the same margin over it and the same cap in both cases
+        # (docs/integrity.md, "The IMU noise behind it"): with the bare measured gyro noise the
+        # calibrated convoy_dev leader failed its own consistency test and was never VALID.
+        for key, scale in (("gyro_noise_rps_rthz", "imu_gyro_noise_scale"),
+                           ("accel_noise_mps2_rthz", "imu_accel_noise_scale")):
+            if key in kw:
+                kw[key] = min(getattr(InsConfig, scale) * kw[key], getattr(InsConfig, key))
     for key in ("effect_initial_sd", "initial_effects"):
         if key in overrides and key in kw:
             overrides[key] = {**kw[key], **overrides[key]}
