@@ -13,6 +13,11 @@
     dispatch = "inline"               # inline (pipeline on the zenoh thread) | asyncio (queue to the loop)
     realtime_priority = 0             # 1-99: run the master SCHED_RR at this priority (0 = normal)
 
+    [validity]                        # when a computed result is VALID (docs/integrity.md)
+    max_sigma_h_m = 0.10              # predicted 1-sigma horizontal relative position above it: SIGMA_EXCEEDED
+    max_sigma_yaw_deg = 1.0           # predicted 1-sigma relative yaw above it: SIGMA_EXCEEDED
+    require_consistency = true        # both filters consistent and verified through turning, else INCONSISTENT
+
     [link]                            # the master embeds the router by default
     mode = "router"
     listen = ["tcp/127.0.0.1:7447"]
@@ -123,6 +128,9 @@ class MasterConfig:
     mcap_max_mb: float = 256.0
     grading: bool = False
     corrections: object | None = None
+    max_sigma_h_m: float = 0.10
+    max_sigma_yaw_deg: float = 1.0
+    require_consistency: bool = True
     path: str = "<defaults>"
 
     @classmethod
@@ -131,8 +139,15 @@ class MasterConfig:
 
     @classmethod
     def from_dict(cls, d: dict, path: str = "<dict>") -> "MasterConfig":
-        check_keys(d, {"service", "link", "source", "output", "scene", "record", "security", "grading", "corrections"},
-                   path)
+        check_keys(d, {"service", "link", "source", "output", "scene", "record", "security", "grading", "corrections",
+                       "validity"}, path)
+        va = take(d, "validity", dict, {}, path)
+        wv = f"{path}: [validity]"
+        check_keys(va, {"max_sigma_h_m", "max_sigma_yaw_deg", "require_consistency"}, wv)
+        max_sigma_h = take(va, "max_sigma_h_m", float, 0.10, wv)
+        max_sigma_yaw = take(va, "max_sigma_yaw_deg", float, 1.0, wv)
+        if not max_sigma_h > 0 or not max_sigma_yaw > 0:
+            raise ConfigError(f"{wv}: max_sigma_h_m and max_sigma_yaw_deg must be > 0")
         gr = take(d, "grading", dict, {}, path)
         check_keys(gr, {"enabled"}, f"{path}: [grading]")
         w = f"{path}: [service]"
@@ -191,7 +206,8 @@ class MasterConfig:
             require_signature=take(sec, "require_signature", bool, True, ws),
             max_age_s=take(sec, "max_age_s", float, 5.0, ws),
             future_tolerance_s=take(sec, "future_tolerance_s", float, 0.05, ws), replay_window=window,
-            corrections=corrections_from_table(d, path), path=path)
+            corrections=corrections_from_table(d, path), max_sigma_h_m=max_sigma_h, max_sigma_yaw_deg=max_sigma_yaw,
+            require_consistency=take(va, "require_consistency", bool, True, wv), path=path)
 
     def can_bus_kwargs(self) -> dict:
         """python-can ``Bus`` options of ``[output.can]`` (besides interface and channel)."""

@@ -86,6 +86,10 @@ class PipelineConfig:
     known_vehicles: accepted target ids (empty = any id). evaluate_uncompensated: also transform
     the unpredicted target (for the demo's comparison; costs one more transform per message).
     record: keep one row per result for the report (``records``).
+    Validity limits (docs/integrity.md): max_sigma_h_m / max_sigma_yaw_deg: a result whose predicted
+    1-sigma horizontal position (sqrt(sd_x^2 + sd_y^2)) or relative yaw (vehicle targets) exceeds
+    them is SIGMA_EXCEEDED; require_consistency: a result is INCONSISTENT while either vehicle's filter
+    failed its own consistency test or has not yet passed it through enough turning (state flags).
     """
     fleet: str = "demo"
     master_id: str = "ego"
@@ -95,6 +99,9 @@ class PipelineConfig:
     known_vehicles: tuple = ()
     evaluate_uncompensated: bool = False
     record: bool = False
+    max_sigma_h_m: float = 0.10
+    max_sigma_yaw_deg: float = 1.0
+    require_consistency: bool = True
 
 
 @dataclass
@@ -245,7 +252,7 @@ class MasterPipeline:
                                   future_tolerance_s=math.inf)
             res.latency_s = age_s
             if res.status == TargetStatus.VALID:
-                res.status = self._validity(master, msg)
+                res.status = self._validity(master, msg, res)
         res.master_fix = master.fix
         res.target_fix = msg.fix
         unc = None
@@ -256,14 +263,28 @@ class MasterPipeline:
             unc = evaluate_compiled(master, msg, 0.0, self._mpoint, 0.0, 0.0, res.t_gps_s).rel_pos_body_m
         return self._emit(res, msg, t_arrival_wall_s, unc)
 
-    def _validity(self, master: Any, msg: StateMessage) -> TargetStatus:
+    def _validity(self, master: Any, msg: StateMessage, res: RelativeResult) -> TargetStatus:
         """A computed result is VALID only when both vehicles' attitude is determined (a heading
-        pending at a standstill start turns every bearing into a guess) and both clocks are on GNSS
-        time; otherwise the status says which (the kinematics stay in the result)."""
+        pending at a standstill start turns every bearing into a guess), both clocks are on GNSS
+        time, both filters pass their own consistency test and have been through the turning that
+        tests an undeclared lever arm, mounting or gyro scale (``v2xpos.ins.consistency``), and the
+        predicted sigma is within the configured limits; otherwise the status says which, in this
+        order (the kinematics stay in the result). docs/integrity.md gives the reasoning."""
+        cfg = self.config
         if not (getattr(master, "attitude_ok", True) and msg.attitude_ok):
             return TargetStatus.ATTITUDE_UNCERTAIN
         if not (self.master_time_ok and msg.time_ok):
             return TargetStatus.CLOCK_UNSYNCED
+        if cfg.require_consistency and not (getattr(master, "consistent", True) and getattr(master, "verified", True)
+                                            and msg.consistent and msg.verified):
+            return TargetStatus.INCONSISTENT
+        sd = res.rel_pos_sd_m
+        sigma_h = math.hypot(float(sd[0]), float(sd[1]))
+        if not sigma_h <= cfg.max_sigma_h_m:
+            return TargetStatus.SIGMA_EXCEEDED
+        # a pedestrian's yaw (its walking direction) is no reference quantity: only a vehicle's is limited
+        if msg.kind == "vehicle" and not math.degrees(res.rel_yaw_sd_rad) <= cfg.max_sigma_yaw_deg:
+            return TargetStatus.SIGMA_EXCEEDED
         return TargetStatus.VALID
 
     def _emit(self, res: RelativeResult, msg: StateMessage | None, t_arr: float,

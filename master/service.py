@@ -152,7 +152,8 @@ class MasterService:
         pcfg = PipelineConfig(fleet=cfg.fleet, master_id=cfg.master_id, timeout_s=cfg.timeout_ms / 1e3,
                               measurement_point_m=cfg.measurement_point_m, known_vehicles=cfg.known_vehicles,
                               evaluate_uncompensated=cfg.evaluate_uncompensated,
-                              record=cfg.results_npz is not None)
+                              record=cfg.results_npz is not None, max_sigma_h_m=cfg.max_sigma_h_m,
+                              max_sigma_yaw_deg=cfg.max_sigma_yaw_deg, require_consistency=cfg.require_consistency)
         if cfg.results_csv:
             from v2xpos.output.results_csv import ResultsCsvWriter
             self.sinks.append(ResultsCsvWriter(cfg.results_csv))

@@ -56,17 +56,45 @@ def test_results_csv_columns_and_statuses(runs):
     t_drive_off = a.t_s[np.argmax(a.cols["speed_mps"] > 0.5)]
     assert not np.any(status[t < t_drive_off] == "VALID")
     assert (status[t < t_drive_off] == "ATTITUDE_UNCERTAIN").sum() > 100
-    # B's float spell is on the output, in the target_fix column of VALID rows
+    # B's float spell is on the output, in the target_fix column of the rows with kinematics (B has
+    # undeclared effects: its rows are mostly flagged INCONSISTENT / SIGMA_EXCEEDED, docs/integrity.md)
     target_fix = np.array([r[4] for r in body])
-    assert {"FIXED", "FLOAT"} <= set(target_fix[status == "VALID"])
+    computed = np.array([r[5] != "" for r in body])
+    assert {"FIXED", "FLOAT"} <= set(target_fix[computed])
     assert set(np.array([r[3] for r in body])) <= {"FIXED", "FLOAT", "SINGLE", "DR", "NONE"}
     assert runs["processes"]["exit_codes"] == {"A": 0, "B": 0}
 
 
+def _errors_by_second(results_csv: str) -> dict:
+    """Horizontal error of every computed row (attitude determined: VALID or flagged) against
+    truth_rel.csv, as {whole GPS second: [sum of squares, count, sum of x errors, sum of y errors]}
+    -- so that two runs are compared over the seconds both computed."""
+    from v2xpos.diagnose.truth import read_truth_rel, week_of
+    from v2xpos.output.results_csv import read_results_csv
+    rows = read_results_csv(results_csv)
+    t = rows["t_gps_s"]
+    tr = read_truth_rel(DATA / "truth_rel.csv", week_of(t))
+    ok = np.isfinite(rows["x_m"]) & ~np.isin(rows["status"], ("ATTITUDE_UNCERTAIN", "CLOCK_UNSYNCED"))
+    ex, ey = rows["x_m"] - tr.at("x_m", t), rows["y_m"] - tr.at("y_m", t)
+    out: dict = {}
+    for sec, x, y in zip(np.floor(t[ok]).astype(int), ex[ok], ey[ok]):
+        if np.isfinite(x) and np.isfinite(y):
+            a = out.setdefault(sec, [0.0, 0, 0.0, 0.0])
+            a[0] += x * x + y * y
+            a[1] += 1
+            a[2] += x
+            a[3] += y
+    return out
+
+
 def test_processes_lose_nothing_against_in_process(runs):
-    p = runs["processes"]["score"]["targets"]["B"]
-    r = runs["in_process"]["score"]["targets"]["B"]
-    mp, mr = p["moving"], r["moving"]
-    assert mp["n"] > 0.9 * mr["n"], (mp["n"], mr["n"])
-    assert abs(mp["h_rms_m"] - mr["h_rms_m"]) < 0.005, (mp, mr)
-    assert abs(mp["x_mean_m"] - mr["x_mean_m"]) < 0.005 and abs(mp["y_mean_m"] - mr["y_mean_m"]) < 0.005
+    # every computed result, VALID or flagged (B has undeclared effects: few of its rows are VALID),
+    # over the seconds both runs computed: the flags may start a few rows apart in the two runs
+    p = _errors_by_second(runs["processes"]["results_csv"])
+    r = _errors_by_second(runs["in_process"]["results_csv"])
+    common = sorted(set(p) & set(r))
+    assert len(common) > 0.9 * len(r), (len(common), len(r))
+    def stat(d: dict, i: int) -> float:
+        return sum(d[k][i] for k in common) / sum(d[k][1] for k in common)
+    assert abs(np.sqrt(stat(p, 0)) - np.sqrt(stat(r, 0))) < 0.005, (np.sqrt(stat(p, 0)), np.sqrt(stat(r, 0)))
+    assert abs(stat(p, 2) - stat(r, 2)) < 0.005 and abs(stat(p, 3) - stat(r, 3)) < 0.005

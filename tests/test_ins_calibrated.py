@@ -88,3 +88,20 @@ def test_applied_in_the_filter_equals_rewriting_the_recording():
         rms[label] = replay(data, sched, cfg=cfg, progress=False, keep_series=False).summary["outage_h_rms_m"]
     assert rms["ins_config"] < 0.5 * rms["declared"], rms
     assert rms["ins_config"] < rms["rewritten"] + 0.05, rms
+
+
+def test_a_service_filter_takes_the_same_noise_margin_over_a_calibrated_noise():
+    """The calibration's measured IMU noise and the online meter's are the same quantity: a
+    service's filter (integrity=True) applies the same margin and cap to both."""
+    from v2xpos.datasets.calibration import parse_calibration
+    from v2xpos.ins import InsConfig
+    table = parse_calibration({"imu_gyro_noise_rps_rthz": {"value": 1e-4, "sd": 1e-6},
+                               "imu_accel_noise_mps2_rthz": {"value": 1e-3, "sd": 1e-5}}, "test: [calibration]")
+    offline = ins_config("car", B, LEVER, 0.05, table)
+    service = ins_config("car", B, LEVER, 0.05, table, integrity=True)
+    assert offline.gyro_noise_rps_rthz == pytest.approx(1e-4)
+    assert service.gyro_noise_rps_rthz == pytest.approx(InsConfig.imu_gyro_noise_scale * 1e-4)
+    assert service.accel_noise_mps2_rthz == pytest.approx(InsConfig.imu_accel_noise_scale * 1e-3)
+    assert not service.imu_noise_from_data
+    loud = parse_calibration({"imu_gyro_noise_rps_rthz": {"value": 1e-2, "sd": 1e-4}}, "test: [calibration]")
+    assert ins_config("car", B, LEVER, 0.05, loud, integrity=True).gyro_noise_rps_rthz == InsConfig.gyro_noise_rps_rthz

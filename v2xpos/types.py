@@ -119,7 +119,10 @@ class NavState:
 
     lla (rad, m) of the vehicle reference point (IMU); v_ned_mps; acc_body_mps2 (kinematic
     acceleration, gravity removed) and rate_body_rps in body axes; rpy_rad = (roll, pitch, yaw) of
-    C_nb; *_sd are 1-sigma per axis; fix is the GNSS status behind the solution.
+    C_nb; *_sd are 1-sigma per axis (pos_sd_m / vel_sd_mps per NED axis; att_sd_rad of the small
+    attitude error about the N, E, D axes, which for a level vehicle is roll, pitch, yaw error only
+    when it heads north -- the D component is the yaw error at any heading); fix is the GNSS status
+    behind the solution.
     """
     t_s: float
     lla: np.ndarray
@@ -133,6 +136,14 @@ class NavState:
     fix: FixStatus = FixStatus.NONE
     attitude_ok: bool = True
     """False while the filter's attitude is not determined (heading pending at a standstill start)."""
+    pos_corr: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    """Correlation coefficients (NE, ND, ED) of the position error (0: uncorrelated axes)."""
+    consistent: bool = True
+    """False after the filter's own consistency test (windowed NIS, ``v2xpos.ins.consistency``) failed,
+    until the vehicle has turned enough with the test passing again."""
+    verified: bool = True
+    """False until the filter's consistency test has passed through enough turning (the excitation that
+    reveals a wrong lever arm, mounting or gyro scale)."""
 
 
 @dataclass

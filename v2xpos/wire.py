@@ -74,6 +74,12 @@ STATE_FLAG_ATTITUDE_UNDETERMINED = 1
 """State flag bit: the sender's attitude (heading) is not determined yet (e.g. pending at a stop)."""
 STATE_FLAG_TIME_UNSYNCED = 2
 """State flag bit: the sender's clock is off GNSS time beyond its bound."""
+STATE_FLAG_INCONSISTENT = 4
+"""State flag bit: the sender's filter fails its own consistency test (windowed NIS of its GNSS
+updates, ``v2xpos.ins.consistency``): its covariance does not describe its errors."""
+STATE_FLAG_UNVERIFIED = 8
+"""State flag bit: the sender's consistency test has not yet passed through enough turning to reveal
+an undeclared lever arm, mounting or gyro scale (``v2xpos.ins.consistency``)."""
 KINDS = ("vehicle", "pedestrian")
 GEOMETRY_KINDS = ("points", "polygon", "circle")
 _ID_RE = re.compile(r"[A-Za-z0-9_.\-]+")
@@ -225,6 +231,9 @@ class StateMessage:
     signed_payload: bytes | None = field(default=None, compare=False, repr=False)
     attitude_ok: bool = True
     time_ok: bool = True
+    pos_corr: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    consistent: bool = True
+    verified: bool = True
 
     @property
     def lla(self) -> np.ndarray:
@@ -241,9 +250,9 @@ class StateMessage:
             return NotImplemented
         scalars = ("fleet", "vehicle_id", "seq", "t_gps_s", "fix", "lat_rad", "lon_rad", "height_m",
                    "geometry", "kind", "schema", "t_sent_wall_s", "imu_quality", "sig", "key_id",
-                   "attitude_ok", "time_ok")
+                   "attitude_ok", "time_ok", "consistent", "verified")
         arrays = ("v_ned_mps", "acc_body_mps2", "rate_body_rps", "rpy_rad", "pos_sd_m",
-                  "vel_sd_mps", "att_sd_rad")
+                  "vel_sd_mps", "att_sd_rad", "pos_corr")
         return (all(getattr(self, k) == getattr(other, k) for k in scalars)
                 and all(np.array_equal(getattr(self, k), getattr(other, k)) for k in arrays))
 
@@ -261,7 +270,8 @@ class StateMessage:
                    vel_sd_mps=_vec(nav.vel_sd_mps), att_sd_rad=_vec(nav.att_sd_rad),
                    geometry=geometry if geometry is not None else Geometry(), kind=kind,
                    t_sent_wall_s=t_sent_wall_s, attitude_ok=bool(getattr(nav, "attitude_ok", True)),
-                   time_ok=bool(time_ok))
+                   time_ok=bool(time_ok), pos_corr=_vec(getattr(nav, "pos_corr", (0.0, 0.0, 0.0))),
+                   consistent=bool(getattr(nav, "consistent", True)), verified=bool(getattr(nav, "verified", True)))
 
     def to_nav_state(self) -> NavState:
         """The kinematic content as a NavState."""
@@ -269,7 +279,8 @@ class StateMessage:
                         acc_body_mps2=self.acc_body_mps2.copy(), rate_body_rps=self.rate_body_rps.copy(),
                         rpy_rad=self.rpy_rad.copy(), pos_sd_m=self.pos_sd_m.copy(),
                         vel_sd_mps=self.vel_sd_mps.copy(), att_sd_rad=self.att_sd_rad.copy(),
-                        fix=FixStatus(self.fix), attitude_ok=self.attitude_ok)
+                        fix=FixStatus(self.fix), attitude_ok=self.attitude_ok, pos_corr=self.pos_corr.copy(),
+                        consistent=self.consistent, verified=self.verified)
 
 
 _NAN3 = (math.nan, math.nan, math.nan)
@@ -396,9 +407,13 @@ def encode_state_body(msg: StateMessage) -> bytes:
         body["tw"] = float(msg.t_sent_wall_s)
     if msg.imu_quality is not None:
         body["iq"] = msg.imu_quality
-    flags = (0 if msg.attitude_ok else STATE_FLAG_ATTITUDE_UNDETERMINED) | (0 if msg.time_ok else STATE_FLAG_TIME_UNSYNCED)
+    flags = ((0 if msg.attitude_ok else STATE_FLAG_ATTITUDE_UNDETERMINED) | (0 if msg.time_ok else STATE_FLAG_TIME_UNSYNCED)
+             | (0 if msg.consistent else STATE_FLAG_INCONSISTENT) | (0 if msg.verified else STATE_FLAG_UNVERIFIED))
     if flags:
         body["fl"] = flags
+    pc = msg.pos_corr
+    if pc[0] != 0.0 or pc[1] != 0.0 or pc[2] != 0.0:
+        body["pc"] = _f3(pc)
     return msgpack.packb(body, use_bin_type=True)
 
 
@@ -656,13 +671,15 @@ def decode_state_body(body: bytes) -> StateMessage:
     geometry = _geometry(m)
     t_sent = _opt_num(m, "tw", 0.0, MAX_T_GPS_S)
     flags = _uint(m, "fl", 255) if "fl" in m else 0
+    pos_corr = np.array(_vec3_list(m, "pc", 1.0), dtype=float) if "pc" in m else np.zeros(3)
     msg = StateMessage.__new__(StateMessage)
     msg.__dict__.update(
         fleet=fleet, vehicle_id=vehicle_id, seq=seq, t_gps_s=t_gps_s, fix=fix, lat_rad=lat, lon_rad=lon,
         height_m=h, v_ned_mps=vecs[0], acc_body_mps2=vecs[1], rate_body_rps=vecs[2], rpy_rad=vecs[3],
         pos_sd_m=vecs[4], vel_sd_mps=vecs[5], att_sd_rad=vecs[6], geometry=geometry, kind=kind,
         schema=m["ver"], t_sent_wall_s=t_sent, imu_quality=iq, sig=None, key_id=None, signed_payload=None,
-        attitude_ok=not flags & STATE_FLAG_ATTITUDE_UNDETERMINED, time_ok=not flags & STATE_FLAG_TIME_UNSYNCED)
+        attitude_ok=not flags & STATE_FLAG_ATTITUDE_UNDETERMINED, time_ok=not flags & STATE_FLAG_TIME_UNSYNCED,
+        pos_corr=pos_corr, consistent=not flags & STATE_FLAG_INCONSISTENT, verified=not flags & STATE_FLAG_UNVERIFIED)
     return msg
 
 

@@ -16,6 +16,9 @@ Figures per target (``score_target``), over VALID rows:
 * ``moving``: rows where both vehicles move (truth speed > ``moving_speed_mps``): horizontal
   error RMS/max, per-axis mean (a bias) and RMS;
 * ``standstill``: the other VALID rows;
+* ``moving_computed``: the same over every row that carries kinematics with both attitudes
+  determined and both clocks synchronised (VALID, INCONSISTENT, SIGMA_EXCEEDED): the accuracy of
+  the computation whatever its consistency flags;
 * consistency: the fraction of rows with |error| <= 3 sigma per horizontal axis, the normalised
   errors' RMS (1 for an honest sigma), the median horizontal sigma against the horizontal RMS error,
   and every VALID row whose horizontal error exceeds max(0.3 m, 4 sigma_h) (``violations``).
@@ -122,6 +125,18 @@ def score_target(rows: dict, target: str, truth_rel: TruthTrack, master_truth: T
 
     out["moving"] = block(moving)
     out["standstill"] = block(~moving)
+    # the computed kinematics of every status that carries them (VALID or flagged), while both move:
+    # the accuracy of the computation itself, e.g. to compare two runs whose flags differ
+    computed = np.isfinite(rows["x_m"][sel]) & ~np.isin(status, ("ATTITUDE_UNCERTAIN", "CLOCK_UNSYNCED"))
+    tc = t[computed]
+    cx = rows["x_m"][sel][computed] - truth_rel.at("x_m", tc)
+    cy = rows["y_m"][sel][computed] - truth_rel.at("y_m", tc)
+    cm = np.isfinite(cx) & np.isfinite(cy)
+    if master_truth is not None and target_truth is not None:
+        cm &= (master_truth.at("speed_mps", tc) > moving_speed_mps) & (target_truth.at("speed_mps", tc) > moving_speed_mps)
+    out["moving_computed"] = {"n": int(cm.sum()), "h_rms_m": _rms(np.hypot(cx[cm], cy[cm])),
+                              "x_mean_m": float(cx[cm].mean()) if cm.any() else None,
+                              "y_mean_m": float(cy[cm].mean()) if cm.any() else None}
     k = known
     if k.any():
         zx, zy = ex[k] / sx[k], ey[k] / sy[k]

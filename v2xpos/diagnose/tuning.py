@@ -28,6 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from v2xpos.ins.filter import DEFAULT_FIX_SD_SCALE
+from v2xpos.ins.noise import density_from_mean_square, second_differences
 from v2xpos.types import ImuData
 
 from .residuals import ResidualLog
@@ -40,7 +41,8 @@ def imu_noise_density(imu: ImuData) -> tuple[float, float]:
     ``var(x[k+1] - 2 x[k] + x[k-1]) = 6 s^2``, while the vehicle's own motion (smooth at the
     sample rate) contributes ``(x'' dt^2)^2``, negligible. The variance (not a robust scale) is
     used because vibration is heavy-tailed and the filter needs its power; the three axes are
-    pooled (the filter's noise is isotropic) and the density is ``s sqrt(dt)``.
+    pooled (the filter's noise is isotropic) and the density is ``s sqrt(dt)``. The same estimator
+    runs online per axis in ``v2xpos.ins.noise.ImuNoiseMeter`` (services without this calibration).
     """
     t = np.asarray(imu.t_s, float)
     dt = float(np.median(np.diff(t))) if len(t) > 2 else 0.01
@@ -49,9 +51,8 @@ def imu_noise_density(imu: ImuData) -> tuple[float, float]:
         if len(x) < 10:
             out.append(float("nan"))
             continue
-        d2 = x[2:] - 2.0 * x[1:-1] + x[:-2]
-        var = float(np.mean(np.var(d2, axis=0))) / 6.0
-        out.append(float(np.sqrt(var * dt)))
+        d2 = second_differences(x)
+        out.append(float(density_from_mean_square(float(np.mean(np.var(d2, axis=0))), dt)))
     return out[0], out[1]
 
 

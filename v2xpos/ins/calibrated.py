@@ -49,7 +49,7 @@ def _vec(v: Any) -> np.ndarray:
 
 
 def ins_config(platform: str, imu_to_body: np.ndarray, lever_arm_m: np.ndarray, lever_arm_sd_m: float,
-               calibration: Any = None, **overrides: Any) -> InsConfig:
+               calibration: Any = None, integrity: bool = False, **overrides: Any) -> InsConfig:
     """``InsConfig`` of a vehicle from its declared mounting and antenna lever arm and an optional
     ``CalibrationTable`` (``v2xpos.datasets.calibration``; None = declared values only).
 
@@ -57,6 +57,11 @@ def ins_config(platform: str, imu_to_body: np.ndarray, lever_arm_m: np.ndarray, 
     ``v_body = imu_to_body v_imu``; lever_arm_m: declared antenna position from the IMU [m, vehicle
     frame x fwd, y right, z down] with 1-sigma lever_arm_sd_m; overrides: any other ``InsConfig``
     field (they win over the calibration, e.g. ``effects=()`` for a filter without effect states).
+    integrity: the filter of a service whose states feed the master's results (docs/integrity.md):
+    the IMU white noise is measured online from the samples (``v2xpos.ins.noise.ImuNoiseMeter``)
+    unless the calibration carries the noise measured offline by the same estimator -- that one
+    wins, it was tuned together with the rest of the table -- and a failed consistency test
+    reopens the effect states (``InsFilter._on_inconsistency``).
     """
     plat = platform if platform in ("car", "pedestrian") else "generic"
     B = np.asarray(imu_to_body, float).reshape(3, 3)
@@ -64,6 +69,17 @@ def ins_config(platform: str, imu_to_body: np.ndarray, lever_arm_m: np.ndarray, 
                               lever_arm_sd_m=float(lever_arm_sd_m))
     if calibration is not None and calibration.effects:
         kw.update(_calibrated_fields(plat, B, _vec(lever_arm_m), float(lever_arm_sd_m), calibration))
+    if integrity:
+        kw["imu_noise_from_data"] = "gyro_noise_rps_rthz" not in kw and "accel_noise_mps2_rthz" not in kw
+        kw["reopen_on_inconsistency"] = True
+        # The calibration's noise is the sensor's white noise, as the online meter measures it; a
+        # service's filter takes the same margin over it and the same cap in both cases
+        # (docs/integrity.md, "The IMU noise behind it"): with the bare measured gyro noise the
+        # calibrated convoy_dev leader failed its own consistency test and was never VALID.
+        for key, scale in (("gyro_noise_rps_rthz", "imu_gyro_noise_scale"),
+                           ("accel_noise_mps2_rthz", "imu_accel_noise_scale")):
+            if key in kw:
+                kw[key] = min(getattr(InsConfig, scale) * kw[key], getattr(InsConfig, key))
     for key in ("effect_initial_sd", "initial_effects"):
         if key in overrides and key in kw:
             overrides[key] = {**kw[key], **overrides[key]}
@@ -116,8 +132,8 @@ def _calibrated_fields(platform: str, B: np.ndarray, lever: np.ndarray, lever_sd
     return out
 
 
-def dataset_ins_config(dataset: Any, **overrides: Any) -> InsConfig:
+def dataset_ins_config(dataset: Any, integrity: bool = False, **overrides: Any) -> InsConfig:
     """:func:`ins_config` of a loaded ``Dataset`` (its declared values and ``Dataset.calibration``)."""
     return ins_config(dataset.platform, dataset.imu_to_body, dataset.lever_arm_m, dataset.lever_arm_sd_m,
-                      getattr(dataset, "calibration", None), **overrides)
+                      getattr(dataset, "calibration", None), integrity=integrity, **overrides)
 

@@ -22,8 +22,11 @@ from v2xpos.types import FixStatus, NavState
 
 from . import ekf
 from .alignment import CoarseAligner, CourseTracker
-from .ekf import ATT, BA, BG, POS, VEL, StateLayout
+from .ekf import ATT, BA, BG, EFFECT_SIZES, POS, VEL, StateLayout
 from .effects import DEFAULT_INITIAL_SD, DEFAULT_RANDOM_WALK, PLATFORM_EFFECTS, EffectValues
+from .consistency import INCONSISTENT, VERIFIED, ConsistencyMonitor
+from .noise import ImuNoiseMeter
+from .reported import correlations, reported_covariance, reported_jacobian
 from .mechanization import (COR_BA, COR_BG, COR_SA, COR_SG, MEM_F, MEM_SIZE, MEM_VALID, MEM_W, NAV_H, NAV_LAT,
                             NAV_LON, NAV_VEL, strapdown_batch)
 from .static_calibration import StaticBiasEstimate, StaticCalibrationConfig, StaticCalibrator
@@ -58,6 +61,20 @@ class InsConfig:
     accel_bias_tau_s: float = 600.0
     gyro_bias_init_sd_rps: float = 0.01
     accel_bias_init_sd_mps2: float = 0.2
+    imu_noise_from_data: bool = False             # white-noise densities measured from the samples (ImuNoiseMeter),
+    imu_noise_window_s: float = 10.0              # averaged over this time constant, scaled, capped by the two above
+    imu_gyro_noise_scale: float = 7.0             # attitude noise = this x the measured gyro white noise (docs/integrity.md)
+    imu_accel_noise_scale: float = 1.0            # velocity noise = this x the measured accelerometer white noise
+    # own consistency test (consistency.ConsistencyMonitor)
+    consistency_window_s: float = 5.0
+    consistency_false_alarm: float = 1e-4         # of the windowed NIS test (chi-square quantile 1 - this)
+    consistency_mean_z: float = 3.0               # limit of the windowed body-frame innovation mean (N(0, 1) units)
+    consistency_reverify: bool = False            # a failure is lifted by verify_turn_deg of passing turns (else latched)
+    verify_detectable_lever_arm_m: float = 0.3    # turning counts while the test would find a lever-arm error this size
+    verify_turn_deg: float = 45.0                 # turning that must pass the test before the solution is verified
+    reopen_on_inconsistency: bool = False         # a failed test reopens the effect states (_on_inconsistency)
+    undeclared_lever_arm_sd_m: float = 0.5        # horizontal lever-arm sd the filter reopens to when its test fails
+    reopen_all_effects: bool = True               # ... and every other effect state to its prior sd
     effect_initial_sd: dict = field(default_factory=dict)
     initial_time_offset_s: float = 0.0             # starting value of imu_time_offset (e.g. from calibrate)
     initial_misalignment_rad: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -149,6 +166,12 @@ class InsFilter:
         self.mem = np.zeros(MEM_SIZE)
         self.A = np.zeros((n, n))
         self.q_c = ekf.process_noise_density(self.layout, c)
+        self.noise_meter = (ImuNoiseMeter(c.imu_noise_window_s, c.imu_gyro_noise_scale, c.imu_accel_noise_scale,
+                                          c.gyro_noise_rps_rthz, c.accel_noise_mps2_rthz) if c.imu_noise_from_data else None)
+        self.consistency = ConsistencyMonitor(c.consistency_window_s, c.consistency_false_alarm, c.verify_turn_deg,
+                                              mean_z_limit=c.consistency_mean_z, reverify=c.consistency_reverify,
+                                              detectable_m=c.verify_detectable_lever_arm_m)
+        self._t_motion_s: float | None = None
         self.kidx = self.layout.kernel_index()
         self.fx = EffectValues(c.lever_arm_m)
         self.fx.imu_time_offset_s = float(c.initial_time_offset_s)
@@ -289,6 +312,7 @@ class InsFilter:
         self._t_cov_s = self.t_stamp_s
         self.initialized = True
         self.heading_known = True
+        self.consistency.restart(float(t_s))
         self._v_prev_chunk = None
         self.acc_ned_mps2 = np.zeros(3)
 
@@ -370,6 +394,8 @@ class InsFilter:
             if i_dt >= 0 and i_dr >= 0 and dt > 0:
                 self.A[i_dt, i_dr] += dt
                 self.fx.imu_time_offset_s += self.fx.imu_clock_drift * dt
+            if self.noise_meter is not None:
+                self.noise_meter.apply(self.q_c, self.C_nb)
             t0 = perf_counter()
             self.P = ekf.propagate_covariance(self.P, self.A, self.q_c, max(dt, 0.0))
             self.stage_s["covariance"] += perf_counter() - t0
@@ -400,6 +426,8 @@ class InsFilter:
             return
         self._last_w_b = (self.mem[MEM_W:MEM_W + 3].copy() if self.initialized
                           else w[-1] - self.corr[COR_BG:COR_BG + 3])
+        if self.noise_meter is not None:
+            self.noise_meter.feed(t, w, f)
         f2 = np.einsum("ij,ij->i", f, f)
         row = self._win[self._win_pos]
         row[0] = len(t)
@@ -437,6 +465,11 @@ class InsFilter:
             self.initialized = False
             return
         self._flush_covariance()
+        t_end = float(self.t_s)
+        if self._t_motion_s is not None and self.heading_known:
+            yaw_rate = float(self.C_nb[2] @ self._last_w_b)
+            self.consistency.feed_motion(t_end, t_end - self._t_motion_s, yaw_rate, speed)
+        self._t_motion_s = t_end
         if est is not None:
             self.counts["static_calibrations"] += 1
             if self.cfg.apply_static_calibration:
@@ -491,6 +524,8 @@ class InsFilter:
         self.stage_s["kalman_updates"] += perf_counter() - t0
         res = UpdateResult(kind=kind, t_s=t_s, accepted=ok, nis=nis, innovation=-d,
                            innovation_sd=np.sqrt(np.abs(np.diag(S))), innovation_cov=S)
+        if kind.startswith("gnss") and self.consistency.feed_update(kind, t_s, nis, len(d), -d, S, self.C_nb):
+            self._on_inconsistency()
         if self.cfg.log_residuals and kind.startswith("gnss"):
             self.residuals.append(res)
         # every update (GNSS, NHC, ZUPT, ZARU, odometer) is offered to the hook with the filter,
@@ -498,6 +533,41 @@ class InsFilter:
         if self.on_update is not None:
             self.on_update(res, self)
         return res
+
+    def _on_inconsistency(self) -> None:
+        """The consistency test failed: the declared model does not explain the innovations. The
+        effect whose declared prior is the tightest and whose error only turning reveals -- the
+        horizontal antenna lever arm, declared to a few cm (an undeclared 0.5 m offset is a
+        constant body-frame bias the filter cannot see on a straight road, Groves 2013 sec. 14.2.7)
+        -- gets its variance reopened to ``undeclared_lever_arm_sd_m``^2 with its correlations
+        dropped (a covariance reset; conservative: the other states keep theirs). The position
+        covariance then grows through the lever arm's in the next GNSS updates and the turns that
+        follow estimate it; the reported sigma includes what is still unknown. The windows of the
+        test restart (their innovations came from the filter before the reset)."""
+        i = self.layout.at("lever_arm")
+        sd = self.cfg.undeclared_lever_arm_sd_m
+        if not self.cfg.reopen_on_inconsistency or i < 0 or not sd > 0:
+            return
+        reopen = [(i, sd), (i + 1, sd)]
+        if self.cfg.reopen_all_effects:
+            # the other effect states were estimated with the lever arm held at its declared value:
+            # what they absorbed of its signature (a velocity latency dt gives a x dt = v w dt
+            # sideways in a steady turn, as w x l does) is re-estimated jointly from their priors
+            for name in self.layout.effects:
+                if name == "lever_arm":
+                    continue
+                j, sd0 = self.layout.at(name), np.broadcast_to(self.cfg.effect_initial_sd.get(name, 0.0), (EFFECT_SIZES[name],))
+                reopen += [(j + m, float(sd0[m])) for m in range(EFFECT_SIZES[name])]
+        widened = False
+        for k, s_k in reopen:
+            if s_k > 0 and self.P[k, k] < 0.25 * s_k * s_k:
+                self.P[k, :] = 0.0
+                self.P[:, k] = 0.0
+                self.P[k, k] = s_k * s_k
+                widened = True
+        if widened:
+            self.counts["lever_arm_reopened"] = self.counts.get("lever_arm_reopened", 0) + 1
+            self.consistency.clear_windows()
 
     def _gap_s(self, t_meas_s: float) -> float:
         return t_meas_s - self.fx.gnss_latency_s - self.t_s
@@ -695,6 +765,7 @@ class InsFilter:
         self.P[idx, idx] = np.r_[pos_sd ** 2, np.full(3, c.init_vel_sd_mps ** 2),
                                  max(c.init_yaw_sd_rad, self._course_sd_rad) ** 2]
         self.heading_known = True
+        self.consistency.restart(float(t_s))
         self.last_fix = fix
         self.last_gnss_t_s = t_s
         return UpdateResult("gnss_pos", t_s, False, np.nan, reason="heading set from the GNSS course")
@@ -840,18 +911,26 @@ class InsFilter:
     def nav_state(self) -> NavState:
         """Solution at the IMU point at the last processed IMU sample (vehicle axes when
         misalignment is estimated); rate and acceleration from ``kinematics_now`` (independent of
-        the covariance cadence ``cov_every``), standard deviations from the last covariance step."""
+        the covariance cadence ``cov_every``). Standard deviations (and the position's correlation
+        coefficients) are those of the reported quantities -- position and velocity at the time
+        label, vehicle attitude -- from the last covariance step (``reported``: J P J^T), scaled by
+        the windowed NIS ratio of the GNSS position updates when it exceeds 1
+        (``ConsistencyMonitor.variance_ratio``: the filter's covariance understates its errors)."""
         Rm = self.misalignment_dcm()
         C_nv = self.C_nb @ Rm.T
         w_nb_b, a_n = self.kinematics_now()
-        sd = np.sqrt(np.abs(np.diag(self.P)))
+        J = reported_jacobian(self.layout, self.C_nb, self.fx.misalignment_rad, self.nav[3:6], a_n, w_nb_b)
+        cov = reported_covariance(self.P, J) * self.consistency.variance_ratio()
+        sd = np.sqrt(np.abs(np.diag(cov)))
         coasting = (self.t_s - self.last_gnss_t_s) > self.cfg.coast_after_s
         fix = FixStatus.DEAD_RECKONING if (coasting and self.initialized) else self.last_fix
         return NavState(t_s=float(self.t_s), lla=self.nav[:3].copy(), v_ned_mps=self.nav[3:6].copy(),
                         acc_body_mps2=C_nv.T @ a_n, rate_body_rps=Rm @ w_nb_b,
-                        rpy_rad=euler_from_dcm(C_nv), pos_sd_m=sd[POS:POS + 3].copy(),
-                        vel_sd_mps=sd[VEL:VEL + 3].copy(), att_sd_rad=sd[ATT:ATT + 3].copy(), fix=fix,
-                        attitude_ok=bool(self.heading_known))
+                        rpy_rad=euler_from_dcm(C_nv), pos_sd_m=sd[0:3].copy(),
+                        vel_sd_mps=sd[3:6].copy(), att_sd_rad=sd[6:9].copy(), fix=fix,
+                        attitude_ok=bool(self.heading_known), pos_corr=correlations(cov[0:3, 0:3]),
+                        consistent=self.consistency.state != INCONSISTENT,
+                        verified=self.consistency.state == VERIFIED)
 
     def antenna_lla(self) -> np.ndarray:
         """Current antenna position (lat, lon rad; h m) from the IMU point and the lever arm."""

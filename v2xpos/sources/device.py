@@ -293,7 +293,7 @@ def from_config(table: dict, where: str, ctx: SourceContext) -> DeviceSource:
     from v2xpos.ins.calibrated import ins_config
     v = check_table(table, where)
     clock, calibration, window, span = v["clock"], v["calibration"], v["window"], v["span"]
-    cfg = ins_config(v["platform"], v["imu_to_body"], v["lever"], v["lever_sd"], calibration)
+    cfg = ins_config(v["platform"], v["imu_to_body"], v["lever"], v["lever_sd"], calibration, integrity=True)
 
     holder: dict = {}
 

@@ -86,7 +86,7 @@ def ins_config_for(ds) -> "object":
     when it has one (``v2xpos.ins.calibrated.dataset_ins_config``: the same function ``v2xpos
     replay`` and the device source use, so a calibrated vehicle is the same filter everywhere)."""
     from v2xpos.ins.calibrated import dataset_ins_config
-    return dataset_ins_config(ds)
+    return dataset_ins_config(ds, integrity=True)
 
 
 class RecordingSource(VehicleSource):

@@ -1,0 +1,115 @@
+"""The IMU's white-noise densities measured from its own samples, for the filter's process noise.
+
+Why: the filter's covariance is the sigma every relative result carries (docs/integrity.md). With
+the configured automotive figures (gyro 3e-3 rad/s/sqrt(Hz), "including vehicle vibration") on an
+IMU whose noise is 35 times lower (the convoy recordings), the filter's yaw sd is 5-10 times its
+real error and every relative sigma with it; on a real car the vibration while driving is larger
+than that figure and changes with speed (drive_0708: 7e-4 stopped, 1e-2 driving). So the density
+is measured, continuously, from the data.
+
+Method (the estimator of ``v2xpos.diagnose.tuning.imu_noise_density``, run online): for white
+noise of variance s^2 per sample, the second difference d_k = x_{k+1} - 2 x_k + x_{k-1} has
+E[d^2] = 6 s^2, while the vehicle's own motion, smooth at the sample rate, contributes
+(x'' dt^2)^2 (negligible); the density is n = s sqrt(dt). Mean squares are averaged with an
+exponential window of time constant ``window_s`` per body axis, and the process noise of the
+error state, whose attitude and velocity errors are in NED, is the diagonal of
+C_nb diag(n_b^2) C_bn (per-axis densities rotated; Groves 2013 sec. 14.2.6 for the continuous
+noise model, Q_phi = n_g^2 I for an isotropic gyro).
+
+Limits: an IMU that low-pass filters internally below its output rate hides part of its white
+noise from second differences (the estimate is then optimistic); vibration is not white (its
+power sits at high frequencies), which makes the estimate conservative for the attitude random
+walk. Both are visible in the filter's NIS (``v2xpos.ins.consistency``).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .ekf import ATT, VEL
+
+MIN_SAMPLES = 50
+"""Second differences needed before the measured densities replace the configured ones."""
+
+
+def second_differences(x: np.ndarray) -> np.ndarray:
+    """d_k = x_{k+1} - 2 x_k + x_{k-1} along axis 0: for white noise of variance s^2 per sample,
+    E[d^2] = 6 s^2; the smooth motion of a vehicle adds (x'' dt^2)^2, negligible at IMU rates."""
+    x = np.asarray(x, float)
+    return x[2:] - 2.0 * x[1:-1] + x[:-2]
+
+
+def density_from_mean_square(mean_d2: np.ndarray | float, dt_s: float) -> np.ndarray | float:
+    """White-noise density s sqrt(dt) from the mean square of second differences (s^2 = E[d^2] / 6)."""
+    return np.sqrt(np.asarray(mean_d2, float) / 6.0 * dt_s)
+
+
+class ImuNoiseMeter:
+    """Running white-noise densities of gyro [rad/s/sqrt(Hz)] and accelerometer [m/s^2/sqrt(Hz)]
+    per body axis (see the module docstring)."""
+
+    def __init__(self, window_s: float = 10.0, gyro_scale: float = 1.0, accel_scale: float = 1.0,
+                 gyro_max_rps_rthz: float = math.inf, accel_max_mps2_rthz: float = math.inf):
+        self.window_s = float(window_s)
+        self.gyro_scale = float(gyro_scale)
+        self.accel_scale = float(accel_scale)
+        self.gyro_max_rps_rthz = float(gyro_max_rps_rthz)
+        self.accel_max_mps2_rthz = float(accel_max_mps2_rthz)
+        self._tail_t: np.ndarray | None = None
+        self._tail: np.ndarray | None = None
+        self._sum = np.zeros(6)       # decayed sums of d^2 (gyro xyz, accel xyz)
+        self._n = 0.0                 # decayed count
+        self._sum_dt = 0.0
+        self._t_last: float | None = None
+        self.samples = 0
+
+    def feed(self, t_s: np.ndarray, gyro_rps: np.ndarray, acc_mps2: np.ndarray) -> None:
+        """Samples of one chunk (body axes, in time order)."""
+        x = np.hstack((np.asarray(gyro_rps, float).reshape(-1, 3), np.asarray(acc_mps2, float).reshape(-1, 3)))
+        t = np.asarray(t_s, float).reshape(-1)
+        if self._tail is not None:
+            x = np.vstack((self._tail, x))
+            t = np.concatenate((self._tail_t, t))
+        if len(t) >= 3:
+            dt = np.diff(t)
+            # equal spacing only: a gap or a jitter spike would read as noise
+            h = np.median(dt)
+            ok = (np.abs(dt[1:] - h) < 0.25 * h) & (np.abs(dt[:-1] - h) < 0.25 * h)
+            d2 = second_differences(x)[ok]
+            if len(d2):
+                t_end = float(t[-1])
+                decay = 1.0 if self._t_last is None else math.exp(-max(t_end - self._t_last, 0.0) / self.window_s)
+                self._sum = self._sum * decay + np.einsum("ij,ij->j", d2, d2)
+                self._n = self._n * decay + len(d2)
+                self._sum_dt = self._sum_dt * decay + float(h) * len(d2)
+                self._t_last = t_end
+                self.samples += len(d2)
+        self._tail, self._tail_t = x[-2:].copy(), t[-2:].copy()
+
+    @property
+    def ready(self) -> bool:
+        return self.samples >= MIN_SAMPLES and self._n > 0
+
+    def densities(self) -> tuple[np.ndarray, np.ndarray]:
+        """(gyro, accel) white-noise densities per body axis; NaN before ``ready``."""
+        if not self.ready:
+            return np.full(3, np.nan), np.full(3, np.nan)
+        n = density_from_mean_square(self._sum / self._n, self._sum_dt / self._n)
+        return n[:3], n[3:]
+
+    def apply(self, q_c: np.ndarray, C_nb: np.ndarray) -> None:
+        """Write the scaled measured densities, each at most the configured one, into the
+        filter's continuous process noise ``q_c`` (in place: attitude and velocity blocks, NED
+        diagonal of the rotated per-axis noise); unchanged until ``ready``. The cap is the rule of
+        ``v2xpos.diagnose.calibrate``: second differences weigh high-frequency vibration up to 16/6
+        times, so an estimate above the configured figure may be out-of-band vibration and the
+        configured figure stays."""
+        if not self.ready:
+            return
+        g, a = self.densities()
+        g = np.minimum(g * self.gyro_scale, self.gyro_max_rps_rthz)
+        a = np.minimum(a * self.accel_scale, self.accel_max_mps2_rthz)
+        C2 = C_nb * C_nb
+        q_c[ATT:ATT + 3] = C2 @ (g * g)
+        q_c[VEL:VEL + 3] = C2 @ (a * a)
