@@ -14,8 +14,9 @@ from cantools.autosar.end_to_end import check_profile2_crc
 
 from master.config import MasterConfig
 from master.outputs import CanSink, master_status
-from slave.config import ConfigError
-from v2xpos.output.can import DBC_PATH, ID_ID, ID_STATUS, CanOutput
+from v2xpos.config import ConfigError
+from v2xpos.output.can import CanOutput
+from v2xpos.output.can_dbc import DBC_PATH, ID_ID, ID_STATUS
 from v2xpos.types import FixStatus, NavState
 from v2xpos.wire import KINEMATIC_STATUSES, FixSide, RelativeResult, TargetStatus
 
