@@ -1,6 +1,7 @@
-"""IMU grading: time sync, attitude alignment, window consistency
-(RMSE / PCC), fused-solution differences, bias stability between stops, pose-aided rate check,
-verdict. Public API::
+"""IMU grading: time sync, the rotation between units, window consistency (RMSE / PCC),
+fused-solution differences, bias stability between stops, pose-aided rate check, verdict; one
+vehicle's units against each other (``unit_comparison``, ``grader``), a multi-IMU recording
+(``recording``). Public API::
 
     from v2xpos.quality import grade_units, VehicleGrader, Thresholds, GradeConfig
     report = grade_units({"imu1": imu_a, "imu2": imu_b, "imu3": imu_c})
