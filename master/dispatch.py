@@ -7,13 +7,39 @@ from __future__ import annotations
 import os
 import threading
 import time
+from collections import deque
 from typing import Any, Protocol
 
 from v2xpos.link import Link
 from v2xpos.types import NavState
 
 REJECT_MASTER_NOT_READY = "master_not_ready"
-"""Rejection reason of a message that arrived before the master had its own state."""
+"""Rejection reason of a message that arrived before the master had its own state and could not be
+kept for it (``StartupHold``)."""
+STARTUP_HOLD_MESSAGES = 512
+"""Messages kept while the master has no state of its own yet (about a second of 4 slaves at
+100 Hz)."""
+
+
+class StartupHold:
+    """Messages that arrive before the master's first own state (its filter still starting while a
+    slave already sends) are kept, in order, and handled with that first state instead of being
+    dropped; beyond ``limit`` the oldest is rejected as ``master_not_ready`` (counted)."""
+
+    def __init__(self, limit: int = STARTUP_HOLD_MESSAGES):
+        self.limit = int(limit)
+        self.items: deque = deque()
+
+    def hold(self, pipe: Any, item: tuple) -> None:
+        if len(self.items) >= self.limit:
+            self.items.popleft()
+            pipe.rejected[REJECT_MASTER_NOT_READY] += 1
+        self.items.append(item)
+
+    def release(self) -> list:
+        out = list(self.items)
+        self.items.clear()
+        return out
 
 
 class DispatchTarget(Protocol):
@@ -23,6 +49,7 @@ class DispatchTarget(Protocol):
     closing: bool
     pipeline: Any
     nav: NavState | None
+    startup: StartupHold
 
     def gps_now(self) -> float: ...
 
@@ -152,8 +179,10 @@ class InlineDispatch:
             with pipe.batch():
                 for payload, key, signature_valid in items:
                     if svc.nav is None:
-                        pipe.rejected[REJECT_MASTER_NOT_READY] += 1
+                        svc.startup.hold(pipe, (payload, key, t_arrival_wall_s, signature_valid))
                         continue
+                    for held in svc.startup.release():
+                        pipe.handle(held[0], held[1], svc.nav, svc.gps_now(), held[2], held[3])
                     pipe.handle(payload, key, svc.nav, svc.gps_now(), t_arrival_wall_s, signature_valid)
         self.cpu_s += time.thread_time() - c0
 

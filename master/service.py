@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from master.config import MasterConfig
-from master.dispatch import REJECT_MASTER_NOT_READY, InlineDispatch
+from master.dispatch import InlineDispatch, StartupHold
 from master.outputs import CanSink, UdpSink, ZenohSink, master_status, summary_provenance
 from master.pipeline import RECORD_FIELDS, MasterPipeline, PipelineConfig
 from v2xpos.config import ConfigError, config_dir
@@ -107,6 +107,7 @@ class MasterService:
         self.t_start_gps_s = math.nan
         self.end_gps = math.inf
         self.nav = None
+        self.startup = StartupHold()
         self.nav_steps = 0
         self.nav_ms: list[float] = []
         self.stop_event: asyncio.Event | None = None
@@ -228,8 +229,10 @@ class MasterService:
             first = await sub.get()
             for item in [first, *sub.drain()]:
                 if self.nav is None:
-                    pipe.rejected[REJECT_MASTER_NOT_READY] += 1
+                    self.startup.hold(pipe, (item.payload, item.key, item.t_arrival_wall_s, None))
                     continue
+                for held in self.startup.release():
+                    pipe.handle(held[0], held[1], self.nav, self.gps_now(), held[2])
                 pipe.handle(item.payload, item.key, self.nav, self.gps_now(), item.t_arrival_wall_s)
 
     async def _tick_task(self) -> None:
