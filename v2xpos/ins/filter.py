@@ -1,11 +1,21 @@
 """``InsFilter``: loosely coupled GNSS/INS error-state EKF with vehicle constraints and effect states.
 
-Flow per IMU chunk of ``cov_every`` samples: jitted strapdown (``mechanization``) that also sums
-the error dynamics -> covariance propagation (``ekf``) -> stop detection -> ZUPT/ZARU when static,
-NHC for cars when moving (``updates``) -> seed 001 static calibration (``static_calibration``).
-GNSS and wheel-speed updates come from the caller. Corrections are fed back into the nominal state
-after every update (closed loop), so the error state is zero between updates.
-The equations are in docs/ins.md.
+The class runs named steps; the ideas live in their own modules:
+
+* per IMU sample batch (``_run_body``): the jitted strapdown (``mechanization``), which also sums
+  the error dynamics A = sum F dt;
+* per chunk of ``cov_every`` samples (``_end_chunk``): stop detection (``motion``), the smoothed
+  acceleration for the models, the stop calibration (``static_calibration``), the divergence
+  check, covariance propagation (``ekf``, Q_c from ``noise``), the consistency test's motion
+  (``consistency``), and at ``constraint_rate_hz`` ZUPT/ZARU when static or the car's NHC;
+* measurements: GNSS position/velocity and wheel speed from the caller; every model is a pure
+  builder of (H, d, R) in ``updates`` and goes through ``_update`` (gated ``ekf.kalman_update``,
+  then ``_apply``);
+* start, alignment and resets: ``initialization``; what is reported: ``outputs``; settings:
+  ``config.InsConfig``.
+
+Corrections are fed back into the nominal state after every update (closed loop), so the error
+state is zero between updates. The equations are in docs/ins.md.
 """
 from __future__ import annotations
 
@@ -45,8 +55,12 @@ MIN_SMOOTHING_TAU_S = 1e-6
 """Floor of ``acc_smoothing_tau_s`` (a zero time constant means no smoothing)."""
 
 
+
 def _small_rotation(phi: np.ndarray) -> np.ndarray:
-    """exp([phi x]) (Rodrigues), inlined for the per-update feedback."""
+    """exp([phi x]) = I + (sin a / a) K + ((1 - cos a) / a^2) K^2, K = [phi x], a = |phi|
+    (Rodrigues; series below a^2 = 1e-12). Kept for the per-update feedback although
+    ``rotation.exp_so3`` computes the same rotation: the two round differently (threshold, K^2
+    by product), and the swap moves the replay's solution in its 12th digit."""
     a2 = float(phi @ phi)
     if a2 < 1e-12:
         s, c = 1.0 - a2 / 6.0, 0.5 - a2 / 24.0
@@ -366,6 +380,11 @@ class InsFilter(Initialization, Outputs):
 
     # ------------------------------------------------------------------ update machinery
     def _apply(self, dx: np.ndarray) -> None:
+        """Closed-loop feedback of the error estimate dx (est minus truth, ``ekf``): position in
+        curvilinear increments (lat -= dr_N / (R_M + h), lon -= dr_E / ((R_N + h) cos lat),
+        h += dr_D), v -= dv, C_nb <- exp([phi x]) C_nb (the inverse of C_est = (I - [phi x]) C to
+        first order; Groves 2013 ch. 14, closed-loop correction), biases and effect values -= their
+        errors."""
         lat, h = self.nav[NAV_LAT], self.nav[NAV_H]
         r_m, r_n = geo.radii_m(lat)
         self.nav[NAV_LAT] -= dx[POS] / (r_m + h)
