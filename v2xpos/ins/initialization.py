@@ -165,22 +165,10 @@ class Initialization:
     def _heading_reset(self, t_s, lla, sd, fix, vel) -> UpdateResult:
         """First epoch fast enough for a course: turn the attitude about down so that the body x axis
         points along the course, take position and velocity from GNSS, and reset their covariance
-        (biases and level keep what the stop taught them).
-
-        The turn ``C_nb <- Rz C_nb`` also turns the attitude error, which is expressed in the nav
-        frame: ``psi <- Rz psi``, so its covariance rows and columns go with it (``P_psi,x <- Rz
-        P_psi,x``, ``P_psi,psi <- Rz P_psi,psi Rz^T``). At a stop the level error and the horizontal
-        accelerometer biases are known only as the pair the specific force fixes (``g x tilt_body +
-        b_body``, body axes); left unturned, the tilt half of that pair points along the old,
-        arbitrary heading, and the first seconds of driving then "resolve" roll against the bias y
-        (measured on a convoy recording: roll sd 0.45 -> 0.03 deg within 6 s while the roll was
-        0.25 deg off, later absorbed in the first turn by the lever-arm state, 6 cm)."""
+        (biases and level keep what the stop taught them)."""
         c = self.cfg
         yaw_now = float(euler_from_dcm(self.C_nb)[2])
-        Rz = rot_z(float(np.arctan2(vel[1], vel[0])) - yaw_now)
-        self.C_nb = Rz @ self.C_nb
-        self.P[ATT:ATT + 3, :] = Rz @ self.P[ATT:ATT + 3, :]
-        self.P[:, ATT:ATT + 3] = self.P[:, ATT:ATT + 3] @ Rz.T
+        self.C_nb = rot_z(float(np.arctan2(vel[1], vel[0])) - yaw_now) @ self.C_nb
         self.nav[:3] = self._imu_point_at_label(t_s, lla, vel, self.C_nb)
         self.nav[3:6] = vel
         self._v_prev_chunk = None
