@@ -8,7 +8,8 @@ import time
 import numpy as np
 
 from v2xpos.ins.filter import InsFilter
-from v2xpos.ins.replay import OutageSchedule, config_for, replay
+from v2xpos.ins.replay import replay
+from v2xpos.ins.replay_engine import OutageSchedule, config_for
 
 
 def add_bench_arguments(parser: argparse.ArgumentParser) -> None:

@@ -54,7 +54,8 @@ lever_arm_sd_m = 0.05
 @pytest.fixture(scope="module")
 def walk_reference(tmp_path_factory):
     from v2xpos.datasets import load_dataset
-    from v2xpos.ins.replay import OutageSchedule, replay
+    from v2xpos.ins.replay import replay
+    from v2xpos.ins.replay_engine import OutageSchedule
     toml = walk_ubx_descriptor(tmp_path_factory.mktemp("walk"))
     ds = load_dataset(toml)
     res = replay(ds, OutageSchedule(length_s=0.0), progress=False)

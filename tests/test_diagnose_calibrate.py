@@ -120,7 +120,7 @@ def test_sim_gnss_latency_separated_from_lever_arm_when_speed_changes():
     a constant, so the speed changes separate them -- the latency is found and significant, the
     forward lever arm is not reported. (The IMU offset and the GNSS latency give the same relative
     timing; with neither declared only their sum is identifiable, docs/calibration.md.)"""
-    from v2xpos.ins.replay import OutageSchedule
+    from v2xpos.ins.replay_engine import OutageSchedule
     ds, _ = simulated_recording(300.0, seed=3, effects=EffectSet(gnss_latency_s=0.03), imu_grade="tactical",
                                 gnss_rate_hz=10.0, drive="speed_changes")
     ds.notes.update(imu_time_offset_prior_sd_s=1e-3, imu_clock_drift_prior_sd_ppm=1.0, gnss_latency_prior_sd_s=0.1)

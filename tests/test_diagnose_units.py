@@ -109,7 +109,7 @@ def test_linear_fit_recovers_parameters_and_rejects_absent_ones():
 
 
 def test_constraint_times_stay_midway_between_gnss_epochs():
-    from v2xpos.ins.replay import constraint_times
+    from v2xpos.ins.replay_engine import constraint_times
     tg = np.array([0.0, 0.1, 0.2, 0.45, 0.7])          # 10 Hz, then 4 Hz
     tc = constraint_times(tg, rate_hz=10.0)
     # one point per 0.1 s interval, round(2.5) = 2 per 0.25 s interval
@@ -120,7 +120,7 @@ def test_constraint_times_stay_midway_between_gnss_epochs():
 
 
 def test_samples_inserted_by_interpolation_leave_the_trapezoid_increments_unchanged():
-    from v2xpos.ins.replay import with_samples_at
+    from v2xpos.ins.replay_engine import with_samples_at
     rng = np.random.default_rng(0)
     t = np.cumsum(rng.uniform(0.008, 0.012, 200))
     acc = rng.normal(size=(200, 3))

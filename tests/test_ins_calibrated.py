@@ -69,7 +69,8 @@ def test_applied_in_the_filter_equals_rewriting_the_recording():
     better than with the declared values alone."""
     from sim.calibration_drive import simulated_recording
     from v2xpos.diagnose.inject import EffectSet, correct
-    from v2xpos.ins.replay import OutageSchedule, replay
+    from v2xpos.ins.replay import replay
+    from v2xpos.ins.replay_engine import OutageSchedule
     truth = EffectSet(imu_time_offset_s=-0.03, imu_misalignment_rad=np.radians([0.4, -0.6, -1.0]),
                       gnss_lever_arm_m=np.array([0.5, 0.3, 0.0]), gyro_scale=np.array([0, 0, -0.007]))
     ds, _ = simulated_recording(150.0, seed=1, effects=truth, imu_grade="tactical", gnss_rate_hz=10.0,

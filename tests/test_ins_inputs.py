@@ -154,7 +154,8 @@ def test_replay_survives_a_truncated_and_corrupted_pos_file(tmp_path):
         'raw_timetag = "gnss_1730.ubx.tag"', "")
     (tmp_path / "dataset.toml").write_text(toml)
     from v2xpos.datasets import load_dataset
-    from v2xpos.ins.replay import OutageSchedule, replay
+    from v2xpos.ins.replay import replay
+    from v2xpos.ins.replay_engine import OutageSchedule
     clean = load_dataset(src / "dataset.toml")
     ds = load_dataset(tmp_path / "dataset.toml")
     assert ds.malformed_lines >= clean.malformed_lines + 2

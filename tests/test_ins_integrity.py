@@ -159,7 +159,7 @@ def test_reported_vehicle_yaw_sd_uses_the_misalignment_correlation():
     """NHC fixes the *vehicle* heading: IMU-body yaw error and yaw misalignment are strongly
     anti-correlated, and the vehicle yaw error phi_D + dm_yaw has a far smaller sd than either."""
     from v2xpos.ins.ekf import ATT
-    from v2xpos.ins.filter import InsConfig, InsFilter
+    from v2xpos.ins import InsConfig, InsFilter
     from v2xpos.ins.reported import reported_covariance, reported_jacobian
     flt = InsFilter(InsConfig(platform="car"))
     i = flt.layout.at("misalignment")
@@ -176,7 +176,7 @@ def test_reported_vehicle_yaw_sd_uses_the_misalignment_correlation():
 
 
 def test_a_failed_test_reopens_the_horizontal_lever_arm():
-    from v2xpos.ins.filter import InsConfig, InsFilter
+    from v2xpos.ins import InsConfig, InsFilter
     flt = InsFilter(InsConfig(platform="car", lever_arm_sd_m=0.02, undeclared_lever_arm_sd_m=0.5,
                               reopen_on_inconsistency=True))
     i = flt.layout.at("lever_arm")

@@ -4,7 +4,8 @@ import json
 import numpy as np
 import pytest
 
-from v2xpos.ins.replay import OutageSchedule, replay
+from v2xpos.ins.replay import replay
+from v2xpos.ins.replay_engine import OutageSchedule
 from tests.shared_data import SHARED_DATA, require_shared
 
 DATA = SHARED_DATA

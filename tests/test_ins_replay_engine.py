@@ -1,4 +1,4 @@
-"""The replay engine (v2xpos.ins.replay.run_replay) on a simulated drive: what each hook sees, and
+"""The replay engine (v2xpos.ins.replay_engine.run_replay) on a simulated drive: what each hook sees, and
 that v2xpos replay and calibrate's fit replays are the same loop."""
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ from sim.sensors import GnssErrorModel, ImuErrorModel, simulate_gnss, simulate_i
 from sim.trajectory import urban_drive
 from v2xpos.diagnose import runner
 from v2xpos.ins import InsConfig, InsFilter
-from v2xpos.ins.replay import OutageSchedule, ReplayHook, outage_windows, replay, run_replay
+from v2xpos.ins.replay import replay
+from v2xpos.ins.replay_engine import OutageSchedule, ReplayHook, outage_windows, run_replay
 from v2xpos.types import Dataset
 
 CAR_MOUNT = np.array([[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]])

@@ -6,7 +6,8 @@ from sim.sensors import GnssErrorModel, ImuErrorModel, simulate_gnss, simulate_i
 from sim.trajectory import static, urban_drive
 from v2xpos import geo
 from v2xpos.ins import InsConfig, InsFilter
-from v2xpos.ins.replay import OutageSchedule, replay
+from v2xpos.ins.replay import replay
+from v2xpos.ins.replay_engine import OutageSchedule
 from v2xpos.types import Dataset, FixStatus
 
 CAR_MOUNT = np.array([[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]])

@@ -179,8 +179,6 @@ def test_no_import_cycles_outside_ins():
     assert not cycles, cycles
 
 
-@pytest.mark.xfail(strict=True, reason="InsConfig lives in ins/filter.py, which ins/ekf.py and ins/effects.py "
-                                       "import for type checking; remove this mark when InsConfig has its own module")
 def test_no_import_cycles_in_ins():
     assert not _cycles(_import_graph())
 

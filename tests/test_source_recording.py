@@ -98,7 +98,7 @@ def test_recording_source_applies_the_recordings_calibration_table():
     recording source exactly as it reaches ``v2xpos replay``'s."""
     from v2xpos.datasets.calibration import parse_calibration
     from v2xpos.datasets.loader import load_dataset
-    from v2xpos.ins.replay import config_for
+    from v2xpos.ins.replay_engine import config_for
     from v2xpos.sources.recording import ins_config_for
     ds = load_dataset(_drive())
     plain = ins_config_for(ds)

@@ -10,7 +10,7 @@ from pathlib import Path
 from v2xpos.commands.replay import (add_input_arguments, add_schedule_arguments, check_only, command_provenance,
                                     load_for_command)
 from v2xpos.diagnose.calibrate import calibrate_dataset, to_json
-from v2xpos.ins.replay import OutageSchedule
+from v2xpos.ins.replay_engine import OutageSchedule
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from v2xpos.ins.replay import OutageSchedule, replay
+from v2xpos.ins.replay import replay
+from v2xpos.ins.replay_engine import OutageSchedule
 from v2xpos.types import Dataset
 
 

@@ -59,7 +59,7 @@ def metrics_replay(ds: Dataset, schedule: OutageSchedule, progress: bool | Progr
     """Outage metrics exactly as ``v2xpos replay`` computes them (default filter configuration,
     the dataset's ``[calibration]`` applied by ``ins_config``), plus ``nis_mean`` of the accepted
     GNSS position and velocity updates."""
-    from v2xpos.ins.replay import OutageSchedule as InsSchedule
+    from v2xpos.ins.replay_engine import OutageSchedule as InsSchedule
     from v2xpos.ins.replay import replay as ins_replay
     sched = InsSchedule(schedule.length_s, schedule.every_s, schedule.first_s)
     bar = progress if isinstance(progress, Progress) else None

@@ -148,8 +148,8 @@ class Estimator:
     def coarse(self) -> np.ndarray:
         """Starting point from the filter's own augmented effect states (lever arm, IMU time offset,
         misalignment), one ``v2xpos replay`` run without outages."""
-        from v2xpos.ins.replay import OutageSchedule as InsSchedule
-        from v2xpos.ins.replay import config_for
+        from v2xpos.ins.replay_engine import OutageSchedule as InsSchedule
+        from v2xpos.ins.replay_engine import config_for
         from v2xpos.ins.replay import replay as ins_replay
         if self.ds.calibration is not None and self.ds.calibration.effects:
             # a vehicle that is already calibrated: its table is the starting point
@@ -178,8 +178,8 @@ class Estimator:
         default effect states and noise) with the effect priors of this fit, one run without outages.
         Returns {parameter index: (value at the end of the drive, sd)} in the ``inject.P_*`` units
         (IMU offset, mounting, lever arm relative to the declared one)."""
-        from v2xpos.ins.replay import OutageSchedule as InsSchedule
-        from v2xpos.ins.replay import config_for
+        from v2xpos.ins.replay_engine import OutageSchedule as InsSchedule
+        from v2xpos.ins.replay_engine import config_for
         from v2xpos.ins.replay import replay as ins_replay
         p = self.prior_sd
         cfg = config_for(self.ds, effect_initial_sd={"lever_arm": p[P_LEVER_ARM].copy(),
@@ -209,7 +209,7 @@ class Estimator:
         samples, then the GNSS position and velocity noise rescaled until the filter's innovation
         covariances match its innovations (``iterations`` replays at theta); the vehicle
         constraints keep their declared noise (``tuning`` module docstring)."""
-        from v2xpos.ins.filter import InsConfig
+        from v2xpos.ins.config import InsConfig
         from .tuning import imu_noise_density, innovation_scale, rescaled_config
         d = InsConfig()
         gyro, accel = imu_noise_density(self.ds.imu)

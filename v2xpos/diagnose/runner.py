@@ -1,5 +1,5 @@
 """Fit replays of ``v2xpos calibrate``: a recording through ``v2xpos.ins.InsFilter`` on the replay
-engine of ``v2xpos replay`` (``ins.replay.run_replay``), capturing every update's residual.
+engine of ``v2xpos replay`` (``ins.replay_engine.run_replay``), capturing every update's residual.
 
 GNSS is not used inside the outages of the schedule (the windows are not thinned by IMU coverage:
 the fit compares replays of the same recording). The filter runs without augmented effect states
@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from v2xpos.ins.replay import OutageSchedule, ReplayHook, outage_windows, run_replay
+from v2xpos.ins.replay_engine import OutageSchedule, ReplayHook, outage_windows, run_replay
 from v2xpos.types import Dataset
 
 from .residuals import ResidualLog, ResidualRecorder

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from v2xpos.ins.filter import DEFAULT_FIX_SD_SCALE
+from v2xpos.ins.config import DEFAULT_FIX_SD_SCALE
 from v2xpos.ins.noise import density_from_mean_square, second_differences
 from v2xpos.types import ImuData
 

@@ -10,13 +10,19 @@ Public interface::
     f.update_wheel_speed(t_s, speed_mps)
     f.initialized, f.nav_state()
 
-Module map: ``mechanization`` (jitted strapdown), ``ekf`` (state layout, covariance propagation),
-``updates`` (measurement models, gated update), ``effects`` (augmentable states),
-``static_calibration`` (seed 001 stop calibration), ``alignment`` (initial attitude),
-``filter`` (the filter class), ``replay`` (the ``v2xpos replay`` command).
+Module map: ``config`` (``InsConfig``), ``mechanization`` (jitted strapdown), ``ekf`` (state
+layout, covariance propagation, gated Kalman update), ``noise`` (process noise, measured IMU
+noise), ``updates`` (measurement models: pure builders of H, d, R), ``motion`` (stop detection),
+``effects`` (augmentable states), ``static_calibration`` (bias calibration at stops),
+``alignment`` (coarse attitude, GNSS course), ``initialization`` (start, alignment, resets),
+``filter`` (``InsFilter``, which runs the steps), ``outputs`` (``nav_state`` and other outputs),
+``consistency`` / ``reported`` (own consistency test, covariance of what is reported),
+``replay_engine`` (dataset through the filter with hooks), ``replay`` / ``replay_metrics``
+(the ``v2xpos replay`` run and its figures), ``calibrated`` (config from a dataset's calibration).
 """
+from .config import InsConfig
 from .ekf import ATT, BA, BASE_STATES, BG, EFFECT_SIZES, POS, VEL, StateLayout
-from .filter import InsConfig, InsFilter
+from .filter import InsFilter
 from .static_calibration import StaticBiasEstimate, StaticCalibrationConfig, StaticCalibrator
 from .updates import UpdateResult
 

@@ -39,7 +39,7 @@ import numpy as np
 from v2xpos.rotation import dcm_from_euler
 
 from .effects import PLATFORM_EFFECTS
-from .filter import InsConfig
+from .config import InsConfig
 
 _TIMING_STATES = ("imu_time_offset", "imu_clock_drift")
 

@@ -21,17 +21,20 @@ and the compensation w = (w~ - b_g)/(1 + s_g), f = (f~ - b_a)/(1 + s_a)):
 
 Covariance propagation: ``mechanization.strapdown_batch`` accumulates A = sum F_k dt_k; every
 ``cov_every`` samples (and before every update) P <- Phi P Phi^T + Q with Phi = I + A + A^2/2,
-Q = Q_c dt_total, split half before and half after the transition (trapezoid).
+Q = Q_c dt_total, split half before and half after the transition (trapezoid); Q_c is
+``noise.process_noise_density``.
+
+Measurement update (``kalman_update``; the models that give H, d, R are in ``updates``):
+S = H P H^T + R, NIS = d^T S^-1 d against a chi-square gate, K = P H^T S^-1, dx = K d,
+P <- P - K H P, symmetrised (the Joseph form costs two more n^3 products per update; with the
+gate and symmetrisation it has not been needed). Groves 2013 eqs. 3.29-3.33 (sec. 3.2.2) with
+d = h(x_est) - z, so that dx is the error estimate (est minus truth) to subtract.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
-
-if TYPE_CHECKING:
-    from .filter import InsConfig
 
 POS, VEL, ATT, BG, BA = 0, 3, 6, 9, 12
 BASE_STATES = 15
@@ -83,23 +86,6 @@ class StateLayout:
         return out
 
 
-def process_noise_density(layout: StateLayout, cfg: InsConfig) -> np.ndarray:
-    """Diagonal of the continuous process noise Q_c (per second) from the IMU figures in cfg.
-
-    Velocity: accelerometer white noise (VRW) density^2; attitude: gyro white noise (ARW)
-    density^2; biases: 2 sigma^2 / tau (stationary Gauss-Markov); effects: their random walk^2.
-    """
-    q = np.zeros(layout.n)
-    q[VEL:VEL + 3] = cfg.accel_noise_mps2_rthz ** 2
-    q[ATT:ATT + 3] = cfg.gyro_noise_rps_rthz ** 2
-    q[BG:BG + 3] = 2.0 * cfg.gyro_bias_sd_rps ** 2 / cfg.gyro_bias_tau_s
-    q[BA:BA + 3] = 2.0 * cfg.accel_bias_sd_mps2 ** 2 / cfg.accel_bias_tau_s
-    for name in layout.effects:
-        i, k = layout.index[name], EFFECT_SIZES[name]
-        q[i:i + k] = cfg.effect_random_walk.get(name, 0.0) ** 2
-    return q
-
-
 def propagate_covariance(P: np.ndarray, A: np.ndarray, q_c: np.ndarray, dt_s: float) -> np.ndarray:
     """P <- Phi (P + Q/2) Phi^T + Q/2 with Phi = I + A + A^2/2 and Q = diag(q_c) dt (in place on A: reset)."""
     n = P.shape[0]
@@ -116,3 +102,22 @@ def propagate_covariance(P: np.ndarray, A: np.ndarray, q_c: np.ndarray, dt_s: fl
     P_new += P_new.T
     P_new *= 0.5
     return P_new
+
+
+def kalman_update(P: np.ndarray, H: np.ndarray, d: np.ndarray, R: np.ndarray,
+                  gate_chi2: float | None, force: bool = False) -> tuple:
+    """Gated error-state update (module docstring). Returns (dx, P_new, nis, S, accepted); dx is
+    None when rejected: S singular, or NIS non-finite or above ``gate_chi2`` unless ``force``."""
+    PHt = P @ H.T
+    S = H @ PHt + R
+    try:
+        S_inv = np.linalg.inv(S)
+    except np.linalg.LinAlgError:
+        return None, P, float("inf"), S, False
+    nis = float(d @ S_inv @ d)
+    if not force and gate_chi2 is not None and (not np.isfinite(nis) or nis > gate_chi2):
+        return None, P, nis, S, False
+    K = PHt @ S_inv
+    dx = K @ d
+    P_new = P - K @ PHt.T
+    return dx, 0.5 * (P_new + P_new.T), nis, S, True

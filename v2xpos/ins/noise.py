@@ -24,10 +24,14 @@ walk. Both are visible in the filter's NIS (``v2xpos.ins.consistency``).
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .ekf import ATT, VEL
+from .ekf import ATT, BA, BG, EFFECT_SIZES, VEL, StateLayout
+
+if TYPE_CHECKING:
+    from .config import InsConfig
 
 MIN_SAMPLES = 50
 """Second differences needed before the measured densities replace the configured ones."""
@@ -43,6 +47,24 @@ def second_differences(x: np.ndarray) -> np.ndarray:
 def density_from_mean_square(mean_d2: np.ndarray | float, dt_s: float) -> np.ndarray | float:
     """White-noise density s sqrt(dt) from the mean square of second differences (s^2 = E[d^2] / 6)."""
     return np.sqrt(np.asarray(mean_d2, float) / 6.0 * dt_s)
+
+
+def process_noise_density(layout: StateLayout, cfg: InsConfig) -> np.ndarray:
+    """Diagonal of the continuous process noise Q_c (per second) from the configured IMU figures
+    (``ImuNoiseMeter.apply`` later replaces the white-noise parts with measured densities).
+
+    Velocity: accelerometer white noise (VRW) density^2; attitude: gyro white noise (ARW)
+    density^2; biases: 2 sigma^2 / tau (stationary Gauss-Markov); effects: their random walk^2.
+    """
+    q = np.zeros(layout.n)
+    q[VEL:VEL + 3] = cfg.accel_noise_mps2_rthz ** 2
+    q[ATT:ATT + 3] = cfg.gyro_noise_rps_rthz ** 2
+    q[BG:BG + 3] = 2.0 * cfg.gyro_bias_sd_rps ** 2 / cfg.gyro_bias_tau_s
+    q[BA:BA + 3] = 2.0 * cfg.accel_bias_sd_mps2 ** 2 / cfg.accel_bias_tau_s
+    for name in layout.effects:
+        i, k = layout.index[name], EFFECT_SIZES[name]
+        q[i:i + k] = cfg.effect_random_walk.get(name, 0.0) ** 2
+    return q
 
 
 class ImuNoiseMeter:

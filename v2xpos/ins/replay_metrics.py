@@ -19,7 +19,7 @@ from v2xpos import geo
 from v2xpos.types import Dataset, FixStatus
 
 from .filter import InsFilter
-from .replay import ReplayHook
+from .replay_engine import ReplayHook
 
 REACQUIRE_S = 5.0
 """Re-convergence time after an outage left out of ``aided_h_rms_steady_m``."""

@@ -1,11 +1,14 @@
-"""Measurement models and the gated Kalman update of the error-state filter.
+"""Measurement models of the error-state filter: pure builders of (H, d, R).
 
-Conventions: errors are estimate minus truth (``ekf.py``); every model returns ``H`` and the
-prediction-minus-measurement ``d = h(x_est) - z`` so that ``d ~ H dx + noise``. Reported
-innovations are ``z - h(x_est)`` (measurement minus prediction).
+Conventions: errors are estimate minus truth (``ekf.py``); every builder returns a
+``Measurement(H, d, R)`` with the prediction-minus-measurement ``d = h(x_est) - z``, so that
+``d ~ H dx + noise`` with noise covariance R; ``ekf.kalman_update`` turns it into a correction.
+Reported innovations are ``z - h(x_est)`` (measurement minus prediction). The builders read only
+their arguments; which model runs when, and with which state, is ``InsFilter``'s business.
 
-Models (C = C_nb estimate, l = lever arm in body, w = compensated body rate, v = NED velocity,
-R_m = misalignment DCM vehicle <- body, v_b = C^T v):
+Symbols: C = C_nb estimate (body -> NED), l = lever arm in body, w = compensated body rate,
+v = NED velocity, a = kinematic acceleration NED, R_m = misalignment DCM vehicle <- body,
+v_b = C^T v.
 
 * GNSS position at the antenna (Groves 2013 eq. 14.121 with our signs), with
   gap = t_meas - latency - (t_stamp + dt) from the state label to the epoch the fix describes:
@@ -16,19 +19,39 @@ R_m = misalignment DCM vehicle <- body, v_b = C^T v):
 * Non-holonomic constraint (Shin 2001 sec. 4.3; Dissanayake et al. 2001): the vehicle-frame lateral
   and vertical velocity are zero: h = (R_m C^T v)_{y,z};
   H_v = R_m C^T, H_phi = -R_m C^T [v x], H_mis = -[v_b x].
-* Odometer (wheel speed = (1 + s_odo) x forward speed): h = (1 + s_odo) (R_m C^T v)_x;
-  H as the NHC rows (x component) times (1 + s_odo), H_s = (R_m C^T v)_x.
-* ZUPT: h = v, H_v = I. ZARU: h = w - C^T w_ie, H_bg = -I.
+* Odometer (wheel speed = (1 + s_odo) x forward speed, Shin 2001 sec. 4.3): h = (1 + s_odo)
+  ((R_m C^T v)_x + a_fwd gap); H as the NHC rows (x component) times (1 + s_odo),
+  H_s = (R_m C^T v)_x.
+* ZUPT: h = v, H_v = I. ZARU: h = w - C^T w_ie, H_bg = -I (Groves 2013 sec. 15.3).
+* Stop calibration (``static_calibration``): the biases measured directly, h = b, H_b = I.
 
-The update is P <- P - K H P, symmetrised (the Joseph form costs two more n^3 products per
-update; with the gate and symmetrisation it has not been needed), with a chi-square gate on the
-normalised innovation squared NIS = d^T S^-1 d, S = H P H^T + R.
+The timing columns (H_dt, H_lat, H_vel_lat) are zero when the caller says the platform is too
+slow for timing to be observable (``InsConfig.timing_min_speed_mps``).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
+
+from v2xpos import geo
+from v2xpos.rotation import skew
+
+from .ekf import ATT, BA, BG, POS, VEL, StateLayout
+from .mechanization import NAV_H, NAV_LAT, NAV_LON
+
+STOP_GYRO_BIAS_SD_FLOOR_RPS = 5e-4
+"""Least sd given to a stop's gyro-bias estimate, whatever the standard error of its mean."""
+STOP_ACCEL_BIAS_SD_FLOOR_MPS2 = 0.05
+"""Least sd given to a stop's accelerometer-bias estimate. The caller passes the stop's level
+threshold (``StaticCalibrationConfig.level_fx_max_mps2``): a bias below it cannot be told from a
+tilt of the ground."""
+TIMING_STATES_POSITION = ("imu_time_offset", "gnss_latency")
+"""Effect states that shift the epoch a GNSS position describes (H = -v)."""
+TIMING_STATES_VELOCITY = ("imu_time_offset", "gnss_latency", "gnss_vel_latency")
+"""Effect states that shift the epoch a GNSS velocity describes (H = -a)."""
 
 
 @dataclass
@@ -48,19 +71,138 @@ class UpdateResult:
     innovation_cov: np.ndarray | None = None   # S = H P H^T + R
 
 
-def kalman_update(P: np.ndarray, H: np.ndarray, d: np.ndarray, R: np.ndarray,
-                  gate_chi2: float | None, force: bool = False) -> tuple:
-    """Gated error-state update. Returns (dx, P_new, nis, S, accepted); dx is None when rejected."""
-    PHt = P @ H.T
-    S = H @ PHt + R
-    try:
-        S_inv = np.linalg.inv(S)
-    except np.linalg.LinAlgError:
-        return None, P, float("inf"), S, False
-    nis = float(d @ S_inv @ d)
-    if not force and gate_chi2 is not None and (not np.isfinite(nis) or nis > gate_chi2):
-        return None, P, nis, S, False
-    K = PHt @ S_inv
-    dx = K @ d
-    P_new = P - K @ PHt.T
-    return dx, 0.5 * (P_new + P_new.T), nis, S, True
+class Measurement(NamedTuple):
+    """A linearised measurement: d = h(x_est) - z ~ H dx + noise, noise covariance R."""
+    H: np.ndarray
+    d: np.ndarray
+    R: np.ndarray
+
+
+def gnss_position(layout: StateLayout, nav: np.ndarray, C_nb: np.ndarray, lever_arm_m: np.ndarray,
+                  v_ned_mps: np.ndarray, gap_s: float, lla_meas: np.ndarray, sd_ned_m: np.ndarray,
+                  sd_floor_m: float, timing: bool) -> Measurement:
+    """Antenna position fix ``lla_meas`` (lat, lon rad; h m) with 1-sigma ``sd_ned_m`` (floored at
+    ``sd_floor_m``) against the IMU point ``nav[:3]``; the difference is taken in NED metres at
+    the state (curvilinear increments, Groves 2013 eq. 2.119)."""
+    lat, h = nav[NAV_LAT], nav[NAV_H]
+    r_m, r_n = geo.radii_m(lat)
+    Cl = C_nb @ lever_arm_m
+    pred_ned = Cl + v_ned_mps * gap_s
+    meas_ned = np.array([(lla_meas[0] - lat) * (r_m + h), (lla_meas[1] - nav[NAV_LON]) * (r_n + h) * math.cos(lat),
+                         -(lla_meas[2] - h)])
+    d = pred_ned - meas_ned
+    H = np.zeros((3, layout.n))
+    H[:, POS:POS + 3] = np.eye(3)
+    H[:, ATT:ATT + 3] = skew(Cl)
+    i = layout.at("lever_arm")
+    if i >= 0:
+        H[:, i:i + 3] = C_nb
+    timing_col = -v_ned_mps if timing else np.zeros(3)
+    for name in TIMING_STATES_POSITION:
+        i = layout.at(name)
+        if i >= 0:
+            H[:, i] = timing_col
+    R = np.diag(np.maximum(sd_ned_m, sd_floor_m) ** 2)
+    return Measurement(H, d, R)
+
+
+def gnss_velocity(layout: StateLayout, C_nb: np.ndarray, lever_arm_m: np.ndarray, rate_body_rps: np.ndarray,
+                  v_ned_mps: np.ndarray, acc_ned_mps2: np.ndarray, gap_s: float, vel_latency_s: float,
+                  vel_meas_ned_mps: np.ndarray, sd_ned_mps: np.ndarray, sd_floor_mps: float,
+                  timing: bool) -> Measurement:
+    """Antenna velocity ``vel_meas_ned_mps`` with 1-sigma ``sd_ned_mps`` (floored): the IMU
+    velocity plus the lever arm's rotation C (w x l), moved over the epoch gap and the velocity's
+    own latency with the acceleration."""
+    Cwl = C_nb @ np.cross(rate_body_rps, lever_arm_m)
+    d = v_ned_mps + Cwl + acc_ned_mps2 * (gap_s - vel_latency_s) - vel_meas_ned_mps
+    H = np.zeros((3, layout.n))
+    H[:, VEL:VEL + 3] = np.eye(3)
+    H[:, ATT:ATT + 3] = skew(Cwl)
+    H[:, BG:BG + 3] = C_nb @ skew(lever_arm_m)
+    i = layout.at("lever_arm")
+    if i >= 0:
+        H[:, i:i + 3] = C_nb @ skew(rate_body_rps)
+    for name in TIMING_STATES_VELOCITY:
+        i = layout.at(name)
+        if i >= 0 and timing:
+            H[:, i] = -acc_ned_mps2
+    R = np.diag(np.maximum(sd_ned_mps, sd_floor_mps) ** 2)
+    return Measurement(H, d, R)
+
+
+def vehicle_frame_rows(C_nb: np.ndarray, R_vb: np.ndarray, v_ned_mps: np.ndarray) -> tuple:
+    """(v_v, H_v, H_phi, H_mis): the velocity in vehicle axes v_v = R_vb C^T v and its three
+    Jacobian blocks (rows x, y, z), shared by the NHC and the odometer."""
+    RCt = R_vb @ C_nb.T
+    v_b = C_nb.T @ v_ned_mps
+    return RCt @ v_ned_mps, RCt, -RCt @ skew(v_ned_mps), -skew(v_b)
+
+
+def nhc(layout: StateLayout, C_nb: np.ndarray, R_vb: np.ndarray, v_ned_mps: np.ndarray, yaw_rate_rps: float,
+        sd_mps: tuple, sd_per_yaw_rate_m: float) -> Measurement:
+    """Zero lateral and vertical velocity of the vehicle; the lateral sd grows by
+    ``sd_per_yaw_rate_m`` x |yaw rate| (an IMU ahead of the rear axle slips sideways in turns)."""
+    v_v, Hv, Hphi, Hmis = vehicle_frame_rows(C_nb, R_vb, v_ned_mps)
+    H = np.zeros((2, layout.n))
+    H[:, VEL:VEL + 3] = Hv[1:]
+    H[:, ATT:ATT + 3] = Hphi[1:]
+    i = layout.at("misalignment")
+    if i >= 0:
+        H[:, i:i + 3] = Hmis[1:]
+    R = np.diag([(sd_mps[0] + sd_per_yaw_rate_m * yaw_rate_rps) ** 2, sd_mps[1] ** 2])
+    return Measurement(H, v_v[1:], R)
+
+
+def odometer(layout: StateLayout, C_nb: np.ndarray, R_vb: np.ndarray, v_ned_mps: np.ndarray,
+             acc_ned_mps2: np.ndarray, odometer_scale: float, gap_s: float, speed_mps: float,
+             sd_mps: float) -> Measurement:
+    """Wheel speed ``speed_mps`` measured ``gap_s`` after the state label: the vehicle's forward
+    velocity moved over the gap with the forward acceleration, times (1 + scale)."""
+    v_v, Hv, Hphi, Hmis = vehicle_frame_rows(C_nb, R_vb, v_ned_mps)
+    s = odometer_scale
+    H = np.zeros((1, layout.n))
+    H[0, VEL:VEL + 3] = (1 + s) * Hv[0]
+    H[0, ATT:ATT + 3] = (1 + s) * Hphi[0]
+    i = layout.at("misalignment")
+    if i >= 0:
+        H[0, i:i + 3] = (1 + s) * Hmis[0]
+    i = layout.at("odometer_scale")
+    if i >= 0:
+        H[0, i] = v_v[0]
+    a_fwd = (R_vb @ C_nb.T @ acc_ned_mps2)[0]
+    d = np.array([(1 + s) * (v_v[0] + a_fwd * gap_s) - speed_mps])
+    return Measurement(H, d, np.array([[sd_mps ** 2]]))
+
+
+def zupt(layout: StateLayout, v_ned_mps: np.ndarray, sd_mps: float) -> Measurement:
+    """Zero velocity at a stop."""
+    H = np.zeros((3, layout.n))
+    H[:, VEL:VEL + 3] = np.eye(3)
+    return Measurement(H, v_ned_mps.copy(), np.eye(3) * sd_mps ** 2)
+
+
+def zaru(layout: StateLayout, C_nb: np.ndarray, lat_rad: float, mean_rate_body_rps: np.ndarray,
+         gyro_bias_rps: np.ndarray, sd_rps: float) -> Measurement:
+    """Zero angular rate at a stop: the mean raw rate over the stop window, less the bias estimate
+    and the Earth rate in body axes, is the bias error."""
+    w_ie_b = C_nb.T @ geo.earth_rate_ned_rps(lat_rad)
+    d = mean_rate_body_rps - gyro_bias_rps - w_ie_b
+    H = np.zeros((3, layout.n))
+    H[:, BG:BG + 3] = -np.eye(3)
+    return Measurement(H, d, np.eye(3) * sd_rps ** 2)
+
+
+def stop_biases(layout: StateLayout, C_nb: np.ndarray, lat_rad: float, gyro_bias_rps: np.ndarray,
+                accel_bias_mps2: np.ndarray, est_gyro_bias_rps: np.ndarray, est_gyro_sem_rps: np.ndarray,
+                est_accel_bias_mps2: np.ndarray, accel_sd_mps2: float) -> Measurement:
+    """A stop calibration's bias estimate (``StaticBiasEstimate``) as a direct measurement of the
+    bias states; the Earth rate, known once the attitude is, is taken out of the gyro mean.
+    Sd: the gyro mean's standard error (floored), ``accel_sd_mps2`` (floored) per accelerometer axis."""
+    H = np.zeros((6, layout.n))
+    H[0:3, BG:BG + 3] = np.eye(3)
+    H[3:6, BA:BA + 3] = np.eye(3)
+    w_ie_b = C_nb.T @ geo.earth_rate_ned_rps(lat_rad)
+    d = np.concatenate([gyro_bias_rps - (est_gyro_bias_rps - w_ie_b), accel_bias_mps2 - est_accel_bias_mps2])
+    sd = np.concatenate([np.maximum(est_gyro_sem_rps, STOP_GYRO_BIAS_SD_FLOOR_RPS),
+                         np.full(3, max(accel_sd_mps2, STOP_ACCEL_BIAS_SD_FLOOR_MPS2))])
+    return Measurement(H, d, np.diag(sd ** 2))

@@ -1,0 +1,185 @@
+"""Starting and restarting ``InsFilter``: initialisation from a known state, alignment from the
+data, and the resets of position and heading.
+
+``Initialization`` is a base class of ``InsFilter`` holding these methods; they read and write the
+filter's state (``nav``, ``C_nb``, ``P``, ``corr``, ``fx``, ``heading_known``, ...), documented in
+``filter.py``. Alignment (``_try_align``): once the coarse aligner (``alignment.CoarseAligner``)
+has levelled the IMU, the filter starts either at a stop with the heading left open
+(``static_start``: ZUPT/ZARU estimate the biases meanwhile, ``_heading_reset`` turns the attitude
+about down to the GNSS course when the vehicle moves) or, moving faster than
+``align_min_speed_mps``, with the heading of the GNSS course. The initial covariance is diagonal:
+the given position/velocity/attitude sd, the bias priors (or a stop calibration's estimate) and
+the effect priors.
+"""
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from v2xpos import geo
+from v2xpos.rotation import dcm_from_euler, euler_from_dcm, rot_z
+
+from .ekf import ATT, BA, BG, EFFECT_SIZES, POS, VEL
+from .mechanization import COR_BA, COR_BG, MEM_F, MEM_VALID, MEM_W
+from .updates import UpdateResult
+
+if TYPE_CHECKING:
+    from .config import InsConfig
+
+STOP_GYRO_BIAS_INIT_SD_FLOOR_RPS = 1e-3
+"""Least initial gyro-bias sd when the filter starts from a stop calibration's estimate."""
+MIN_START_POSITION_SD_M = 0.05
+"""Least initial and reset position sd [m], whatever the receiver reports."""
+
+
+class Initialization:
+    """Initialisation, alignment and resets of ``InsFilter`` (module docstring)."""
+
+    cfg: InsConfig
+
+    def initialize(self, t_s: float, lla: np.ndarray, v_ned_mps: np.ndarray, rpy_rad: np.ndarray,
+                   pos_sd_m: float = 0.05, vel_sd_mps: float | None = None,
+                   att_sd_rad: np.ndarray | None = None) -> None:
+        """Start the filter from a known state of the IMU point at GPS time t_s (rpy of C_nb)."""
+        self._start(t_s, np.asarray(lla, float), np.asarray(v_ned_mps, float),
+                    dcm_from_euler(*np.asarray(rpy_rad, float)), pos_sd_m,
+                    self.cfg.init_vel_sd_mps if vel_sd_mps is None else vel_sd_mps,
+                    np.array([self.cfg.init_level_sd_rad, self.cfg.init_level_sd_rad, self.cfg.init_yaw_sd_rad])
+                    if att_sd_rad is None else np.asarray(att_sd_rad, float))
+
+    def _start(self, t_s, lla, v, C_nb, pos_sd, vel_sd, att_sd) -> None:
+        c = self.cfg
+        n = self.layout.n
+        self.nav[:3] = lla
+        self.nav[3:6] = v
+        self.C_nb = C_nb.copy()
+        self.P = np.zeros((n, n))
+        d = np.zeros(n)
+        d[POS:POS + 3] = np.broadcast_to(np.asarray(pos_sd, float), 3) ** 2
+        d[VEL:VEL + 3] = np.broadcast_to(np.asarray(vel_sd, float), 3) ** 2
+        d[ATT:ATT + 3] = att_sd ** 2
+        d[BG:BG + 3] = c.gyro_bias_init_sd_rps ** 2
+        d[BA:BA + 3] = c.accel_bias_init_sd_mps2 ** 2
+        if self.calibrator.estimates and c.apply_static_calibration:
+            est = self.calibrator.estimates[-1]
+            self.corr[COR_BG:COR_BG + 3] = est.gyro_bias_rps
+            self.corr[COR_BA:COR_BA + 3] = est.accel_bias_mps2
+            d[BG:BG + 3] = np.maximum(est.gyro_sem_rps, STOP_GYRO_BIAS_INIT_SD_FLOOR_RPS) ** 2
+            d[BA:BA + 3] = c.static_calibration.level_fx_max_mps2 ** 2
+        for name in self.layout.effects:
+            i, k = self.layout.index[name], EFFECT_SIZES[name]
+            d[i:i + k] = c.effect_initial_sd.get(name, 0.01) ** 2
+        self.P[np.diag_indices(n)] = d
+        self.A[:] = 0.0
+        self.mem[:] = 0.0
+        if self._last_raw_f_b is not None:
+            self.mem[MEM_W:MEM_W + 3] = self._last_raw_w_b - self.corr[COR_BG:COR_BG + 3]
+            self.mem[MEM_F:MEM_F + 3] = self._last_raw_f_b - self.corr[COR_BA:COR_BA + 3]
+            self.mem[MEM_VALID] = 1.0
+        if self.t_stamp_s is None:
+            self.t_stamp_s = t_s - self.fx.imu_time_offset_s
+        self._t_cov_s = self.t_stamp_s
+        self.initialized = True
+        self.heading_known = True
+        self.consistency.restart(float(t_s))
+        self._v_prev_chunk = None
+        self.acc_ned_mps2 = np.zeros(3)
+
+    def _velocity_from_positions(self, t_s, lla, sd) -> np.ndarray | None:
+        """Horizontal velocity from the constant-velocity tracker when the receiver gives none;
+        None until its speed sd is below max(a third of the alignment speed, a fifth of the speed),
+        i.e. the course is known to ~11 deg or better; that course sd widens the initial yaw sd."""
+        out = self._course_tracker.update(float(t_s), lla, float(max(sd[0], sd[1])))
+        if out is None:
+            return None
+        v, v_sd = out
+        speed = float(np.hypot(v[0], v[1]))
+        if v_sd > max(self.cfg.align_min_speed_mps / 3.0, 0.2 * speed):
+            return None
+        self._course_sd_rad = v_sd / max(speed, 1e-3)
+        return v
+
+    def _imu_point_at_label(self, t_s, lla, vel, C) -> np.ndarray:
+        """IMU position from an antenna fix at t_s, moved to the state label with the GNSS velocity."""
+        r_m, r_n = geo.radii_m(lla[0])
+        Cl = C @ self.fx.lever_arm_m
+        lla_imu = lla - np.array([Cl[0] / (r_m + lla[2]), Cl[1] / ((r_n + lla[2]) * math.cos(lla[0])), -Cl[2]])
+        gap = self.t_s - t_s
+        return lla_imu + np.array([vel[0] / (r_m + lla[2]), vel[1] / ((r_n + lla[2]) * math.cos(lla[0])),
+                                   -vel[2]]) * gap
+
+    def _try_align(self, t_s, lla, sd, fix, vel) -> UpdateResult:
+        c = self.cfg
+        if vel is None:
+            vel = self._velocity_from_positions(t_s, lla, sd)
+        if vel is None or self.t_stamp_s is None:
+            return UpdateResult("gnss_pos", t_s, False, np.nan, reason="aligning: no velocity yet")
+        speed = float(np.hypot(vel[0], vel[1]))
+        pos_sd = np.maximum(sd * c.fix_sd_scale.get(fix, 2.0), MIN_START_POSITION_SD_M)
+        if (c.static_start and speed < c.static_max_gnss_speed_mps and self.static
+                and self.aligner.levelled_static):
+            # stopped and levelled: start now with the yaw left open, so that ZUPT/ZARU estimate the
+            # biases during the stop; the heading is set when the platform moves (_heading_reset)
+            C = self.aligner.C_nb
+            self._start(self.t_s, self._imu_point_at_label(t_s, lla, np.zeros(3), C), np.zeros(3), C, pos_sd,
+                        c.init_vel_sd_mps, np.array([c.init_level_sd_rad, c.init_level_sd_rad, math.pi]))
+            self.heading_known = False
+            self.last_fix = fix
+            self.last_gnss_t_s = t_s
+            return UpdateResult("gnss_pos", t_s, False, np.nan, reason="initialised at a stop, heading pending")
+        if speed < c.align_min_speed_mps:
+            return UpdateResult("gnss_pos", t_s, False, np.nan, reason="aligning: too slow for heading")
+        C = self.aligner.attitude_with_heading(float(np.arctan2(vel[1], vel[0])))
+        if C is None:
+            return UpdateResult("gnss_pos", t_s, False, np.nan, reason="aligning: not levelled yet")
+        self._start(self.t_s, self._imu_point_at_label(t_s, lla, vel, C), vel, C, pos_sd, c.init_vel_sd_mps,
+                    np.array([c.init_level_sd_rad, c.init_level_sd_rad, max(c.init_yaw_sd_rad, self._course_sd_rad)]))
+        self.last_fix = fix
+        self.last_gnss_t_s = t_s
+        return UpdateResult("gnss_pos", t_s, False, np.nan, reason="initialised from this epoch")
+
+    def _position_reset(self, t_s, lla, sd, fix, vel, err_m: float) -> UpdateResult:
+        """The filter has drifted beyond linear reach (consecutive rejections and an innovation over
+        ``gnss_reset_distance_m``): take position (and velocity when given) from GNSS and reset
+        their covariance; attitude, biases and effects are kept."""
+        c = self.cfg
+        v = self.nav[3:6].copy() if vel is None else np.asarray(vel, float)
+        self.nav[:3] = self._imu_point_at_label(t_s, lla, v, self.C_nb)
+        self.nav[3:6] = v
+        self._v_prev_chunk = None
+        idx = np.r_[POS:POS + 3, VEL:VEL + 3]
+        self.P[idx, :] = 0.0
+        self.P[:, idx] = 0.0
+        pos_sd = np.maximum(sd * c.fix_sd_scale.get(fix, 2.0), MIN_START_POSITION_SD_M)
+        vel_sd = c.init_vel_sd_mps if vel is not None else max(c.init_vel_sd_mps, 0.1 * err_m)
+        self.P[idx, idx] = np.r_[pos_sd ** 2, np.full(3, vel_sd ** 2)]
+        self._gnss_rejections = 0
+        self.counts["position_resets"] += 1
+        self.last_fix = fix
+        self.last_gnss_t_s = t_s
+        return UpdateResult("gnss_pos", t_s, False, np.nan,
+                            reason=f"position reset: the filter was {err_m:.1f} m off after rejections")
+
+    def _heading_reset(self, t_s, lla, sd, fix, vel) -> UpdateResult:
+        """First epoch fast enough for a course: turn the attitude about down so that the body x axis
+        points along the course, take position and velocity from GNSS, and reset their covariance
+        (biases and level keep what the stop taught them)."""
+        c = self.cfg
+        yaw_now = float(euler_from_dcm(self.C_nb)[2])
+        self.C_nb = rot_z(float(np.arctan2(vel[1], vel[0])) - yaw_now) @ self.C_nb
+        self.nav[:3] = self._imu_point_at_label(t_s, lla, vel, self.C_nb)
+        self.nav[3:6] = vel
+        self._v_prev_chunk = None
+        idx = np.r_[POS:POS + 3, VEL:VEL + 3, ATT + 2]
+        self.P[idx, :] = 0.0
+        self.P[:, idx] = 0.0
+        pos_sd = np.maximum(sd * c.fix_sd_scale.get(fix, 2.0), MIN_START_POSITION_SD_M)
+        self.P[idx, idx] = np.r_[pos_sd ** 2, np.full(3, c.init_vel_sd_mps ** 2),
+                                 max(c.init_yaw_sd_rad, self._course_sd_rad) ** 2]
+        self.heading_known = True
+        self.consistency.restart(float(t_s))
+        self.last_fix = fix
+        self.last_gnss_t_s = t_s
+        return UpdateResult("gnss_pos", t_s, False, np.nan, reason="heading set from the GNSS course")

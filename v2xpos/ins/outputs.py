@@ -1,0 +1,100 @@
+"""What ``InsFilter`` reports: the navigation state, the kinematics at the last sample, the antenna
+position, the effect estimates and the signals the diagnosis reads.
+
+``Outputs`` is a base class of ``InsFilter`` holding these methods; they only read the filter's
+state (documented in ``filter.py``).
+"""
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from v2xpos import geo
+from v2xpos.rotation import euler_from_dcm
+from v2xpos.types import FixStatus, NavState
+
+from .consistency import INCONSISTENT, VERIFIED
+from .mechanization import COR_BA, COR_BG, COR_SA, COR_SG, MEM_F, MEM_W, NAV_H, NAV_LAT
+from .reported import correlations, reported_covariance, reported_jacobian
+
+if TYPE_CHECKING:
+    from .config import InsConfig
+
+
+class Outputs:
+    """Output methods of ``InsFilter`` (module docstring)."""
+
+    cfg: InsConfig
+
+    def motion_signals(self) -> dict:
+        """Signals an effect imprints on residuals (for ``on_update`` hooks / diagnosis):
+        speed [m/s], kinematic acceleration NED [m/s^2], body rate and specific force (bias
+        compensated, filter body axes), attitude rpy of C_nb [rad], C_nb (body -> NED)."""
+        v = self.nav[3:6]
+        return {"t_s": float(self.t_s), "speed_mps": math.sqrt(float(v @ v)), "v_ned_mps": v.copy(),
+                "acc_ned_mps2": self.acc_ned_mps2.copy(), "rate_body_rps": self.mem[MEM_W:MEM_W + 3].copy(),
+                "f_body_mps2": self.mem[MEM_F:MEM_F + 3].copy(), "rpy_rad": euler_from_dcm(self.C_nb),
+                "C_nb": self.C_nb.copy(), "static": self.static}
+
+    def kinematics_now(self) -> tuple[np.ndarray, np.ndarray]:
+        """Body rate w_nb^b [rad/s] (filter body axes, relative to the local-level frame) and
+        kinematic acceleration a^n = dv^n/dt [m/s^2, NED] at the last processed IMU sample.
+
+        From that sample compensated with the current bias and scale estimates,
+        w_ib = (w~ - b_g)/(1 + s_g), f = (f~ - b_a)/(1 + s_a):
+        w_nb^b = w_ib^b - C_bn (w_ie^n + w_en^n) and
+        a^n = C_nb f^b + g^n - (2 w_ie^n + w_en^n) x v^n (the velocity equation, Groves eq. 5.54).
+        Instantaneous (no smoothing, no lag); its noise is the sensor's per-sample noise.
+        """
+        if self._last_raw_f_b is None or not self.initialized:
+            w = self._last_w_b.copy() if self._last_raw_w_b is None else \
+                self._last_raw_w_b - self.corr[COR_BG:COR_BG + 3]
+            return w, self.acc_ned_mps2.copy()
+        c = self.corr
+        w_ib = (self._last_raw_w_b - c[COR_BG:COR_BG + 3]) / (1.0 + c[COR_SG:COR_SG + 3])
+        f_b = (self._last_raw_f_b - c[COR_BA:COR_BA + 3]) / (1.0 + c[COR_SA:COR_SA + 3])
+        lat, h = float(self.nav[NAV_LAT]), float(self.nav[NAV_H])
+        v = self.nav[3:6]
+        w_ie = geo.earth_rate_ned_rps(lat)
+        w_en = geo.transport_rate_ned_rps(lat, h, v)
+        a_n = self.C_nb @ f_b - np.cross(2.0 * w_ie + w_en, v)
+        a_n[2] += geo.normal_gravity_mps2(lat, h)
+        return w_ib - self.C_nb.T @ (w_ie + w_en), a_n
+
+    def nav_state(self) -> NavState:
+        """Solution at the IMU point at the last processed IMU sample (vehicle axes when
+        misalignment is estimated); rate and acceleration from ``kinematics_now`` (independent of
+        the covariance cadence ``cov_every``). Standard deviations (and the position's correlation
+        coefficients) are those of the reported quantities -- position and velocity at the time
+        label, vehicle attitude -- from the last covariance step (``reported``: J P J^T), scaled by
+        the windowed NIS ratio of the GNSS position updates when it exceeds 1
+        (``ConsistencyMonitor.variance_ratio``: the filter's covariance understates its errors)."""
+        Rm = self.misalignment_dcm()
+        C_nv = self.C_nb @ Rm.T
+        w_nb_b, a_n = self.kinematics_now()
+        J = reported_jacobian(self.layout, self.C_nb, self.fx.misalignment_rad, self.nav[3:6], a_n, w_nb_b)
+        cov = reported_covariance(self.P, J) * self.consistency.variance_ratio()
+        sd = np.sqrt(np.abs(np.diag(cov)))
+        coasting = (self.t_s - self.last_gnss_t_s) > self.cfg.coast_after_s
+        fix = FixStatus.DEAD_RECKONING if (coasting and self.initialized) else self.last_fix
+        return NavState(t_s=float(self.t_s), lla=self.nav[:3].copy(), v_ned_mps=self.nav[3:6].copy(),
+                        acc_body_mps2=C_nv.T @ a_n, rate_body_rps=Rm @ w_nb_b,
+                        rpy_rad=euler_from_dcm(C_nv), pos_sd_m=sd[0:3].copy(),
+                        vel_sd_mps=sd[3:6].copy(), att_sd_rad=sd[6:9].copy(), fix=fix,
+                        attitude_ok=bool(self.heading_known), pos_corr=correlations(cov[0:3, 0:3]),
+                        consistent=self.consistency.state != INCONSISTENT,
+                        verified=self.consistency.state == VERIFIED)
+
+    def antenna_lla(self) -> np.ndarray:
+        """Current antenna position (lat, lon rad; h m) from the IMU point and the lever arm."""
+        Cl = self.C_nb @ self.fx.lever_arm_m
+        lat, h = self.nav[NAV_LAT], self.nav[NAV_H]
+        r_m, r_n = geo.radii_m(lat)
+        return self.nav[:3] + np.array([Cl[0] / (r_m + h), Cl[1] / ((r_n + h) * math.cos(lat)), -Cl[2]])
+
+    def effects_report(self) -> dict:
+        out = self.fx.as_dict(self.corr)
+        out["sd"] = {name: self.sd(name).tolist() for name in self.layout.effects}
+        return out
