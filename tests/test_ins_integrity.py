@@ -288,3 +288,25 @@ def test_an_undeclared_lever_arm_is_found_before_the_protection_level_vouches(er
     for err, pl, _, _, _ in rows[:first_alarm]:
         if pl <= 0.25:
             assert err <= pl
+
+
+def test_a_failed_test_excludes_the_declared_lever_arm_by_taking_the_fault_tolerant_solution():
+    """RAIM exclusion: with the fault-tolerant solution running, a failure makes the filter take its
+    state and covariance (the estimate that never relied on the declared lever arm)."""
+    from v2xpos.ins.filter import InsConfig, InsFilter
+    flt = InsFilter(InsConfig(platform="car", lever_arm_sd_m=0.02, undeclared_lever_arm_sd_m=0.5,
+                              reopen_on_inconsistency=True, fault_tolerant_solution=True))
+    flt.initialize(100.0, np.array([0.7, 0.2, 300.0]), np.array([10.0, 0.0, 0.0]), np.zeros(3))
+    sep = flt.separation
+    assert sep.active
+    i = flt.layout.at("lever_arm")
+    assert flt.P[i, i] == pytest.approx(0.02 ** 2) and sep.P[i, i] == pytest.approx(0.25)
+    sep.w[0:3] = [0.3, -0.2, 0.0]                    # it thinks the main position is 0.3 m north, 0.2 m west off
+    P_ft = sep.P.copy()
+    north_before = flt.nav[0]
+    flt._on_inconsistency()
+    assert flt.counts["lever_arm_excluded"] == 1 and sep.excluded
+    np.testing.assert_allclose(flt.P, P_ft)
+    r_m = 6.36e6                                       # ~ meridian radius at 40 deg (only the sign and size matter)
+    assert (north_before - flt.nav[0]) * r_m == pytest.approx(0.3, rel=0.01)
+    assert not np.any(sep.w)                          # one estimate now: nothing left to separate
