@@ -264,10 +264,14 @@ def test_demo_ctrl_c_writes_a_partial_report(tmp_path):
             break
     time.sleep(3.0)
     os.killpg(p.pid, signal.SIGINT)
+    t_signal = time.time()
     stdout, stderr = p.communicate(timeout=120)
     stderr = seen + stderr
-    assert "Traceback" not in stderr and "Traceback" not in stdout, stderr
-    assert p.returncode == 130, stderr
+    logs = "".join(f"\n--- {f.name}\n" + "\n".join(f.read_text(errors="replace").splitlines()[-15:])
+                   for f in sorted((out / "logs").glob("*.log")))
+    why = f"{stderr}\nstdout:\n{stdout}\nended {time.time() - t_signal:.1f} s after the signal{logs}"
+    assert "Traceback" not in stderr and "Traceback" not in stdout, why
+    assert p.returncode == 130, why
     assert "partial report" in stderr
     rep = json.loads((out / "report.json").read_text())
     assert rep["partial"] is True and rep["interrupted_after_s"] > 0
