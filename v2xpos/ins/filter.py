@@ -76,6 +76,16 @@ class InsFilter(Initialization, Outputs):
 
     Times passed to ``process_imu`` are the IMU stamps; the filter's own time label is
     ``stamp + imu_time_offset`` (``effects.py``). GNSS and wheel times are GPS times.
+
+    State (read and written by the steps here and in ``initialization`` / ``outputs``):
+    ``nav`` = (lat rad, lon rad, h m, v_N, v_E, v_D m/s) of the IMU point (``NAV_*`` indices);
+    ``C_nb`` body -> NED; ``corr`` the compensation of the raw samples (gyro/accel bias and scale,
+    ``COR_*``); ``fx`` the other effect values (``effects.EffectValues``); ``P`` the error-state
+    covariance in ``layout``; ``A`` the error dynamics summed since the last propagation;
+    ``mem`` the strapdown's memory of the previous sample; ``acc_ned_mps2`` the smoothed
+    acceleration of the measurement models; ``static`` the stop detector's (``stops``) verdict;
+    ``initialized`` / ``heading_known`` the alignment's progress; ``counts`` / ``residuals``
+    what the updates did; ``on_update(result, filter)`` an optional hook after every update.
     """
 
     def __init__(self, cfg: InsConfig | None = None):
