@@ -32,7 +32,7 @@ from v2xpos.types import FixStatus
 from . import ekf, updates
 from .alignment import CoarseAligner, CourseTracker
 from .config import InsConfig
-from .consistency import ConsistencyMonitor
+from .consistency import ConsistencyMonitor, FaultTolerantSolution, widen_lever_arm
 from .ekf import ATT, BA, BG, EFFECT_SIZES, POS, VEL, StateLayout, kalman_update
 from .effects import EffectValues
 from .imu_path import ImuPath
@@ -41,6 +41,7 @@ from .mechanization import COR_BA, COR_BG, COR_SA, COR_SG, MEM_SIZE, MEM_W, NAV_
 from .motion import StopDetector
 from .noise import ImuNoiseMeter, process_noise_density
 from .outputs import Outputs
+from .reported import reported_jacobian
 from .static_calibration import StaticBiasEstimate, StaticCalibrator
 from .updates import UpdateResult
 
@@ -91,9 +92,14 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self.q_c = process_noise_density(self.layout, c)
         self.noise_meter = (ImuNoiseMeter(c.imu_noise_window_s, c.imu_gyro_noise_scale, c.imu_accel_noise_scale,
                                           c.gyro_noise_rps_rthz, c.accel_noise_mps2_rthz) if c.imu_noise_from_data else None)
-        self.consistency = ConsistencyMonitor(c.consistency_window_s, c.consistency_false_alarm, c.verify_turn_deg,
-                                              mean_z_limit=c.consistency_mean_z, reverify=c.consistency_reverify,
+        self.consistency = ConsistencyMonitor(c.consistency_window_s, c.consistency_false_alarm_per_hour,
+                                              c.verify_turn_deg, reverify=c.consistency_reverify,
+                                              release_windows=c.consistency_release_windows,
                                               detectable_m=c.verify_detectable_lever_arm_m)
+        i_l = self.layout.at("lever_arm")
+        self.separation = (FaultTolerantSolution(i_l, c.undeclared_lever_arm_sd_m, c.integrity_false_alarm_per_hour,
+                                                 c.integrity_missed_detection)
+                           if c.fault_tolerant_solution and i_l >= 0 and c.undeclared_lever_arm_sd_m > 0 else None)
         self._t_motion_s: float | None = None
         self.kidx = self.layout.kernel_index()
         self.fx = EffectValues(c.lever_arm_m)
@@ -197,6 +203,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
             if self.noise_meter is not None:
                 self.noise_meter.apply(self.q_c, self.C_nb)
             t0 = perf_counter()
+            if self.separation is not None:
+                self.separation.propagate(self.A, self.q_c, max(dt, 0.0))
             self.P = ekf.propagate_covariance(self.P, self.A, self.q_c, max(dt, 0.0))
             self.stage_s["covariance"] += perf_counter() - t0
             if not self.heading_known:
@@ -234,6 +242,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
         t0 = perf_counter()
         dx, P, nis, S, ok = kalman_update(self.P, H, d, R, self.gate.get(len(d), None) if gate else None, force)
         if ok:
+            if self.separation is not None:
+                self.separation.update(H, d, R, dx)
             self.P = P
             self._apply(dx)
         self.stage_s["kalman_updates"] += perf_counter() - t0
@@ -254,16 +264,33 @@ class InsFilter(ImuPath, Initialization, Outputs):
         effect whose declared prior is the tightest and whose error only turning reveals -- the
         horizontal antenna lever arm, declared to a few cm (an undeclared 0.5 m offset is a
         constant body-frame bias the filter cannot see on a straight road, Groves 2013 sec. 14.2.7)
-        -- gets its variance reopened to ``undeclared_lever_arm_sd_m``^2 with its correlations
-        dropped (a covariance reset; conservative: the other states keep theirs). The position
-        covariance then grows through the lever arm's in the next GNSS updates and the turns that
-        follow estimate it; the reported sigma includes what is still unknown. The windows of the
-        test restart (their innovations came from the filter before the reset)."""
+        -- is what the evidence rejects. With the fault-tolerant solution running
+        (``consistency.FaultTolerantSolution``) the filter *excludes* the declaration (RAIM fault
+        detection and exclusion): it takes that solution's state and covariance, the estimate that
+        never relied on the declared lever arm and is consistent under the fault. Otherwise (or
+        after an exclusion) the lever arm's variance is reopened to ``undeclared_lever_arm_sd_m``^2
+        together with what a wrong lever arm does to the IMU point the filter reports
+        (``consistency.widen_lever_arm``: the position error -C_nb dl of a filter that tracks its
+        antenna), so the reported sigma grows at once and the turns that follow estimate it, and
+        the other effect states go back to their priors. The windows of the test restart (their
+        innovations came from the filter before the change)."""
         i = self.layout.at("lever_arm")
         sd = self.cfg.undeclared_lever_arm_sd_m
         if not self.cfg.reopen_on_inconsistency or i < 0 or not sd > 0:
             return
-        reopen = [(i, sd), (i + 1, sd)]
+        sep = self.separation
+        if sep is not None and sep.active and not sep.excluded:
+            self._apply(sep.w)
+            self.P = sep.P.copy()
+            sep.exclude(self.P)
+            self.counts["lever_arm_excluded"] = self.counts.get("lever_arm_excluded", 0) + 1
+            self.consistency.clear_windows()
+            return
+        widened = False
+        if min(self.P[i, i], self.P[i + 1, i + 1]) < 0.25 * sd * sd:
+            self.P = widen_lever_arm(self.P, i, POS, VEL, self.C_nb, self.mem[MEM_W:MEM_W + 3], sd)
+            widened = True
+        reopen = []
         if self.cfg.reopen_all_effects:
             # the other effect states were estimated with the lever arm held at its declared value:
             # what they absorbed of its signature (a velocity latency dt gives a x dt = v w dt
@@ -273,7 +300,6 @@ class InsFilter(ImuPath, Initialization, Outputs):
                     continue
                 j, sd0 = self.layout.at(name), np.broadcast_to(self.cfg.effect_initial_sd.get(name, 0.0), (EFFECT_SIZES[name],))
                 reopen += [(j + m, float(sd0[m])) for m in range(EFFECT_SIZES[name])]
-        widened = False
         for k, s_k in reopen:
             if s_k > 0 and self.P[k, k] < 0.25 * s_k * s_k:
                 self.P[k, :] = 0.0
@@ -283,6 +309,29 @@ class InsFilter(ImuPath, Initialization, Outputs):
         if widened:
             self.counts["lever_arm_reopened"] = self.counts.get("lever_arm_reopened", 0) + 1
             self.consistency.clear_windows()
+            self._restart_separation()
+
+    def _restart_separation(self) -> None:
+        """(Re)start the fault-tolerant solution from the current covariance (heading set, filter
+        started, effects reopened): its evidence about the lever arm is gathered from here on."""
+        if self.separation is not None:
+            self.separation.start(self.P, self.C_nb, self.mem[MEM_W:MEM_W + 3])
+            self.consistency.set_protection(math.inf, self.cfg.protection_limit_m)
+
+    def _test_separation(self, t_s: float) -> None:
+        """Solution-separation test and protection level (``FaultTolerantSolution``), at most every
+        ``test_every_s``; a separation beyond its threshold is a failed consistency test."""
+        sep = self.separation
+        if sep is None or not sep.due(t_s):
+            return
+        w_nb_b, a_n = self.kinematics_now()
+        J = reported_jacobian(self.layout, self.C_nb, self.fx.misalignment_rad, self.nav[3:6], a_n, w_nb_b)
+        C_nv = self.C_nb @ self.misalignment_dcm().T
+        alarm = sep.test(t_s, J[0:3], self.P, math.atan2(C_nv[1, 0], C_nv[0, 0]))
+        self.consistency.set_protection(sep.protection_m, self.cfg.protection_limit_m)
+        if alarm and t_s >= self.consistency.t_settled_s:
+            self.consistency.fail(t_s)
+            self._on_inconsistency()
 
     def _gap_s(self, t_meas_s: float) -> float:
         return t_meas_s - self.fx.gnss_latency_s - self.t_s
@@ -336,6 +385,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
             return self._position_reset(t_s, lla, sd, fix, vel_ned_mps, float(np.sqrt(m.d @ m.d)))
         res = self._update("gnss_pos", t_s, *m, force=force)
         if res.accepted:
+            self._test_separation(t_s)
             self.counts["gnss_pos_accepted"] += 1
             self.counts["gnss_forced"] += int(force)
             self._gnss_rejections = 0
