@@ -89,7 +89,8 @@ class PipelineConfig:
     Validity limits (docs/integrity.md): max_sigma_h_m / max_sigma_yaw_deg: a result whose predicted
     1-sigma horizontal position (sqrt(sd_x^2 + sd_y^2)) or relative yaw (vehicle targets) exceeds
     them is SIGMA_EXCEEDED; require_consistency: a result is INCONSISTENT while either vehicle's filter
-    failed its own consistency test or has not yet passed it through enough turning (state flags).
+    has a failed consistency test not yet released (flag 4) or is not verified, i.e. its protection
+    level against an undeclared lever arm is above its limit (flag 8; ``v2xpos.ins.consistency``).
     """
     fleet: str = "demo"
     master_id: str = "ego"
@@ -266,8 +267,9 @@ class MasterPipeline:
     def _validity(self, master: Any, msg: StateMessage, res: RelativeResult) -> TargetStatus:
         """A computed result is VALID only when both vehicles' attitude is determined (a heading
         pending at a standstill start turns every bearing into a guess), both clocks are on GNSS
-        time, both filters pass their own consistency test and have been through the turning that
-        tests an undeclared lever arm, mounting or gyro scale (``v2xpos.ins.consistency``), and the
+        time, both filters pass their own consistency tests and are verified (the protection level
+        of their fault-tolerant solution bounds what an undeclared lever arm could do, within the
+        filter's limit: ``v2xpos.ins.consistency``), and the
         predicted sigma is within the configured limits; otherwise the status says which, in this
         order (the kinematics stay in the result). docs/integrity.md gives the reasoning."""
         cfg = self.config

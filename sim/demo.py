@@ -24,6 +24,7 @@ from sim.launcher import Fleet, FleetPlan, release_when_ready, write_configs
 from v2xpos.launch import free_tcp_port, free_udp_port
 from sim.scenarios import build, check_rtk_vertical_factor
 from v2xpos.provenance import provenance
+from v2xpos.stop_signals import interrupt_on_stop_signals
 
 STARTUP_LEAD_S = 1.5
 """Wall time between the last process signalling ready and the scenario epoch (the filters start
@@ -72,39 +73,8 @@ def run_demo(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 10
           f" router tcp/127.0.0.1:{plan.router_port}, duration {duration_s:.0f} s,"
           f" latency {latency_ms:.0f} ms, source {source}", file=log, flush=True)
     t_launch = time.time()
-    table = None
-    interrupted = False
-    codes: dict = {}
-    fleet.start()
-    try:
-        start = release_when_ready(start_file, list(plan.configs), lead_s=STARTUP_LEAD_S, fleet=fleet)
-        print(f"demo: watch it with `v2xpos monitor --connect tcp/127.0.0.1:{plan.router_port} --web`; "
-              f"recording {out / 'session.mcap'}", file=log, flush=True)
-        print(f"demo: all processes ready after {start - STARTUP_LEAD_S - t_launch:.1f} s; scenario epoch at start stamp",
-              file=log, flush=True)
-        if live:
-            from sim.live_table import LiveTable
-            from v2xpos.link import LinkConfig
-            table = LiveTable(LinkConfig(mode="client", connect=[f"tcp/127.0.0.1:{plan.router_port}"],
-                                         connect_timeout_ms=10000),
-                              plan.fleet, sc.master_id, scenario=sc)
-        deadline = start + duration_s + 30.0
-        while fleet.running() and time.time() < deadline:
-            time.sleep(0.5)
-            if table is not None:
-                table.refresh()
-        codes = fleet.stop()
-    except KeyboardInterrupt:
-        # Ctrl-C: stop the processes (they write what they recorded) and report that much
-        interrupted = True
-        print(f"demo: interrupted after {time.time() - t_launch:.1f} s: stopping the processes, "
-              "writing a partial report", file=log, flush=True)
-        codes = fleet.stop()
-    finally:
-        if table is not None:
-            table.close()
-        if fleet.running():
-            fleet.stop()
+    with interrupt_on_stop_signals():
+        codes, interrupted = _run_fleet(fleet, plan, sc, start_file, duration_s, live, t_launch, log)
     try:
         report = make_report(sc, plan, duration_s, codes)
     except Exception as exc:  # noqa: BLE001 -- a partial run may lack what a full report needs
@@ -132,6 +102,47 @@ def run_demo(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 10
             if not interrupted:
                 raise
     return report
+
+
+def _run_fleet(fleet: Fleet, plan: FleetPlan, sc, start_file: Path, duration_s: float, live: bool,
+               t_launch: float, log) -> tuple[dict, bool]:
+    """Start the processes, release them together, wait for the run's end (showing the live table)
+    and stop them; on a stop signal (``KeyboardInterrupt``) stop them early. Returns (exit codes,
+    interrupted)."""
+    table = None
+    interrupted = False
+    codes: dict = {}
+    fleet.start()
+    try:
+        start = release_when_ready(start_file, list(plan.configs), lead_s=STARTUP_LEAD_S, fleet=fleet)
+        print(f"demo: watch it with `v2xpos monitor --connect tcp/127.0.0.1:{plan.router_port} --web`; "
+              f"recording {plan.out_dir / 'session.mcap'}", file=log, flush=True)
+        print(f"demo: all processes ready after {start - STARTUP_LEAD_S - t_launch:.1f} s; scenario epoch at start stamp",
+              file=log, flush=True)
+        if live:
+            from sim.live_table import LiveTable
+            from v2xpos.link import LinkConfig
+            table = LiveTable(LinkConfig(mode="client", connect=[f"tcp/127.0.0.1:{plan.router_port}"],
+                                         connect_timeout_ms=10000),
+                              plan.fleet, sc.master_id, scenario=sc)
+        deadline = start + duration_s + 30.0
+        while fleet.running() and time.time() < deadline:
+            time.sleep(0.5)
+            if table is not None:
+                table.refresh()
+        codes = fleet.stop()
+    except KeyboardInterrupt:
+        # Ctrl-C: stop the processes (they write what they recorded) and report that much
+        interrupted = True
+        print(f"demo: interrupted after {time.time() - t_launch:.1f} s: stopping the processes, "
+              "writing a partial report", file=log, flush=True)
+        codes = fleet.stop()
+    finally:
+        if table is not None:
+            table.close()
+        if fleet.running():
+            fleet.stop()
+    return codes, interrupted
 
 
 def run_latency(rows: dict, t_from_gps_s: float) -> dict:

@@ -19,7 +19,7 @@ def _run_monitor(bias_body_m: np.ndarray, yaw_rate_rps: float, seconds: float = 
     (twice the real spread by default: the measured normalised innovation RMS of the tuned filter on
     clean generated pairs is about 0.5, docs/integrity.md)."""
     rng = np.random.default_rng(seed)
-    mon = ConsistencyMonitor(window_s=5.0, false_alarm=1e-4, verify_turn_deg=45.0)
+    mon = ConsistencyMonitor(window_s=5.0)
     mon.restart(0.0)
     S = np.eye(3) * predicted_sd_m ** 2
     yaw = 0.0
@@ -43,38 +43,81 @@ def _feed_velocity(mon: ConsistencyMonitor, rng, t: float, C_nb: np.ndarray, sd_
     mon.feed_update("gnss_vel", t, float(d @ np.linalg.solve(S, d)), 3, d, S, C_nb)
 
 
-def test_consistent_innovations_pass_and_verify_only_after_turning():
+def test_consistent_innovations_pass_and_verification_follows_the_protection_level():
     straight = _run_monitor(np.zeros(3), 0.0)
     assert straight.failures == 0
-    assert straight.state == UNVERIFIED            # no turning: nothing tested that a lever arm would show
-    turning = _run_monitor(np.zeros(3), math.radians(10.0))
-    assert turning.failures == 0
-    assert turning.state == VERIFIED
-    assert turning.variance_ratio() == 1.0                 # a pessimistic filter is never shrunk
-    # 10 deg/s: the test finds (4.28 x 0.05 m/s) / (0.17 rad/s x sqrt(50)) = 0.17 m of lever arm
-    assert turning.detectable_lever_arm_m(math.radians(10.0)) == pytest.approx(0.17, abs=0.01)
-    # a gentle curve (2 deg/s for 60 s, 120 deg in all) would hide 0.9 m: it does not verify
-    gentle = _run_monitor(np.zeros(3), math.radians(2.0))
-    assert gentle.failures == 0 and gentle.state == UNVERIFIED
+    assert straight.state == VERIFIED                  # no protection level given: nothing to wait for
+    straight.set_protection(0.4, 0.25)
+    assert straight.state == UNVERIFIED                # the fault-tolerant solution cannot vouch yet
+    straight.set_protection(0.2, 0.25)
+    assert straight.state == VERIFIED
+    assert straight.variance_ratio() == 1.0                # a pessimistic filter is never shrunk
 
 
-def test_a_body_frame_bias_fails_the_mean_test_and_stays_inconsistent_while_it_lasts():
-    # a bias of one predicted sd along body x: each update's NIS is about 1.25 per dof (a NIS test
-    # alone passes it), the window mean is ~7 sd off
-    mon = _run_monitor(np.array([0.02, 0.0, 0.0]), math.radians(10.0))
-    assert mon.failures > 0
-    assert mon.state == INCONSISTENT
+def test_turn_counting_still_gates_verification_when_configured():
+    def run(rate_dps: float) -> ConsistencyMonitor:
+        mon = ConsistencyMonitor(window_s=5.0, verify_turn_deg=45.0)
+        mon.restart(0.0)
+        rng = np.random.default_rng(1)
+        for k in range(600):
+            yaw = math.radians(rate_dps) * 0.1 * k
+            c, s = math.cos(yaw), math.sin(yaw)
+            C_nb = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            _feed_velocity(mon, rng, 0.1 * k, C_nb)
+            mon.feed_motion(0.1 * k, 0.1, math.radians(rate_dps), 10.0)
+        return mon
+    assert run(10.0).state == VERIFIED
+    # a gentle curve (2 deg/s): the mean test would miss a lever arm of about 1 m, it does not count
+    assert run(2.0).state == UNVERIFIED
 
 
-def test_a_large_innovation_scale_fails_the_nis_test():
-    rng = np.random.default_rng(3)
-    mon = ConsistencyMonitor(window_s=5.0, false_alarm=1e-4)
+def test_false_alarm_rate_is_per_hour_not_per_window():
+    """An hour of exactly consistent 10 Hz position and velocity updates (innovation covariance as
+    predicted, not pessimistic): with the per-hour level split over the disjoint blocks (Bonferroni,
+    1e-3 per hour) no alarm is expected; a per-window level of 3 sd (0.27 %) over the 4,320 tests of
+    an hour would give about 12."""
+    rng = np.random.default_rng(7)
+    mon = ConsistencyMonitor(window_s=5.0, false_alarm_per_hour=1e-3)
     mon.restart(0.0)
-    for k in range(200):
-        d = rng.normal(0.0, 2.0, 3)               # innovations twice the sd the filter predicts
-        mon.feed_update("gnss_pos", 0.1 * k, float(d @ d), 3)
-    assert mon.failures > 0 and mon.state == INCONSISTENT
-    assert mon.variance_ratio() == pytest.approx(4.0, rel=0.3)
+    assert mon.mean_z_limit == pytest.approx(5.17, abs=0.01)
+    C_nb = np.eye(3)
+    S = np.eye(3)
+    z_blocks = []
+    for k in range(36000):
+        t = 0.1 * k
+        for kind in ("gnss_pos", "gnss_vel"):
+            d = rng.normal(0.0, 1.0, 3)
+            mon.feed_update(kind, t, float(d @ d), 3, d, S, C_nb)
+        if k % 50 == 49:
+            z_blocks.append(mon.last_statistic.get("gnss_pos_mean", (math.nan,))[0])
+    assert mon.failures == 0
+    z = np.asarray([x for x in z_blocks if x == x])
+    assert len(z) > 600 and 0.85 < float(np.std(z)) < 1.15      # the block means are N(0, 1)
+
+
+@pytest.mark.parametrize("reverify,final", [(False, INCONSISTENT), (True, VERIFIED)])
+def test_a_failure_is_released_once_the_evidence_is_gone(reverify, final):
+    """A body-frame bias for 20 s, then consistent innovations: the failure is lifted only after
+    ``release_windows`` consecutive blocks pass at the 1 % level (the hysteresis), or never
+    (``reverify`` off)."""
+    rng = np.random.default_rng(4)
+    mon = ConsistencyMonitor(window_s=5.0, reverify=reverify, release_windows=6)
+    mon.restart(0.0)
+    S = np.eye(3) * 0.02 ** 2
+    released_at = None
+    for k in range(900):
+        t = 0.1 * k
+        bias = np.array([0.03, 0.0, 0.0]) if t < 20.0 else np.zeros(3)
+        d = rng.normal(0.0, 0.01, 3) + bias
+        mon.feed_update("gnss_pos", t, float(d @ np.linalg.solve(S, d)), 3, d, S, np.eye(3))
+        _feed_velocity(mon, rng, t, np.eye(3))
+        if mon.failures and not mon.failed and released_at is None:
+            released_at = t
+    assert mon.failures > 0
+    assert mon.state == final
+    if reverify:
+        assert released_at >= 20.0 + 6 * 5.0 - 0.2     # six quiet blocks after the bias ended
+        assert mon.releases == 1
 
 
 @pytest.mark.parametrize("rate_hz", [100.0, 150.0])
@@ -142,6 +185,10 @@ def test_a_failed_test_reopens_the_horizontal_lever_arm():
     after = np.diag(flt.P)[i:i + 3]
     np.testing.assert_allclose(after[:2], 0.25)
     assert after[2] == before[2]
+    # what an unknown antenna offset does to the IMU point the filter reports (C_nb = I here):
+    # its position is as uncertain, and its error is minus the lever arm's
+    np.testing.assert_allclose(np.diag(flt.P)[0:2], 0.25)
+    np.testing.assert_allclose([flt.P[0, i], flt.P[1, i + 1]], -0.25)
     assert flt.counts["lever_arm_reopened"] == 1
     k = flt.layout.at("gnss_vel_latency")               # the other effects back to their priors
     assert flt.P[k, k] == pytest.approx(flt.cfg.effect_initial_sd["gnss_vel_latency"] ** 2)
@@ -149,23 +196,117 @@ def test_a_failed_test_reopens_the_horizontal_lever_arm():
     assert flt.counts["lever_arm_reopened"] == 1
 
 
-@pytest.mark.parametrize("reverify,final", [(False, INCONSISTENT), (True, VERIFIED)])
-def test_a_failure_is_latched_unless_reverification_is_configured(reverify, final):
-    """A bias for 20 s, then consistent innovations while the car keeps turning: the failure stays
-    (latched, the default) or is lifted by 45 deg of passing turns (``reverify``)."""
-    rng = np.random.default_rng(4)
-    mon = ConsistencyMonitor(window_s=5.0, verify_turn_deg=45.0, reverify=reverify)
-    mon.restart(0.0)
-    S = np.eye(3) * 0.02 ** 2
-    rate = math.radians(10.0)
-    for k in range(600):
-        t = 0.1 * k
-        c, s = math.cos(rate * t), math.sin(rate * t)
-        C_nb = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        bias = C_nb @ np.array([0.03, 0.0, 0.0]) if t < 20.0 else np.zeros(3)
-        d = rng.normal(0.0, 0.01, 3) + bias
-        mon.feed_update("gnss_pos", t, float(d @ np.linalg.solve(S, d)), 3, d, S, C_nb)
-        _feed_velocity(mon, rng, t, C_nb)
-        mon.feed_motion(t, 0.1, rate, 10.0)
-    assert mon.failures > 0
-    assert mon.state == final
+def _toy_truth(T: int, rate_rps: float, lever_error_m: np.ndarray, seed: int):
+    """A 2-D car at constant speed on a circle of yaw rate ``rate_rps`` with its GNSS antenna at
+    l_true = declared + lever_error in the body frame: returns per-epoch (C_nb, true state)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(T):
+        yaw = rate_rps * 0.1 * k
+        c, s = math.cos(yaw), math.sin(yaw)
+        C = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        out.append((C, rng.normal(0.0, 0.01, 3)))
+    return out
+
+
+def _toy_run(lever_error_m, rate_rps: float = 0.15, T: int = 1200, seed: int = 0, limit_m: float = 0.25):
+    """Linear error-state model of ``FaultTolerantSolution``'s use in the filter: states position
+    (random walk), velocity, lever arm; GNSS antenna position h = r + C l at 10 Hz (1 cm). The main
+    filter holds the declared lever arm (sd 2 cm); the truth has ``lever_error_m`` more.
+    Returns, per epoch, the main filter's position error, the protection level and the alarm, and
+    the fault-tolerant solution's position next to an independent wide-prior Kalman filter's."""
+    from v2xpos.ins.consistency import FaultTolerantSolution
+    from v2xpos.ins.ekf import propagate_covariance
+    n, L = 9, 6
+    A = np.zeros((n, n))
+    A[0:3, 3:6] = np.eye(3) * 0.1
+    q = np.zeros(n)
+    q[3:6] = 0.002 ** 2                      # velocity random walk [m/s/sqrt(s)]^2: an IMU-aided car
+    x_true = np.zeros(n)
+    x_true[L:L + 3] = lever_error_m            # errors relative to the declared lever arm
+    P = np.diag([0.01 ** 2] * 3 + [0.01 ** 2] * 3 + [0.02 ** 2] * 3)
+    est = np.zeros(n)
+    sep = FaultTolerantSolution(L, fault_sd_m=0.5, false_alarm_per_hour=1e-3, missed_detection=1e-3,
+                                test_every_s=1.0)
+    sep.start(P, np.eye(3), np.zeros(3))
+    P_ref, est_ref = sep.P.copy(), np.zeros(n)   # the independent wide-prior filter
+    Phi = np.eye(n) + A
+    rows = []
+    rng = np.random.default_rng(seed + 100)
+    for k, (C, noise) in enumerate(_toy_truth(T, rate_rps, lever_error_m, seed)):
+        x_true = Phi @ x_true
+        x_true[3:6] += rng.normal(0.0, math.sqrt(q[3] * 0.1), 3)
+        sep.propagate(A.copy(), q, 0.1)
+        P = propagate_covariance(P, A.copy(), q, 0.1)
+        P_ref = propagate_covariance(P_ref, A.copy(), q, 0.1)
+        est, est_ref = Phi @ est, Phi @ est_ref
+        H = np.zeros((3, n))
+        H[:, 0:3] = np.eye(3)
+        H[:, L:L + 3] = C
+        z = H @ x_true + noise
+        R = np.eye(3) * 0.01 ** 2
+        d = H @ est - z                      # prediction minus measurement (filter convention)
+        S = H @ P @ H.T + R
+        K = P @ H.T @ np.linalg.inv(S)
+        dx = K @ d
+        sep.update(H, d, R, dx)
+        est = est - dx
+        P = P - K @ H @ P
+        K_ref = P_ref @ H.T @ np.linalg.inv(H @ P_ref @ H.T + R)
+        est_ref = est_ref + K_ref @ (z - H @ est_ref)
+        P_ref = P_ref - K_ref @ H @ P_ref
+        alarm = sep.test(0.1 * k, np.eye(n)[0:3], P, 0.0) if sep.due(0.1 * k) else False
+        rows.append((float(np.hypot(*(est - x_true)[0:2])), sep.protection_m, alarm,
+                     (est - sep.w)[0:3].copy(), est_ref[0:3].copy()))
+    return rows
+
+
+def test_fault_tolerant_solution_is_the_wide_prior_filter():
+    """The separation filter, kept in the main filter's error coordinates, reproduces a Kalman
+    filter run independently with the wide lever-arm prior."""
+    rows = _toy_run(np.array([0.3, -0.2, 0.0]), T=300)
+    for _, _, _, ft, ref in rows:
+        np.testing.assert_allclose(ft, ref, atol=1e-9)
+
+
+def test_no_fault_no_alarm_and_the_protection_level_falls_with_turning():
+    rows = _toy_run(np.zeros(3), rate_rps=0.15)
+    assert not any(r[2] for r in rows)
+    assert rows[5][1] > 1.0                         # before turning: the lever arm is open
+    assert rows[-1][1] < 0.25                       # after 120 s at 8.6 deg/s: pinned down
+    straight = _toy_run(np.zeros(3), rate_rps=0.0, T=600)
+    assert straight[-1][1] > 1.0                    # a straight road never verifies a lever arm
+
+
+@pytest.mark.parametrize("error", [(0.3, 0.0), (0.0, -0.5), (0.4, 0.4)])
+def test_an_undeclared_lever_arm_is_found_before_the_protection_level_vouches(error):
+    """Integrity: at every epoch before the first alarm, a protection level within the limit bounds
+    the main filter's real error (the undetected lever arm never makes a verified, wrong result)."""
+    rows = _toy_run(np.array([error[0], error[1], 0.0]), rate_rps=0.15)
+    first_alarm = next((k for k, r in enumerate(rows) if r[2]), len(rows))
+    assert first_alarm < len(rows)
+    for err, pl, _, _, _ in rows[:first_alarm]:
+        if pl <= 0.25:
+            assert err <= pl
+
+
+def test_a_failed_test_excludes_the_declared_lever_arm_by_taking_the_fault_tolerant_solution():
+    """RAIM exclusion: with the fault-tolerant solution running, a failure makes the filter take its
+    state and covariance (the estimate that never relied on the declared lever arm)."""
+    from v2xpos.ins.filter import InsConfig, InsFilter
+    flt = InsFilter(InsConfig(platform="car", lever_arm_sd_m=0.02, undeclared_lever_arm_sd_m=0.5,
+                              reopen_on_inconsistency=True, fault_tolerant_solution=True))
+    flt.initialize(100.0, np.array([0.7, 0.2, 300.0]), np.array([10.0, 0.0, 0.0]), np.zeros(3))
+    sep = flt.separation
+    assert sep.active
+    i = flt.layout.at("lever_arm")
+    assert flt.P[i, i] == pytest.approx(0.02 ** 2) and sep.P[i, i] == pytest.approx(0.25)
+    sep.w[0:3] = [0.3, -0.2, 0.0]                    # it thinks the main position is 0.3 m north, 0.2 m west off
+    P_ft = sep.P.copy()
+    north_before = flt.nav[0]
+    flt._on_inconsistency()
+    assert flt.counts["lever_arm_excluded"] == 1 and sep.excluded
+    np.testing.assert_allclose(flt.P, P_ft)
+    r_m = 6.36e6                                       # ~ meridian radius at 40 deg (only the sign and size matter)
+    assert (north_before - flt.nav[0]) * r_m == pytest.approx(0.3, rel=0.01)
+    assert not np.any(sep.w)                          # one estimate now: nothing left to separate

@@ -2,7 +2,9 @@
 docs/integrity.md): the master pipeline in one process (``v2xpos convoy --in-process``) on a pair
 with nothing undeclared and on the same pair with an undeclared 0.8 m antenna lever arm on the
 follower, scored against the recordings' truth. The seed is not one of the Monte-Carlo seeds the
-defaults were checked on."""
+defaults were checked on. A third case is ``dev_like`` seed 5 of the Monte-Carlo (undeclared
+misalignment, late IMU stamps, gyro scale and a 0.64 m lever-arm error on the follower): before the
+protection level its follower was VALID while 0.5-0.6 m wrong, after passing a turn-count check."""
 from __future__ import annotations
 
 import io
@@ -13,14 +15,15 @@ import pytest
 pytestmark = pytest.mark.slow
 
 SEED = 11
+DEV_SEED = 5
 
 
-def _case(tmp: Path, name: str, effects: list[str]) -> dict:
+def _case(tmp: Path, name: str, effects: list[str], seed: int = SEED, preset: str = "clean") -> dict:
     from sim.recordings import apply_overrides, draw_params, simulate, write
     from master.convoy import dataset_identity, run_in_process
     from v2xpos.diagnose.truth import score_results_csv
     rec = tmp / name
-    p = draw_params(SEED, "clean")
+    p = draw_params(seed, preset)
     apply_overrides(p, [], effects, [])
     write(simulate(p), rec)
     a, b = dataset_identity(rec / "A"), dataset_identity(rec / "B")
@@ -35,7 +38,8 @@ def _case(tmp: Path, name: str, effects: list[str]) -> dict:
 @pytest.fixture(scope="module")
 def scores(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("integrity")
-    return {"clean": _case(tmp, "clean", []), "lever": _case(tmp, "lever", ["B.lever_arm_error_m=0.8,0,0"])}
+    return {"clean": _case(tmp, "clean", []), "lever": _case(tmp, "lever", ["B.lever_arm_error_m=0.8,0,0"]),
+            "dev_like": _case(tmp, "dev_like", [], DEV_SEED, "dev_like")}
 
 
 def test_clean_pair_sigma_is_honest_and_not_inflated(scores):
@@ -47,10 +51,12 @@ def test_clean_pair_sigma_is_honest_and_not_inflated(scores):
     assert s["median_sigma_h_over_h_rms"] <= 3.0, s
 
 
-def test_undeclared_lever_arm_is_never_valid_and_wrong(scores):
-    s = scores["lever"]
+@pytest.mark.parametrize("case", ["lever", "dev_like"])
+def test_undeclared_effects_are_never_valid_and_wrong(scores, case):
+    s = scores[case]
     assert s.get("violations", 0) == 0, s.get("violation_examples")
-    # the filter's own test found it: a large part of the run is flagged, not VALID
-    assert s["status_counts"].get("INCONSISTENT", 0) + s["status_counts"].get("SIGMA_EXCEEDED", 0) > 1000, s
-    if s["moving"]["n"]:
-        assert s["within_3sd_x"] >= 0.9 and s["within_3sd_y"] >= 0.9, s
+    # the filter's own test found it (INCONSISTENT) before any VALID row could be wrong
+    assert s["status_counts"].get("INCONSISTENT", 0) > 0, s["status_counts"]
+    if s["status_counts"].get("VALID", 0):
+        # after the exclusion the sigma is that of an estimate that never relied on the declaration
+        assert s["within_3sd_x"] >= 0.98 and s["within_3sd_y"] >= 0.98, s

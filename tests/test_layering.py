@@ -5,7 +5,7 @@ fails here as surely as one at the top of the file.
 
 Floors, bottom to top:
 0 foundations (geo, rotation and their compiled twin kernels, timebase, types, stats, provenance, compat)
-1 formats and the wire (datasets/, devices/, wire, scene)
+1 formats and the wire (datasets/, devices/, wire/, scene)
 2 estimation, relative kinematics, link, security, outputs (ins/, relative*, link, tls, security,
   verify_worker, output/)
 3 vehicle sources and clocks, quality, diagnose, tools on the library (sources/, quality/,

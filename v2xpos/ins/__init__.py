@@ -15,7 +15,8 @@ layout, covariance propagation, gated Kalman update), ``noise`` (process noise, 
 noise), ``updates`` (measurement models: pure builders of H, d, R), ``motion`` (stop detection),
 ``effects`` (augmentable states), ``static_calibration`` (bias calibration at stops),
 ``alignment`` (coarse attitude, GNSS course), ``initialization`` (start, alignment, resets),
-``filter`` (``InsFilter``, which runs the steps), ``outputs`` (``nav_state`` and other outputs),
+``imu_path`` (IMU input, chunk steps), ``filter`` (``InsFilter``, which runs the steps),
+``outputs`` (``nav_state`` and other outputs),
 ``consistency`` / ``reported`` (own consistency test, covariance of what is reported),
 ``replay_engine`` (dataset through the filter with hooks), ``replay`` / ``replay_metrics``
 (the ``v2xpos replay`` run and its figures), ``calibrated`` (config from a dataset's calibration).

@@ -60,8 +60,9 @@ def ins_config(platform: str, imu_to_body: np.ndarray, lever_arm_m: np.ndarray, 
     integrity: the filter of a service whose states feed the master's results (docs/integrity.md):
     the IMU white noise is measured online from the samples (``v2xpos.ins.noise.ImuNoiseMeter``)
     unless the calibration carries the noise measured offline by the same estimator -- that one
-    wins, it was tuned together with the rest of the table -- and a failed consistency test
-    reopens the effect states (``InsFilter._on_inconsistency``).
+    wins, it was tuned together with the rest of the table --, a failed consistency test
+    reopens the effect states (``InsFilter._on_inconsistency``) and the filter carries the
+    fault-tolerant solution whose protection level verifies it (``consistency.FaultTolerantSolution``).
     """
     plat = platform if platform in ("car", "pedestrian") else "generic"
     B = np.asarray(imu_to_body, float).reshape(3, 3)
@@ -72,6 +73,7 @@ def ins_config(platform: str, imu_to_body: np.ndarray, lever_arm_m: np.ndarray, 
     if integrity:
         kw["imu_noise_from_data"] = "gyro_noise_rps_rthz" not in kw and "accel_noise_mps2_rthz" not in kw
         kw["reopen_on_inconsistency"] = True
+        kw["fault_tolerant_solution"] = True     # protection level against an undeclared lever arm
         # The calibration's noise is the sensor's white noise, as the online meter measures it; a
         # service's filter takes the same margin over it and the same cap in both cases
         # (docs/integrity.md, "The IMU noise behind it"): with the bare measured gyro noise the

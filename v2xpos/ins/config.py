@@ -53,14 +53,18 @@ class InsConfig:
     imu_accel_noise_scale: float = 1.0            # velocity noise = this x the measured accelerometer white noise
     # own consistency test (consistency.ConsistencyMonitor)
     consistency_window_s: float = 5.0
-    consistency_false_alarm: float = 1e-4         # of the windowed NIS test (chi-square quantile 1 - this)
-    consistency_mean_z: float = 3.0               # limit of the windowed body-frame innovation mean (N(0, 1) units)
-    consistency_reverify: bool = False            # a failure is lifted by verify_turn_deg of passing turns (else latched)
+    consistency_false_alarm_per_hour: float = 1e-3  # of the block NIS and mean tests together (Bonferroni)
+    consistency_reverify: bool = True             # a failure is lifted once the evidence is gone (else latched)
+    consistency_release_windows: int = 6          # ... i.e. this many consecutive blocks per kind pass at the 1 % level
     verify_detectable_lever_arm_m: float = 0.3    # turning counts while the test would find a lever-arm error this size
-    verify_turn_deg: float = 45.0                 # turning that must pass the test before the solution is verified
+    verify_turn_deg: float = 0.0                  # turning that must pass the test before the solution is verified
     reopen_on_inconsistency: bool = False         # a failed test reopens the effect states (_on_inconsistency)
     undeclared_lever_arm_sd_m: float = 0.5        # horizontal lever-arm sd the filter reopens to when its test fails
     reopen_all_effects: bool = True               # ... and every other effect state to its prior sd
+    fault_tolerant_solution: bool = False         # solution separation against an undeclared lever arm (FaultTolerantSolution)
+    protection_limit_m: float = 0.25              # verified only while the horizontal protection level is within this
+    integrity_false_alarm_per_hour: float = 1e-3  # of the separation test (Bonferroni over its tests in an hour)
+    integrity_missed_detection: float = 1e-3      # probability the protection level allows for a missed fault
     effect_initial_sd: dict = field(default_factory=dict)
     initial_time_offset_s: float = 0.0             # starting value of imu_time_offset (e.g. from calibrate)
     initial_misalignment_rad: np.ndarray = field(default_factory=lambda: np.zeros(3))

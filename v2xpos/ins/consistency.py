@@ -22,34 +22,39 @@ sees it: the *mean* of the normalised innovations over a window, per body axis (
 whiteness / zero-mean test, Bar-Shalom et al. 2001 sec. 5.4.2; Mehra & Peschon 1971, Automatica
 7(5)), in the body frame because the signature C_nb (w x dl) turns with the car.
 
-So the monitor keeps two facts per vehicle (``ConsistencyMonitor``):
+So the monitor keeps these facts per vehicle (``ConsistencyMonitor``):
 
-* **failed**: over the last ``window_s``, (a) the sum of the GNSS position (and, separately,
-  velocity) NIS exceeds the chi-square quantile ``1 - false_alarm`` of its degrees of freedom
-  (each update's NIS capped at the quantile ``1 - 1e-9`` of its own dof, so that one gross outlier
-  counts as a strong, not an infinite, piece of evidence), or (b) the normalised innovations'
-  window mean along body x or y, times sqrt(n), exceeds ``mean_z_limit`` (N(0, 1) for a consistent
-  filter; the innovations of a filter whose noise is pessimistic have a smaller spread, so the
-  test is conservative there);
-* **latched**: a failure stays (``INCONSISTENT``) for the rest of the session unless ``reverify``:
-  it is evidence of an effect the filter's model lacks, and the same test passing in later turns
-  says nothing of the straight road in between, where that effect is a bias no test sees (on
-  generated convoys, re-verifying after 45 deg of passing turns left 1,500-1,800 VALID rows per
-  run beyond max(0.3 m, 4 sigma) on 3 of 10 followers). The remedy is a calibration
-  (``v2xpos calibrate`` writes the ``[calibration]`` table the filter then starts from);
-* **excitation**: only turning fast enough counts, i.e. while the lever-arm error the mean test
-  would find with 90 % power (``detectable_lever_arm_m``, the minimal detectable bias of the
-  test) is at most ``detectable_m`` = 0.3 m (the error a reference must not hide). At a velocity
-  innovation sd of 0.05 m/s and 50 updates per window this is a yaw rate of about 0.1 rad/s
-  (6 deg/s); a 45 deg curve at 2 deg/s, which let a 0.6 m lever-arm error through, does not count;
-* **verified**: since the last failure (or the start), the vehicle has turned by at least
-  ``verify_turn_deg`` (the integral of |yaw rate| while it moves faster than ``min_speed_mps``,
-  with GNSS updates arriving) without a failure -- the test has then had the excitation that
-  reveals a wrong lever arm, mounting or gyro scale.
+* **tests on disjoint blocks** of ``window_s`` (5 s): per kind (GNSS position, velocity) (a) the
+  block's NIS sum against the chi-square quantile of its degrees of freedom (each update's NIS
+  capped at the quantile ``1 - 1e-9`` of its own dof, so that one gross outlier counts as a
+  strong, not an infinite, piece of evidence), (b) the block mean of the normalised innovations
+  along body x and y, times sqrt(n), against N(0, 1). Each update is tested once (a running window
+  tested at every epoch re-tests the same data 50 times and has no stated false-alarm rate);
+* **a false-alarm rate per hour**: the level of each test is ``false_alarm_per_hour`` divided by
+  the number of tests in an hour (6 statistics per block, 720 blocks): P(any false alarm in an
+  hour) <= sum of the levels (Bonferroni's inequality, valid whatever the tests' correlation).
+  For 1e-3 per hour the mean test's limit is 5.17 sd (it was 3, i.e. 0.27 % per window, about a
+  dozen false alarms an hour for an exactly consistent filter);
+* **failed** (``INCONSISTENT``) from an alarm until the evidence has gone: released after
+  ``release_windows`` consecutive blocks per kind (6 x 5 s = 30 s of GNSS) in which every statistic
+  passes at the 1 % level -- a hysteresis between the alarm level (~5 sd) and the release level
+  (2.58 sd), so one marginal block neither sets nor clears it, and a false alarm costs tens of
+  seconds, not the session (``reverify=False`` latches instead). A release does not vouch for the
+  vehicle by itself: the filter reopened its effect states at the alarm and restarted its
+  fault-tolerant solution, so it is *verified* again only when that solution's protection level
+  is back within its limit -- i.e. when turning since the alarm has pinned the lever arm down;
+* **verified**: not failed, and the horizontal protection level of the fault-tolerant solution
+  (``FaultTolerantSolution``, set by the filter through ``set_protection``) within its limit --
+  the largest position error an undeclared lever arm could cause without the separation test
+  finding it. This replaces counting turns against a minimal detectable bias computed as if the
+  innovations carried the lever arm's whole signature: the filter absorbs most of it (in a steady
+  turn a body-frame accelerometer bias -w^2 dl carries the same signal), so the naive MDB let
+  0.5-0.6 m lever-arm errors through on 2 of 10 generated followers. Turn counting
+  (``verify_turn_deg``) remains available as an extra requirement (0 by default).
 
-``state`` is then ``VERIFIED``, ``UNVERIFIED`` (no failure yet, not enough turning) or
-``INCONSISTENT`` (a failure since the last verification). Updates within ``settle_s`` of the
-heading being set are not tested (the filter is still converging from its initial covariance).
+``state`` is then ``VERIFIED``, ``UNVERIFIED`` (not failed, protection level not yet within its
+limit) or ``INCONSISTENT``. Updates within ``settle_s`` of the heading being set are not tested
+(the filter is still converging from its initial covariance).
 """
 from __future__ import annotations
 
@@ -57,96 +62,167 @@ import math
 from collections import deque
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.stats import chi2, norm
+
+from .ekf import POS, VEL
 
 VERIFIED, UNVERIFIED, INCONSISTENT = "verified", "unverified", "inconsistent"
 _CAP_PROBABILITY = 1e-9
+_MIN_MEAN_UPDATES = 10
 
 
 class ConsistencyMonitor:
-    """Windowed NIS test and turn-excitation bookkeeping of one filter (see module docstring)."""
+    """Block NIS and body-frame mean tests, their release, and the verification state of one
+    filter (see module docstring)."""
 
-    def __init__(self, window_s: float = 5.0, false_alarm: float = 1e-4, verify_turn_deg: float = 45.0,
+    def __init__(self, window_s: float = 5.0, false_alarm_per_hour: float = 1e-3, verify_turn_deg: float = 0.0,
                  min_speed_mps: float = 1.0, settle_s: float = 5.0, kinds: tuple = ("gnss_pos", "gnss_vel"),
-                 mean_z_limit: float = 3.0, mean_window_s: float | None = None, reverify: bool = False,
-                 detectable_m: float = 0.3):
+                 reverify: bool = True, release_windows: int = 6, release_level: float = 0.01,
+                 detectable_m: float = 0.3, mean_z_limit: float | None = None):
         self.window_s = float(window_s)
-        self.false_alarm = float(false_alarm)
+        self.kinds = tuple(kinds)
+        # Bonferroni: 3 statistics (NIS, mean along body x, along body y) per kind and block
+        self.tests_per_hour = 3 * len(self.kinds) * 3600.0 / self.window_s
+        self.false_alarm_per_hour = float(false_alarm_per_hour)
+        self.p_test = self.false_alarm_per_hour / self.tests_per_hour
+        self.mean_z_limit = float(norm.isf(0.5 * self.p_test)) if mean_z_limit is None else float(mean_z_limit)
+        self.release_level = float(release_level)
+        self.release_z = float(norm.isf(0.5 * self.release_level))
+        self.release_windows = int(release_windows)
         self.verify_turn_rad = math.radians(verify_turn_deg)
         self.min_speed_mps = float(min_speed_mps)
         self.settle_s = float(settle_s)
-        self.kinds = tuple(kinds)
-        self._win: dict[str, deque] = {k: deque() for k in self.kinds}
-        self._sum: dict[str, list] = {k: [0.0, 0] for k in self.kinds}
-        self.mean_z_limit = float(mean_z_limit)
         self.reverify = bool(reverify)
         self.detectable_m = float(detectable_m)
-        self.vel_innovation_sd_mps = math.inf
-        self.mean_window_s = float(window_s if mean_window_s is None else mean_window_s)
-        self._mwin: dict[str, deque] = {k: deque() for k in self.kinds}
-        self._msum: dict[str, list] = {k: [0.0, 0.0, 0] for k in self.kinds}
-        self._threshold: dict[int, float] = {}
+        self._win: dict[str, deque] = {k: deque() for k in self.kinds}
+        self._sum: dict[str, list] = {k: [0.0, 0] for k in self.kinds}
+        self._blk: dict[str, list | None] = {k: None for k in self.kinds}
+        self._threshold: dict[tuple, float] = {}
         self._cap: dict[int, float] = {}
+        self.vel_innovation_sd_mps = math.inf
+        self.vel_updates_per_block = 0
         self.failed = False
         self.turn_since_fail_rad = 0.0
         self.t_settled_s = -math.inf
         self.t_last_gnss_s = -math.inf
         self.failures = 0
+        self.releases = 0
+        self.quiet_blocks = 0
         self.last_failure_t_s = math.nan
         self.last_statistic: dict[str, tuple] = {}
+        self.protection_m = 0.0
+        self.protection_limit_m = math.inf
+
+    def set_protection(self, protection_m: float, limit_m: float) -> None:
+        """The horizontal protection level of the fault-tolerant solution (``FaultTolerantSolution``)
+        and its limit: the solution is verified only while it is within the limit."""
+        self.protection_m = float(protection_m)
+        self.protection_limit_m = float(limit_m)
+
+    def fail(self, t_s: float) -> None:
+        """A failure (of these tests or of another test of the same filter, the solution separation)."""
+        self.failed = True
+        self.turn_since_fail_rad = 0.0
+        self.failures += 1
+        self.quiet_blocks = 0
+        self.last_failure_t_s = float(t_s)
 
     def restart(self, t_s: float) -> None:
         """The filter (re)set its heading at t_s: test its updates from t_s + settle_s."""
         self.t_settled_s = float(t_s) + self.settle_s
+        self.clear_windows()
+
+    def clear_windows(self) -> None:
+        """Forget the windowed sums and the open blocks (after the filter changed its model, e.g.
+        widened an effect's covariance: the innovations before it no longer describe the filter
+        that follows)."""
         for k in self.kinds:
             self._win[k].clear()
             self._sum[k] = [0.0, 0]
-            self._mwin[k].clear()
-            self._msum[k] = [0.0, 0.0, 0]
+            self._blk[k] = None
 
-    def _quantile(self, dof: int) -> float:
-        q = self._threshold.get(dof)
+    def _chi2(self, p: float, dof: int) -> float:
+        q = self._threshold.get((p, dof))
         if q is None:
-            q = self._threshold[dof] = float(chi2.ppf(1.0 - self.false_alarm, dof))
+            q = self._threshold[(p, dof)] = float(chi2.isf(p, dof))
         return q
 
     def _capped(self, nis: float, dof: int) -> float:
         c = self._cap.get(dof)
         if c is None:
-            c = self._cap[dof] = float(chi2.ppf(1.0 - _CAP_PROBABILITY, dof))
+            c = self._cap[dof] = float(chi2.isf(_CAP_PROBABILITY, dof))
         return c if not math.isfinite(nis) else min(nis, c)
 
     def feed_update(self, kind: str, t_s: float, nis: float, dof: int, innovation=None, S=None,
                     C_nb=None) -> bool:
         """One GNSS update (accepted or rejected by the gate): its NIS and, for the mean test, its
-        innovation (NED), innovation covariance S and the attitude C_nb. True when the test failed
+        innovation (NED), innovation covariance S and the attitude C_nb. True when a test failed
         at this update (the filter reacts: ``InsFilter._on_inconsistency``)."""
         if kind not in self._win:
             return False
-        self.t_last_gnss_s = float(t_s)
+        t_s = float(t_s)
+        self.t_last_gnss_s = t_s
         if t_s < self.t_settled_s:
             return False
-        win, acc = self._win[kind], self._sum[kind]
         x = self._capped(float(nis), int(dof))
-        win.append((float(t_s), x, int(dof)))
+        win, acc = self._win[kind], self._sum[kind]
+        win.append((t_s, x, int(dof)))
         acc[0] += x
         acc[1] += int(dof)
         while win and win[0][0] <= t_s - self.window_s:
             _, x0, d0 = win.popleft()
             acc[0] -= x0
             acc[1] -= d0
-        total, dof_sum = acc
-        limit = self._quantile(dof_sum) if dof_sum > 0 else math.inf
-        self.last_statistic[kind] = (total, dof_sum, limit)
-        fail = total > limit
+        zx = zy = math.nan
         if innovation is not None and S is not None and C_nb is not None and len(innovation) == 3:
-            fail |= self._mean_test(kind, float(t_s), innovation, S, C_nb)
-        if fail:
-            self.failed = True
-            self.turn_since_fail_rad = 0.0
-            self.failures += 1
-            self.last_failure_t_s = float(t_s)
-        return bool(fail)
+            nu_b = C_nb.T @ np.asarray(innovation, float)
+            S_b = C_nb.T @ np.asarray(S, float) @ C_nb
+            sx, sy = math.sqrt(max(S_b[0, 0], 1e-30)), math.sqrt(max(S_b[1, 1], 1e-30))
+            if kind == "gnss_vel":
+                self.vel_innovation_sd_mps = max(sx, sy)
+            cap = 6.0
+            zx = max(-cap, min(cap, float(nu_b[0]) / sx))
+            zy = max(-cap, min(cap, float(nu_b[1]) / sy))
+        fail = False
+        blk = self._blk[kind]
+        if blk is not None and t_s >= blk[0] + self.window_s:
+            fail = self._evaluate(kind, blk, t_s)
+            blk = None
+        if blk is None:
+            blk = self._blk[kind] = [t_s, 0.0, 0, 0.0, 0.0, 0]
+        blk[1] += x
+        blk[2] += int(dof)
+        if zx == zx:
+            blk[3] += zx
+            blk[4] += zy
+            blk[5] += 1
+        return fail
+
+    def _evaluate(self, kind: str, blk: list, t_s: float) -> bool:
+        """The tests of one completed block (disjoint blocks: each update is tested once)."""
+        _, nis_sum, dof_sum, zx, zy, n = blk
+        alarm = dof_sum > 0 and nis_sum > self._chi2(self.p_test, dof_sum)
+        quiet = dof_sum == 0 or nis_sum <= self._chi2(self.release_level, dof_sum)
+        mx = my = math.nan
+        if n >= _MIN_MEAN_UPDATES:
+            r = 1.0 / math.sqrt(n)
+            mx, my = zx * r, zy * r
+            alarm |= max(abs(mx), abs(my)) > self.mean_z_limit
+            quiet &= max(abs(mx), abs(my)) <= self.release_z
+            if kind == "gnss_vel":
+                self.vel_updates_per_block = n
+        self.last_statistic[kind] = (nis_sum, dof_sum, self._chi2(self.p_test, dof_sum) if dof_sum else math.inf)
+        self.last_statistic[kind + "_mean"] = (mx, my, self.mean_z_limit)
+        if alarm:
+            self.fail(t_s)
+        elif quiet:
+            self.quiet_blocks += 1
+            if self.failed and self.reverify and self.quiet_blocks >= self.release_windows * len(self.kinds):
+                self.failed = False
+                self.releases += 1
+        else:
+            self.quiet_blocks = 0
+        return bool(alarm)
 
     def variance_ratio(self, kind: str = "gnss_pos", min_dof: int = 30) -> float:
         """max(1, windowed sum of NIS / its degrees of freedom) of ``kind``: the factor by which the
@@ -159,70 +235,36 @@ class ConsistencyMonitor:
             return 1.0
         return max(1.0, acc[0] / acc[1])
 
-    def clear_windows(self) -> None:
-        """Forget the windowed sums (after the filter changed its model, e.g. widened an effect's
-        covariance: the innovations before it no longer describe the filter that follows)."""
-        for k in self.kinds:
-            self._win[k].clear()
-            self._sum[k] = [0.0, 0]
-            self._mwin[k].clear()
-            self._msum[k] = [0.0, 0.0, 0]
-
-    def _mean_test(self, kind: str, t_s: float, innovation, S, C_nb) -> bool:
-        """Window mean of the body-x / body-y normalised innovations (see module docstring)."""
-        nu_b = C_nb.T @ np.asarray(innovation, float)
-        S_b = C_nb.T @ np.asarray(S, float) @ C_nb
-        sx, sy = math.sqrt(max(S_b[0, 0], 1e-30)), math.sqrt(max(S_b[1, 1], 1e-30))
-        if kind == "gnss_vel":
-            self.vel_innovation_sd_mps = max(sx, sy)
-        zx, zy = float(nu_b[0]) / sx, float(nu_b[1]) / sy
-        cap = 6.0
-        zx, zy = max(-cap, min(cap, zx)), max(-cap, min(cap, zy))
-        win, acc = self._mwin[kind], self._msum[kind]
-        win.append((t_s, zx, zy))
-        acc[0] += zx
-        acc[1] += zy
-        acc[2] += 1
-        while win and win[0][0] <= t_s - self.mean_window_s:
-            _, x0, y0 = win.popleft()
-            acc[0] -= x0
-            acc[1] -= y0
-            acc[2] -= 1
-        n = acc[2]
-        if n < 10:
-            return False
-        r = 1.0 / math.sqrt(n)
-        self.last_statistic[kind + "_mean"] = (acc[0] * r, acc[1] * r, self.mean_z_limit)
-        return abs(acc[0]) * r > self.mean_z_limit or abs(acc[1]) * r > self.mean_z_limit
-
     def detectable_lever_arm_m(self, yaw_rate_rps: float) -> float:
-        """The smallest horizontal lever-arm error the mean test finds at this yaw rate (minimal
-        detectable bias, Baarda 1968; Teunissen 2000 *Testing theory* ch. 4): an error dl gives the
-        GNSS velocity innovations a body-frame mean |w| dl, so over a window of n updates of sd
-        sigma_v the statistic is |w| dl sqrt(n) / sigma_v, found with 90 % power (1.28 sd above the
-        limit) when dl >= (limit + 1.28) sigma_v / (|w| sqrt(n))."""
-        n = self._msum["gnss_vel"][2] if "gnss_vel" in self._msum else 0
+        """The smallest horizontal lever-arm error the mean test finds at this yaw rate with 90 %
+        power if the innovations carried its whole signature (minimal detectable bias, Baarda 1968;
+        Teunissen 2000 *Testing theory* ch. 4): an error dl gives the GNSS velocity innovations a
+        body-frame mean |w| dl, so over a block of n updates of sd sigma_v the statistic is
+        |w| dl sqrt(n) / sigma_v, found when dl >= (limit + 1.28) sigma_v / (|w| sqrt(n)). The
+        filter absorbs part of that signature (``FaultTolerantSolution`` accounts for it); this
+        figure only gates the turn counting of ``verify_turn_deg``."""
+        n = self.vel_updates_per_block
         w = abs(yaw_rate_rps)
-        if n < 10 or w <= 0 or not math.isfinite(self.vel_innovation_sd_mps):
+        if n < _MIN_MEAN_UPDATES or w <= 0 or not math.isfinite(self.vel_innovation_sd_mps):
             return math.inf
         return (self.mean_z_limit + 1.28) * self.vel_innovation_sd_mps / (w * math.sqrt(n))
 
     def feed_motion(self, t_s: float, dt_s: float, yaw_rate_rps: float, speed_mps: float) -> None:
-        """Vehicle motion over the last dt_s: the turn counts toward verification when moving with
-        GNSS updates (within the last second) and turning fast enough that the test would find a
-        lever-arm error of ``detectable_lever_arm_m`` (a gentle curve turns the car without
-        testing it)."""
+        """Vehicle motion over the last dt_s: the turn counts toward ``verify_turn_deg`` when moving
+        with GNSS updates (within the last second) and turning fast enough that the test would find
+        a lever-arm error of ``detectable_m``."""
+        if self.verify_turn_rad <= 0.0:
+            return
         if speed_mps < self.min_speed_mps or t_s - self.t_last_gnss_s > 1.0 or t_s < self.t_settled_s:
             return
         if self.detectable_lever_arm_m(yaw_rate_rps) > self.detectable_m:
             return
         self.turn_since_fail_rad += abs(yaw_rate_rps) * max(dt_s, 0.0)
-        if self.failed and self.reverify and self.turn_since_fail_rad >= self.verify_turn_rad:
-            self.failed = False
 
     @property
     def verified(self) -> bool:
-        return not self.failed and self.turn_since_fail_rad >= self.verify_turn_rad
+        return (not self.failed and self.turn_since_fail_rad >= self.verify_turn_rad
+                and self.protection_m <= self.protection_limit_m)
 
     @property
     def state(self) -> str:
@@ -231,6 +273,191 @@ class ConsistencyMonitor:
         return VERIFIED if self.verified else UNVERIFIED
 
     def summary(self) -> dict:
-        return {"state": self.state, "failures": self.failures, "last_failure_t_s": self.last_failure_t_s,
+        return {"state": self.state, "failures": self.failures, "releases": self.releases,
+                "last_failure_t_s": self.last_failure_t_s, "protection_m": self.protection_m,
                 "turn_since_failure_deg": math.degrees(self.turn_since_fail_rad),
                 "window": {k: list(v) for k, v in self.last_statistic.items()}}
+
+
+def widen_lever_arm(P: np.ndarray, lever_index: int, pos_index: int, vel_index: int, C_nb: np.ndarray,
+                    rate_body_rps: np.ndarray, sd_m: float, axes: tuple = (0, 1)) -> np.ndarray:
+    """P with the lever arm's variance on ``axes`` (body x, y) raised to ``sd_m``^2, as the filter's
+    errors would be if the antenna were off by an extra dl ~ N(0, (sd_m^2 - P_ll) I) on those axes.
+
+    A filter that tracks its GNSS antenna (10 Hz fixes of 1 cm) while holding a lever arm that is
+    wrong by dl puts the IMU point where the antenna minus the wrong lever arm is: its position
+    error is -C_nb dl and its velocity error -C_nb (w x dl) (the GNSS models of ``updates``).
+    So the widened covariance is ``P + G D G^T`` with G = [-C_nb; -C_nb [w x]; I] on
+    (position, velocity, lever arm) and D the added variance -- not a bare diagonal entry, which
+    would claim the IMU point known to centimetres while its antenna offset is unknown to
+    decimetres (a consider-parameter view, Bar-Shalom et al. 2001 sec. 9.3). Axes already that
+    uncertain are left alone."""
+    P = P.copy()
+    n = P.shape[0]
+    W = np.array([[0.0, -rate_body_rps[2], rate_body_rps[1]], [rate_body_rps[2], 0.0, -rate_body_rps[0]],
+                  [-rate_body_rps[1], rate_body_rps[0], 0.0]])
+    for a in axes:
+        add = sd_m ** 2 - P[lever_index + a, lever_index + a]
+        if not add > 0:
+            continue
+        e = np.zeros(3)
+        e[a] = 1.0
+        g = np.zeros(n)
+        g[pos_index:pos_index + 3] = -C_nb @ e
+        g[vel_index:vel_index + 3] = -C_nb @ (W @ e)
+        g[lever_index + a] = 1.0
+        P += add * np.outer(g, g)
+    return 0.5 * (P + P.T)
+
+
+class FaultTolerantSolution:
+    """Solution separation against an undeclared horizontal antenna lever arm (protection level).
+
+    The filter's lever-arm state starts from the *declared* prior (a few cm). A lever arm that is
+    wrong by dl makes a position error that is constant in the body frame; the filter can tell it
+    from a position error only through rotation (w x dl in the GNSS velocity), and even then part of
+    the signature is absorbed by other states (in a steady turn a body-frame accelerometer bias
+    -w^2 dl carries the same signal; a velocity latency a dt = v w dt sideways mimics w x dl_x).
+    How much of dl the data has pinned down, after all that absorption, is what an estimator that
+    does *not* trust the declaration knows about it. So a second, fault-tolerant estimate runs
+    alongside the filter: the same error-state model, the same measurements and gains structure,
+    but a horizontal lever-arm prior of ``fault_sd_m`` (an undeclared antenna offset on a car roof).
+    This is the solution-separation form of RAIM (Brenner 1996, "Integrated GPS/inertial fault
+    detection availability", Navigation 43(2); Blanch et al. 2015, "Baseline advanced RAIM user
+    algorithm and possible improvements", IEEE TAES 51(1)), with the fault-tolerant "subset"
+    solution being the one that drops the declared lever-arm information.
+
+    Kept in the main filter's error coordinates: ``w`` is the fault-tolerant filter's estimate of
+    the main filter's error state (so ``w[pos]`` is the separation main - fault-tolerant).
+    Prediction ``w <- Phi w``, ``P_w <- Phi P_w Phi^T + Q`` (``ekf.propagate_covariance``); at an
+    update with ``d = H e + v`` (main's prediction minus measurement) ``w <- w + K_w (d - H w)``,
+    ``P_w <- (I - K_w H) P_w``, then ``w <- w - dx_main`` (the main filter feeds its correction
+    back into its nominal state, which moves the origin of these coordinates).
+
+    Test and protection (per body axis x / y, horizontal):
+    under the fault-free hypothesis the main filter is the better estimate, so the separation's
+    covariance is ``P_w - P_m`` (the two errors are orthogonal, Brenner 1996); the test alarms when
+    ``|s_i| > K_fa sigma_ss,i``; the protection level, the largest error the test misses with
+    probability ``p_md``, is ``PL_i = K_fa sigma_ss,i + K_md sigma_w,i`` (Blanch et al. 2015
+    eq. 30; RTCA DO-229 defines the protection level as the bound that holds with the integrity
+    risk). The test runs every ``test_every_s`` (the separation changes over seconds, not
+    epochs), and its level is set per hour by the Bonferroni bound over the tests of an hour:
+    ``P(any false alarm in an hour) <= N_tests p_test`` with ``N_tests = 2 axes x 3600 /
+    test_every_s`` -- a union bound, valid whatever the correlation between the tests.
+    """
+
+    def __init__(self, lever_index: int, fault_sd_m: float = 0.5, false_alarm_per_hour: float = 1e-3,
+                 missed_detection: float = 1e-3, test_every_s: float = 1.0, min_sd_m: float = 1e-3):
+        self.lever_index = int(lever_index)
+        self.fault_sd_m = float(fault_sd_m)
+        self.test_every_s = float(test_every_s)
+        n_tests = 2.0 * 3600.0 / self.test_every_s
+        self.p_test = float(false_alarm_per_hour) / n_tests
+        self.k_fa = float(norm.isf(0.5 * self.p_test))
+        self.k_md = float(norm.isf(float(missed_detection)))
+        self.min_sd_m = float(min_sd_m)
+        self.P: np.ndarray | None = None
+        self.w: np.ndarray | None = None
+        self.t_last_test_s = -math.inf
+        self.protection_m = math.inf
+        self.separation_sd: tuple = (math.nan, math.nan)
+        self.last: dict = {}
+        self.alarms = 0
+        self.excluded = False
+
+    @property
+    def active(self) -> bool:
+        return self.P is not None
+
+    def start(self, P_main: np.ndarray, C_nb: np.ndarray, rate_body_rps: np.ndarray) -> None:
+        """Start from the main filter's covariance with the horizontal lever arm widened
+        (``widen_lever_arm``; not after an exclusion: the main filter no longer holds the
+        declaration) and no separation."""
+        self.P = (P_main.copy() if self.excluded else
+                  widen_lever_arm(P_main, self.lever_index, POS, VEL, C_nb, rate_body_rps, self.fault_sd_m))
+        self.w = np.zeros(self.P.shape[0])
+        self.protection_m = math.inf
+        self.t_last_test_s = -math.inf
+
+    def exclude(self, P_main: np.ndarray) -> None:
+        """The main filter took over this solution (the declared lever arm was rejected): from now
+        on both are the same estimate, with no declaration left to test (the separation stays 0 and
+        the protection level is that of the estimate itself)."""
+        self.excluded = True
+        self.P = P_main.copy()
+        self.w = np.zeros(P_main.shape[0])
+
+    def stop(self) -> None:
+        self.P = None
+        self.w = None
+        self.protection_m = math.inf
+
+    def propagate(self, A: np.ndarray, q_c: np.ndarray, dt_s: float) -> None:
+        """Time update with the main filter's transition (A before ``propagate_covariance`` resets it)."""
+        if self.P is None:
+            return
+        n = A.shape[0]
+        Phi = A @ A
+        Phi *= 0.5
+        Phi += A
+        Phi.flat[::n + 1] += 1.0
+        Qh = 0.5 * q_c * max(dt_s, 0.0)
+        P1 = self.P.copy()
+        P1.flat[::n + 1] += Qh
+        P = Phi @ P1 @ Phi.T
+        P.flat[::n + 1] += Qh
+        self.P = 0.5 * (P + P.T)
+        self.w = Phi @ self.w
+
+    def update(self, H: np.ndarray, d: np.ndarray, R: np.ndarray, dx_main: np.ndarray) -> None:
+        """Measurement update with the data the main filter accepted (see class docstring)."""
+        if self.P is None:
+            return
+        PHt = self.P @ H.T
+        S = H @ PHt + R
+        try:
+            K = np.linalg.solve(S, PHt.T).T
+        except np.linalg.LinAlgError:
+            return
+        self.w = self.w + K @ (np.asarray(d, float) - H @ self.w) - dx_main
+        P = self.P - K @ PHt.T
+        self.P = 0.5 * (P + P.T)
+
+    def reset_states(self, index, P_main: np.ndarray) -> None:
+        """The main filter took these states from a measurement and reset their covariance
+        (position reset): the fault-tolerant one takes the same values."""
+        if self.P is None:
+            return
+        idx = np.asarray(index)
+        self.P[idx, :] = 0.0
+        self.P[:, idx] = 0.0
+        self.P[np.ix_(idx, idx)] = P_main[np.ix_(idx, idx)]
+        self.w[idx] = 0.0
+
+    def due(self, t_s: float) -> bool:
+        return self.P is not None and t_s - self.t_last_test_s >= self.test_every_s - 1e-9
+
+    def test(self, t_s: float, J_pos: np.ndarray, P_main: np.ndarray, yaw_rad: float) -> bool:
+        """Separation test and protection level of the reported position (rows ``J_pos`` of the
+        reported Jacobian, ``reported.reported_jacobian``) along the body x / y axes (heading
+        ``yaw_rad``). True when the separation exceeds its threshold on an axis."""
+        if self.P is None:
+            return False
+        self.t_last_test_s = float(t_s)
+        c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+        T = np.array([[c, s, 0.0], [-s, c, 0.0]]) @ J_pos          # body x / y <- error state
+        sep = T @ self.w
+        Pw = T @ self.P @ T.T
+        Pss = Pw - T @ P_main @ T.T
+        sd_ss = np.sqrt(np.maximum(np.diag(Pss), self.min_sd_m ** 2))
+        sd_w = np.sqrt(np.maximum(np.diag(Pw), 0.0))
+        pl = self.k_fa * sd_ss + self.k_md * sd_w
+        self.protection_m = float(math.hypot(pl[0], pl[1]))
+        self.separation_sd = (float(sd_ss[0]), float(sd_ss[1]))
+        z = np.abs(sep) / sd_ss
+        self.last = {"t_s": float(t_s), "separation_m": sep.tolist(), "sd_separation_m": sd_ss.tolist(),
+                     "sd_fault_tolerant_m": sd_w.tolist(), "protection_m": self.protection_m,
+                     "z": z.tolist(), "k_fa": self.k_fa}
+        alarm = bool(np.any(z > self.k_fa))
+        self.alarms += int(alarm)
+        return alarm

@@ -2,9 +2,9 @@
 
 The class runs named steps; the ideas live in their own modules:
 
-* per IMU sample batch (``_run_body``): the jitted strapdown (``mechanization``), which also sums
-  the error dynamics A = sum F dt;
-* per chunk of ``cov_every`` samples (``_end_chunk``): stop detection (``motion``), the smoothed
+* the IMU path (``imu_path``): per sample batch (``_run_body``) the jitted strapdown
+  (``mechanization``), which also sums the error dynamics A = sum F dt; per chunk of
+  ``cov_every`` samples (``_end_chunk``) stop detection (``motion``), the smoothed
   acceleration for the models, the stop calibration (``static_calibration``), the divergence
   check, covariance propagation (``ekf``, Q_c from ``noise``), the consistency test's motion
   (``consistency``), and at ``constraint_rate_hz`` ZUPT/ZARU when static or the car's NHC;
@@ -26,34 +26,24 @@ import numpy as np
 from scipy.stats import chi2
 
 from v2xpos import geo
-from v2xpos.rotation import dcm_from_euler, orthonormalize, skew
+from v2xpos.rotation import dcm_from_euler, skew
 from v2xpos.types import FixStatus
 
 from . import ekf, updates
 from .alignment import CoarseAligner, CourseTracker
 from .config import InsConfig
-from .consistency import ConsistencyMonitor
+from .consistency import ConsistencyMonitor, FaultTolerantSolution, widen_lever_arm
 from .ekf import ATT, BA, BG, EFFECT_SIZES, POS, VEL, StateLayout, kalman_update
 from .effects import EffectValues
+from .imu_path import ImuPath
 from .initialization import Initialization
-from .mechanization import (COR_BA, COR_BG, COR_SA, COR_SG, MEM_SIZE, MEM_W, NAV_H, NAV_LAT, NAV_LON, NAV_VEL,
-                            strapdown_batch)
+from .mechanization import COR_BA, COR_BG, COR_SA, COR_SG, MEM_SIZE, MEM_W, NAV_H, NAV_LAT, NAV_LON, NAV_VEL
 from .motion import StopDetector
 from .noise import ImuNoiseMeter, process_noise_density
 from .outputs import Outputs
+from .reported import reported_jacobian
 from .static_calibration import StaticBiasEstimate, StaticCalibrator
 from .updates import UpdateResult
-
-DIVERGED_LATITUDE_RAD = 1.5
-"""|latitude| beyond this (86 deg) means the strapdown has run away (no vehicle goes there): the
-filter drops its solution and aligns again."""
-ORTHONORMALIZE_EVERY_CHUNKS = 100
-"""C_nb is re-orthonormalised every this many IMU chunks (rounding drift of the products)."""
-TIME_TOLERANCE_S = 1e-6
-"""Stamps this close count as the same time when deciding whether a constraint is due."""
-MIN_SMOOTHING_TAU_S = 1e-6
-"""Floor of ``acc_smoothing_tau_s`` (a zero time constant means no smoothing)."""
-
 
 
 def _small_rotation(phi: np.ndarray) -> np.ndarray:
@@ -71,11 +61,21 @@ def _small_rotation(phi: np.ndarray) -> np.ndarray:
     return np.eye(3) + s * K + c * (K @ K)
 
 
-class InsFilter(Initialization, Outputs):
+class InsFilter(ImuPath, Initialization, Outputs):
     """Loosely coupled GNSS/INS error-state EKF (see module docstring and docs/ins.md).
 
     Times passed to ``process_imu`` are the IMU stamps; the filter's own time label is
     ``stamp + imu_time_offset`` (``effects.py``). GNSS and wheel times are GPS times.
+
+    State (read and written by the steps here and in ``initialization`` / ``outputs``):
+    ``nav`` = (lat rad, lon rad, h m, v_N, v_E, v_D m/s) of the IMU point (``NAV_*`` indices);
+    ``C_nb`` body -> NED; ``corr`` the compensation of the raw samples (gyro/accel bias and scale,
+    ``COR_*``); ``fx`` the other effect values (``effects.EffectValues``); ``P`` the error-state
+    covariance in ``layout``; ``A`` the error dynamics summed since the last propagation;
+    ``mem`` the strapdown's memory of the previous sample; ``acc_ned_mps2`` the smoothed
+    acceleration of the measurement models; ``static`` the stop detector's (``stops``) verdict;
+    ``initialized`` / ``heading_known`` the alignment's progress; ``counts`` / ``residuals``
+    what the updates did; ``on_update(result, filter)`` an optional hook after every update.
     """
 
     def __init__(self, cfg: InsConfig | None = None):
@@ -92,9 +92,14 @@ class InsFilter(Initialization, Outputs):
         self.q_c = process_noise_density(self.layout, c)
         self.noise_meter = (ImuNoiseMeter(c.imu_noise_window_s, c.imu_gyro_noise_scale, c.imu_accel_noise_scale,
                                           c.gyro_noise_rps_rthz, c.accel_noise_mps2_rthz) if c.imu_noise_from_data else None)
-        self.consistency = ConsistencyMonitor(c.consistency_window_s, c.consistency_false_alarm, c.verify_turn_deg,
-                                              mean_z_limit=c.consistency_mean_z, reverify=c.consistency_reverify,
+        self.consistency = ConsistencyMonitor(c.consistency_window_s, c.consistency_false_alarm_per_hour,
+                                              c.verify_turn_deg, reverify=c.consistency_reverify,
+                                              release_windows=c.consistency_release_windows,
                                               detectable_m=c.verify_detectable_lever_arm_m)
+        i_l = self.layout.at("lever_arm")
+        self.separation = (FaultTolerantSolution(i_l, c.undeclared_lever_arm_sd_m, c.integrity_false_alarm_per_hour,
+                                                 c.integrity_missed_detection)
+                           if c.fault_tolerant_solution and i_l >= 0 and c.undeclared_lever_arm_sd_m > 0 else None)
         self._t_motion_s: float | None = None
         self.kidx = self.layout.kernel_index()
         self.fx = EffectValues(c.lever_arm_m)
@@ -186,75 +191,6 @@ class InsFilter(Initialization, Outputs):
         k = ekf.EFFECT_SIZES[name]
         return np.sqrt(np.diag(self.P)[i:i + k])
 
-    # ------------------------------------------------------------------ IMU
-    def process_imu(self, t_s: float, acc_mps2: np.ndarray, gyro_rps: np.ndarray) -> None:
-        """One IMU sample in IMU axes (specific force [m/s^2], rate [rad/s]) stamped t_s."""
-        try:
-            t = float(t_s)
-            a = np.asarray(acc_mps2, float).reshape(3)
-            g = np.asarray(gyro_rps, float).reshape(3)
-        except (TypeError, ValueError):
-            self.counts["malformed_inputs"] += 1
-            return
-        if (not math.isfinite(t) or not math.isfinite(float(a @ a + g @ g))
-                or (self._last_sample_t is not None and t <= self._last_sample_t)):
-            self.counts["malformed_inputs"] += 1
-            return
-        M = self.cfg.imu_to_body
-        f_b = M @ a
-        w_b = M @ g
-        self._last_sample_t = t
-        self._last_raw_f_b = f_b
-        self._last_raw_w_b = w_b
-        self._run_body(np.array([t]), f_b.reshape(1, 3), w_b.reshape(1, 3))
-
-    def process_imu_batch(self, t_s: np.ndarray, acc_mps2: np.ndarray, gyro_rps: np.ndarray) -> None:
-        """Several IMU samples (IMU axes); equivalent to calling ``process_imu`` on each in order."""
-        acc = np.asarray(acc_mps2, float).reshape(-1, 3)
-        gyr = np.asarray(gyro_rps, float).reshape(-1, 3)
-        t_s = np.ascontiguousarray(np.atleast_1d(t_s), dtype=float)
-        good = np.isfinite(t_s) & np.isfinite(acc).all(axis=1) & np.isfinite(gyr).all(axis=1)
-        if not good.all():
-            acc, gyr = np.where(good[:, None], acc, 0.0), np.where(good[:, None], gyr, 0.0)
-        f_b = np.ascontiguousarray(acc @ self.cfg.imu_to_body.T)
-        w_b = np.ascontiguousarray(gyr @ self.cfg.imu_to_body.T)
-        if self._last_sample_t is not None:
-            good &= t_s > self._last_sample_t
-        if not good.all():
-            self.counts["malformed_inputs"] += int((~good).sum())
-            t_s, f_b, w_b = t_s[good], f_b[good], w_b[good]
-        if len(t_s) > 1:
-            keep = np.concatenate([[True], t_s[1:] > np.maximum.accumulate(t_s)[:-1]])
-            if not keep.all():
-                self.counts["malformed_inputs"] += int((~keep).sum())
-                t_s, f_b, w_b = t_s[keep], f_b[keep], w_b[keep]
-        if len(t_s):
-            self._last_sample_t = float(t_s[-1])
-            self._last_raw_f_b = f_b[-1].copy()
-            self._last_raw_w_b = w_b[-1].copy()
-            self._run_body(t_s, f_b, w_b)
-
-    def _run_body(self, t_s: np.ndarray, f_b: np.ndarray, w_b: np.ndarray) -> None:
-        n = len(t_s)
-        i = 0
-        ce = self.cfg.cov_every
-        while i < n:
-            j = min(n, i + ce - self._since_chunk)
-            if self.initialized:
-                t_prev = self.t_stamp_s if self.t_stamp_s is not None else t_s[i]
-                t0 = perf_counter()
-                strapdown_batch(t_s, f_b, w_b, i, j, t_prev, self.nav, self.C_nb, self.corr, self.mem,
-                                self.A, self.kidx, 1.0 / self.cfg.gyro_bias_tau_s, 1.0 / self.cfg.accel_bias_tau_s)
-                self.stage_s["strapdown"] += perf_counter() - t0
-            self.t_stamp_s = float(t_s[j - 1])
-            self._chunk_t.append(t_s[i:j])
-            self._chunk_f.append(f_b[i:j])
-            self._chunk_w.append(w_b[i:j])
-            self._since_chunk += j - i
-            i = j
-            if self._since_chunk >= ce:
-                self._end_chunk()
-
     def _flush_covariance(self) -> None:
         if not self.initialized or self._t_cov_s is None:
             return
@@ -267,6 +203,8 @@ class InsFilter(Initialization, Outputs):
             if self.noise_meter is not None:
                 self.noise_meter.apply(self.q_c, self.C_nb)
             t0 = perf_counter()
+            if self.separation is not None:
+                self.separation.propagate(self.A, self.q_c, max(dt, 0.0))
             self.P = ekf.propagate_covariance(self.P, self.A, self.q_c, max(dt, 0.0))
             self.stage_s["covariance"] += perf_counter() - t0
             if not self.heading_known:
@@ -280,103 +218,6 @@ class InsFilter(Initialization, Outputs):
         self.P[k, :] = 0.0
         self.P[:, k] = 0.0
         self.P[k, k] = d
-
-    def _end_chunk(self) -> None:
-        """End of an IMU chunk (``cov_every`` samples): the steps below, in this order. Before the
-        filter is aligned only the first three run, and the chunk feeds the coarse alignment."""
-        t, f, w = self._take_chunk()
-        if len(t) == 0:
-            return
-        self._last_w_b = (self.mem[MEM_W:MEM_W + 3].copy() if self.initialized
-                          else w[-1] - self.corr[COR_BG:COR_BG + 3])
-        if self.noise_meter is not None:
-            self.noise_meter.feed(t, w, f)
-        self._detect_stop(f, w)
-        if self.initialized:
-            self._smooth_acceleration(float(t[-1]))
-        speed = math.sqrt(float(self.nav[3:6] @ self.nav[3:6])) if self.initialized else 0.0
-        est = self._feed_stop_calibration(t, f, w, speed)
-        if not self.initialized:
-            self._feed_alignment(t, f, w, est)
-            return
-        if np.abs(self.nav[NAV_LAT]) > DIVERGED_LATITUDE_RAD or not np.all(np.isfinite(self.nav)):
-            self.initialized = False
-            return
-        self._flush_covariance()
-        self._feed_consistency_motion(speed)
-        if est is not None:
-            self.counts["static_calibrations"] += 1
-            if self.cfg.apply_static_calibration:
-                self._update_static_calibration(est)
-        if (not self.cfg.constraints_on_request
-                and self.t_stamp_s - self._last_constraint_t >= 1.0 / self.cfg.constraint_rate_hz - TIME_TOLERANCE_S):
-            self._last_constraint_t = self.t_stamp_s
-            self._vehicle_constraints(speed)
-        self._chunks_since_ortho += 1
-        if self._chunks_since_ortho >= ORTHONORMALIZE_EVERY_CHUNKS:
-            self._chunks_since_ortho = 0
-            self.C_nb = orthonormalize(self.C_nb)
-
-    def _take_chunk(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(t, f_b, w_b) of the samples since the last chunk end; the buffers start empty."""
-        if len(self._chunk_t) == 1:
-            t, f, w = self._chunk_t[0], self._chunk_f[0], self._chunk_w[0]
-        else:
-            t = np.concatenate(self._chunk_t)
-            f = np.concatenate(self._chunk_f)
-            w = np.concatenate(self._chunk_w)
-        self._chunk_t.clear()
-        self._chunk_f.clear()
-        self._chunk_w.clear()
-        self._since_chunk = 0
-        return t, f, w
-
-    def _detect_stop(self, f: np.ndarray, w: np.ndarray) -> None:
-        """Feed the chunk to the stop detector (``motion``) and set ``static``."""
-        if self.initialized:
-            self.stops.feed(f, w, self.C_nb, self.corr[COR_BA:COR_BA + 3])
-        else:
-            self.stops.feed(f, w)
-        self.static = self.stops.is_static(self.t_s, self.corr[COR_BG:COR_BG + 3],
-                                           self.nav[3:6] if self.initialized else None)
-
-    def _smooth_acceleration(self, t_end_s: float) -> None:
-        """Kinematic acceleration for the measurement models (not for ``nav_state``): the velocity
-        change over the chunk, through a first-order low-pass of time constant
-        ``acc_smoothing_tau_s`` (gain dt / tau, at most 1)."""
-        v_now = self.nav[3:6].copy()
-        if self._v_prev_chunk is not None and t_end_s > self._t_prev_chunk:
-            dt_c = float(t_end_s - self._t_prev_chunk)
-            a_c = (v_now - self._v_prev_chunk) / dt_c
-            k = min(1.0, dt_c / max(self.cfg.acc_smoothing_tau_s, MIN_SMOOTHING_TAU_S))
-            self.acc_ned_mps2 = self.acc_ned_mps2 + k * (a_c - self.acc_ned_mps2)
-        self._v_prev_chunk, self._t_prev_chunk = v_now, t_end_s
-
-    def _feed_stop_calibration(self, t: np.ndarray, f: np.ndarray, w: np.ndarray,
-                               speed_mps: float) -> StaticBiasEstimate | None:
-        """The stop calibrator (``static_calibration``) with the chunk; below
-        ``calibration_moving_speed_mps`` it is given the normal gravity at the position."""
-        moving = self.initialized and speed_mps > self.cfg.calibration_moving_speed_mps
-        g = geo.normal_gravity_mps2(self.nav[NAV_LAT], self.nav[NAV_H]) if self.initialized and not moving else None
-        return self.calibrator.feed(t, f, w, moving=moving, gravity_mps2=g)
-
-    def _feed_alignment(self, t: np.ndarray, f: np.ndarray, w: np.ndarray, est: StaticBiasEstimate | None) -> None:
-        """Before alignment: the coarse aligner gets the bias-compensated chunk, and a stop's
-        bias estimate goes straight into the compensation."""
-        self.aligner.feed(t, f - self.corr[COR_BA:COR_BA + 3], w - self.corr[COR_BG:COR_BG + 3], self.static)
-        if est is not None:
-            self.counts["static_calibrations"] += 1
-            if self.cfg.apply_static_calibration:
-                self.corr[COR_BG:COR_BG + 3] = est.gyro_bias_rps
-                self.corr[COR_BA:COR_BA + 3] = est.accel_bias_mps2
-
-    def _feed_consistency_motion(self, speed_mps: float) -> None:
-        """Tell the consistency test (``consistency``) how far the vehicle turned since the last chunk."""
-        t_end = float(self.t_s)
-        if self._t_motion_s is not None and self.heading_known:
-            yaw_rate = float(self.C_nb[2] @ self._last_w_b)
-            self.consistency.feed_motion(t_end, t_end - self._t_motion_s, yaw_rate, speed_mps)
-        self._t_motion_s = t_end
 
     # ------------------------------------------------------------------ update machinery
     def _apply(self, dx: np.ndarray) -> None:
@@ -401,6 +242,8 @@ class InsFilter(Initialization, Outputs):
         t0 = perf_counter()
         dx, P, nis, S, ok = kalman_update(self.P, H, d, R, self.gate.get(len(d), None) if gate else None, force)
         if ok:
+            if self.separation is not None:
+                self.separation.update(H, d, R, dx)
             self.P = P
             self._apply(dx)
         self.stage_s["kalman_updates"] += perf_counter() - t0
@@ -421,16 +264,33 @@ class InsFilter(Initialization, Outputs):
         effect whose declared prior is the tightest and whose error only turning reveals -- the
         horizontal antenna lever arm, declared to a few cm (an undeclared 0.5 m offset is a
         constant body-frame bias the filter cannot see on a straight road, Groves 2013 sec. 14.2.7)
-        -- gets its variance reopened to ``undeclared_lever_arm_sd_m``^2 with its correlations
-        dropped (a covariance reset; conservative: the other states keep theirs). The position
-        covariance then grows through the lever arm's in the next GNSS updates and the turns that
-        follow estimate it; the reported sigma includes what is still unknown. The windows of the
-        test restart (their innovations came from the filter before the reset)."""
+        -- is what the evidence rejects. With the fault-tolerant solution running
+        (``consistency.FaultTolerantSolution``) the filter *excludes* the declaration (RAIM fault
+        detection and exclusion): it takes that solution's state and covariance, the estimate that
+        never relied on the declared lever arm and is consistent under the fault. Otherwise (or
+        after an exclusion) the lever arm's variance is reopened to ``undeclared_lever_arm_sd_m``^2
+        together with what a wrong lever arm does to the IMU point the filter reports
+        (``consistency.widen_lever_arm``: the position error -C_nb dl of a filter that tracks its
+        antenna), so the reported sigma grows at once and the turns that follow estimate it, and
+        the other effect states go back to their priors. The windows of the test restart (their
+        innovations came from the filter before the change)."""
         i = self.layout.at("lever_arm")
         sd = self.cfg.undeclared_lever_arm_sd_m
         if not self.cfg.reopen_on_inconsistency or i < 0 or not sd > 0:
             return
-        reopen = [(i, sd), (i + 1, sd)]
+        sep = self.separation
+        if sep is not None and sep.active and not sep.excluded:
+            self._apply(sep.w)
+            self.P = sep.P.copy()
+            sep.exclude(self.P)
+            self.counts["lever_arm_excluded"] = self.counts.get("lever_arm_excluded", 0) + 1
+            self.consistency.clear_windows()
+            return
+        widened = False
+        if min(self.P[i, i], self.P[i + 1, i + 1]) < 0.25 * sd * sd:
+            self.P = widen_lever_arm(self.P, i, POS, VEL, self.C_nb, self.mem[MEM_W:MEM_W + 3], sd)
+            widened = True
+        reopen = []
         if self.cfg.reopen_all_effects:
             # the other effect states were estimated with the lever arm held at its declared value:
             # what they absorbed of its signature (a velocity latency dt gives a x dt = v w dt
@@ -440,7 +300,6 @@ class InsFilter(Initialization, Outputs):
                     continue
                 j, sd0 = self.layout.at(name), np.broadcast_to(self.cfg.effect_initial_sd.get(name, 0.0), (EFFECT_SIZES[name],))
                 reopen += [(j + m, float(sd0[m])) for m in range(EFFECT_SIZES[name])]
-        widened = False
         for k, s_k in reopen:
             if s_k > 0 and self.P[k, k] < 0.25 * s_k * s_k:
                 self.P[k, :] = 0.0
@@ -450,6 +309,29 @@ class InsFilter(Initialization, Outputs):
         if widened:
             self.counts["lever_arm_reopened"] = self.counts.get("lever_arm_reopened", 0) + 1
             self.consistency.clear_windows()
+            self._restart_separation()
+
+    def _restart_separation(self) -> None:
+        """(Re)start the fault-tolerant solution from the current covariance (heading set, filter
+        started, effects reopened): its evidence about the lever arm is gathered from here on."""
+        if self.separation is not None:
+            self.separation.start(self.P, self.C_nb, self.mem[MEM_W:MEM_W + 3])
+            self.consistency.set_protection(math.inf, self.cfg.protection_limit_m)
+
+    def _test_separation(self, t_s: float) -> None:
+        """Solution-separation test and protection level (``FaultTolerantSolution``), at most every
+        ``test_every_s``; a separation beyond its threshold is a failed consistency test."""
+        sep = self.separation
+        if sep is None or not sep.due(t_s):
+            return
+        w_nb_b, a_n = self.kinematics_now()
+        J = reported_jacobian(self.layout, self.C_nb, self.fx.misalignment_rad, self.nav[3:6], a_n, w_nb_b)
+        C_nv = self.C_nb @ self.misalignment_dcm().T
+        alarm = sep.test(t_s, J[0:3], self.P, math.atan2(C_nv[1, 0], C_nv[0, 0]))
+        self.consistency.set_protection(sep.protection_m, self.cfg.protection_limit_m)
+        if alarm and t_s >= self.consistency.t_settled_s:
+            self.consistency.fail(t_s)
+            self._on_inconsistency()
 
     def _gap_s(self, t_meas_s: float) -> float:
         return t_meas_s - self.fx.gnss_latency_s - self.t_s
@@ -503,6 +385,7 @@ class InsFilter(Initialization, Outputs):
             return self._position_reset(t_s, lla, sd, fix, vel_ned_mps, float(np.sqrt(m.d @ m.d)))
         res = self._update("gnss_pos", t_s, *m, force=force)
         if res.accepted:
+            self._test_separation(t_s)
             self.counts["gnss_pos_accepted"] += 1
             self.counts["gnss_forced"] += int(force)
             self._gnss_rejections = 0

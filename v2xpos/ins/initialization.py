@@ -84,6 +84,7 @@ class Initialization:
         self.initialized = True
         self.heading_known = True
         self.consistency.restart(float(t_s))
+        self._restart_separation()
         self._v_prev_chunk = None
         self.acc_ned_mps2 = np.zeros(3)
 
@@ -126,6 +127,8 @@ class Initialization:
             self._start(self.t_s, self._imu_point_at_label(t_s, lla, np.zeros(3), C), np.zeros(3), C, pos_sd,
                         c.init_vel_sd_mps, np.array([c.init_level_sd_rad, c.init_level_sd_rad, math.pi]))
             self.heading_known = False
+            if self.separation is not None:
+                self.separation.stop()
             self.last_fix = fix
             self.last_gnss_t_s = t_s
             return UpdateResult("gnss_pos", t_s, False, np.nan, reason="initialised at a stop, heading pending")
@@ -155,6 +158,8 @@ class Initialization:
         pos_sd = np.maximum(sd * c.fix_sd_scale.get(fix, 2.0), MIN_START_POSITION_SD_M)
         vel_sd = c.init_vel_sd_mps if vel is not None else max(c.init_vel_sd_mps, 0.1 * err_m)
         self.P[idx, idx] = np.r_[pos_sd ** 2, np.full(3, vel_sd ** 2)]
+        if self.separation is not None:
+            self.separation.reset_states(idx, self.P)
         self._gnss_rejections = 0
         self.counts["position_resets"] += 1
         self.last_fix = fix
@@ -180,6 +185,7 @@ class Initialization:
                                  max(c.init_yaw_sd_rad, self._course_sd_rad) ** 2]
         self.heading_known = True
         self.consistency.restart(float(t_s))
+        self._restart_separation()
         self.last_fix = fix
         self.last_gnss_t_s = t_s
         return UpdateResult("gnss_pos", t_s, False, np.nan, reason="heading set from the GNSS course")

@@ -1,0 +1,115 @@
+"""The measurement models of ``v2xpos.ins.updates`` against measurements built independently.
+
+For each model: a true state, the measurement it gives (positions through ECEF with
+``geo.ned_to_lla``, not the models' curvilinear increments), and an estimate off the truth by a
+small error dx (est minus truth, the filter's convention: C_est = exp(-[phi x]) C_true,
+b_est = b_true + db, ...). The model's residual d = h(x_est) - z must then be H dx to first order:
+a wrong sign or a missing block in H leaves a residual of the size of that block's H dx, ten to a
+hundred times the tolerance (the second-order terms).
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from v2xpos import geo
+from v2xpos.ins import ATT, BA, BG, POS, VEL, StateLayout
+from v2xpos.ins import updates
+from v2xpos.rotation import dcm_from_euler, exp_so3
+
+LAYOUT = StateLayout.build(("lever_arm", "imu_time_offset", "gnss_latency", "gnss_vel_latency", "misalignment",
+                            "odometer_scale"))
+LLA = np.array([0.7, 0.2, 300.0])
+C_NB = dcm_from_euler(0.02, -0.03, 1.1)
+LEVER_M = np.array([0.5, -0.3, -1.2])
+V_NED = np.array([8.0, 5.0, 0.2])
+ACC_NED = np.array([0.5, -0.3, 0.1])
+RATE_B = np.array([0.01, -0.02, 0.3])
+GAP_S = 0.05
+
+
+def _error(**blocks) -> np.ndarray:
+    """Error-state vector with the named blocks (``pos``, ``att``, effect names, ...) set."""
+    dx = np.zeros(LAYOUT.n)
+    base = {"pos": POS, "vel": VEL, "att": ATT, "bg": BG, "ba": BA}
+    for name, value in blocks.items():
+        i = base[name] if name in base else LAYOUT.at(name)
+        value = np.atleast_1d(value)
+        dx[i:i + len(value)] = value
+    return dx
+
+
+def _estimate_lla(dr_ned_m: np.ndarray) -> np.ndarray:
+    """The geodetic point whose position error against LLA is dr_ned_m (est minus truth)."""
+    r_m, r_n = geo.radii_m(LLA[0])
+    return LLA + np.array([dr_ned_m[0] / (r_m + LLA[2]), dr_ned_m[1] / ((r_n + LLA[2]) * np.cos(LLA[0])),
+                           -dr_ned_m[2]])
+
+
+def test_gnss_position_residual_is_h_times_the_error():
+    z_lla = geo.ned_to_lla(C_NB @ LEVER_M + V_NED * GAP_S, LLA)
+    dx = _error(pos=[0.3, -0.2, 0.1], att=[2e-3, -1e-3, 3e-3], lever_arm=[0.02, -0.01, 0.03],
+                imu_time_offset=0.01, gnss_latency=0.004)
+    C_est = exp_so3(-dx[ATT:ATT + 3]) @ C_NB
+    gap_est = GAP_S - dx[LAYOUT.at("imu_time_offset")] - dx[LAYOUT.at("gnss_latency")]
+    m = updates.gnss_position(LAYOUT, _estimate_lla(dx[POS:POS + 3]), C_est, LEVER_M + dx[LAYOUT.at("lever_arm"):][:3],
+                              V_NED, gap_est, z_lla, np.full(3, 0.02), 0.01, timing=True)
+    assert np.abs(m.H @ dx).max() > 0.1
+    np.testing.assert_allclose(m.d, m.H @ dx, atol=2e-3)
+    np.testing.assert_allclose(np.sqrt(np.diag(m.R)), [0.02, 0.02, 0.02])
+
+
+def test_gnss_position_without_timing_leaves_the_timing_states_out():
+    m = updates.gnss_position(LAYOUT, LLA, C_NB, LEVER_M, V_NED, GAP_S, LLA, np.full(3, 0.001), 0.01, timing=False)
+    assert not m.H[:, LAYOUT.at("imu_time_offset")].any() and not m.H[:, LAYOUT.at("gnss_latency")].any()
+    np.testing.assert_allclose(np.sqrt(np.diag(m.R)), [0.01, 0.01, 0.01])   # the floor
+
+
+def test_gnss_velocity_residual_is_h_times_the_error():
+    vel_latency_s = 0.02
+    z = V_NED + C_NB @ np.cross(RATE_B, LEVER_M) + ACC_NED * (GAP_S - vel_latency_s)
+    dx = _error(vel=[0.05, -0.03, 0.02], att=[2e-3, -1e-3, 3e-3], bg=[1e-3, -2e-3, 1.5e-3],
+                lever_arm=[0.02, -0.01, 0.03], imu_time_offset=0.01, gnss_vel_latency=0.01)
+    C_est = exp_so3(-dx[ATT:ATT + 3]) @ C_NB
+    m = updates.gnss_velocity(LAYOUT, C_est, LEVER_M + dx[LAYOUT.at("lever_arm"):][:3], RATE_B - dx[BG:BG + 3],
+                              V_NED + dx[VEL:VEL + 3], ACC_NED, GAP_S - dx[LAYOUT.at("imu_time_offset")],
+                              vel_latency_s + dx[LAYOUT.at("gnss_vel_latency")], z, np.full(3, 0.05), 0.03,
+                              timing=True)
+    assert np.abs(m.H @ dx).max() > 0.02
+    np.testing.assert_allclose(m.d, m.H @ dx, atol=5e-4)
+
+
+@pytest.mark.parametrize("mis_rad", [np.zeros(3), np.array([0.01, -0.02, 0.015])])
+def test_nhc_and_odometer_residuals_are_h_times_the_error(mis_rad):
+    R_vb = dcm_from_euler(*mis_rad)
+    v_true = C_NB @ R_vb.T @ np.array([10.0, 0.0, 0.0])   # a car: no lateral or vertical velocity
+    scale = 0.02
+    speed = (1 + scale) * (R_vb @ C_NB.T @ (v_true + ACC_NED * GAP_S))[0]
+    dx = _error(vel=[0.05, -0.03, 0.02], att=[2e-3, -1e-3, 3e-3], misalignment=[1e-3, -2e-3, 1.5e-3],
+                odometer_scale=0.01)
+    C_est = exp_so3(-dx[ATT:ATT + 3]) @ C_NB
+    R_est = dcm_from_euler(*(mis_rad + dx[LAYOUT.at("misalignment"):][:3]))
+    v_est = v_true + dx[VEL:VEL + 3]
+    nhc = updates.nhc(LAYOUT, C_est, R_est, v_est, 0.3, (0.1, 0.5), 1.0)
+    assert np.abs(nhc.H @ dx).max() > 0.02
+    np.testing.assert_allclose(nhc.d, nhc.H @ dx, atol=1e-3)
+    np.testing.assert_allclose(np.sqrt(np.diag(nhc.R)), [0.1 + 1.0 * 0.3, 0.5])
+    odo = updates.odometer(LAYOUT, C_est, R_est, v_est, ACC_NED, scale + dx[LAYOUT.at("odometer_scale")], GAP_S,
+                           speed, 0.05)
+    assert np.abs(odo.H @ dx).max() > 0.05
+    np.testing.assert_allclose(odo.d, odo.H @ dx, atol=1e-3)
+
+
+def test_stop_models_measure_the_bias_errors():
+    w_ie_b = C_NB.T @ geo.earth_rate_ned_rps(LLA[0])
+    b_g, b_a = np.array([2e-3, -1e-3, 4e-3]), np.array([0.05, -0.02, 0.03])
+    dx = _error(vel=[0.01, -0.02, 0.005], bg=[1e-4, -3e-4, 2e-4], ba=[0.01, 0.02, -0.01])
+    zupt = updates.zupt(LAYOUT, dx[VEL:VEL + 3], 0.02)
+    np.testing.assert_allclose(zupt.d, zupt.H @ dx)
+    zaru = updates.zaru(LAYOUT, C_NB, LLA[0], b_g + w_ie_b, b_g + dx[BG:BG + 3], 2e-3)
+    np.testing.assert_allclose(zaru.d, zaru.H @ dx, atol=1e-12)
+    stop = updates.stop_biases(LAYOUT, C_NB, LLA[0], b_g + dx[BG:BG + 3], b_a + dx[BA:BA + 3], b_g + w_ie_b,
+                               np.full(3, 1e-5), b_a, 0.35)
+    np.testing.assert_allclose(stop.d, stop.H @ dx, atol=1e-12)
+    np.testing.assert_allclose(np.sqrt(np.diag(stop.R)),
+                               [updates.STOP_GYRO_BIAS_SD_FLOOR_RPS] * 3 + [0.35] * 3)

@@ -1,0 +1,206 @@
+"""The IMU path of ``InsFilter``: sample input, strapdown batches, and the steps at the end of each
+chunk of ``cov_every`` samples.
+
+``ImuPath`` is a base class of ``InsFilter`` holding these methods; they read and write the
+filter's state (documented on ``InsFilter``) and call its covariance flush
+(``_flush_covariance``), vehicle constraints (``_vehicle_constraints``) and stop-calibration
+update (``_update_static_calibration``). Input checks: a sample with a non-finite value or a
+stamp not after the previous one is counted in ``counts["malformed_inputs"]`` and skipped.
+"""
+from __future__ import annotations
+
+import math
+from time import perf_counter
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from v2xpos import geo
+from v2xpos.rotation import orthonormalize
+
+from .mechanization import COR_BA, COR_BG, MEM_W, NAV_H, NAV_LAT, strapdown_batch
+from .static_calibration import StaticBiasEstimate
+
+if TYPE_CHECKING:
+    from .config import InsConfig
+
+DIVERGED_LATITUDE_RAD = 1.5
+"""|latitude| beyond this (86 deg) means the strapdown has run away (no vehicle goes there): the
+filter drops its solution and aligns again."""
+ORTHONORMALIZE_EVERY_CHUNKS = 100
+"""C_nb is re-orthonormalised every this many IMU chunks (rounding drift of the products)."""
+TIME_TOLERANCE_S = 1e-6
+"""Stamps this close count as the same time when deciding whether a constraint is due."""
+MIN_SMOOTHING_TAU_S = 1e-6
+"""Floor of ``acc_smoothing_tau_s`` (a zero time constant means no smoothing)."""
+
+
+class ImuPath:
+    """IMU input and chunk steps of ``InsFilter`` (module docstring)."""
+
+    cfg: InsConfig
+
+    def process_imu(self, t_s: float, acc_mps2: np.ndarray, gyro_rps: np.ndarray) -> None:
+        """One IMU sample in IMU axes (specific force [m/s^2], rate [rad/s]) stamped t_s."""
+        try:
+            t = float(t_s)
+            a = np.asarray(acc_mps2, float).reshape(3)
+            g = np.asarray(gyro_rps, float).reshape(3)
+        except (TypeError, ValueError):
+            self.counts["malformed_inputs"] += 1
+            return
+        if (not math.isfinite(t) or not math.isfinite(float(a @ a + g @ g))
+                or (self._last_sample_t is not None and t <= self._last_sample_t)):
+            self.counts["malformed_inputs"] += 1
+            return
+        M = self.cfg.imu_to_body
+        f_b = M @ a
+        w_b = M @ g
+        self._last_sample_t = t
+        self._last_raw_f_b = f_b
+        self._last_raw_w_b = w_b
+        self._run_body(np.array([t]), f_b.reshape(1, 3), w_b.reshape(1, 3))
+
+    def process_imu_batch(self, t_s: np.ndarray, acc_mps2: np.ndarray, gyro_rps: np.ndarray) -> None:
+        """Several IMU samples (IMU axes); equivalent to calling ``process_imu`` on each in order."""
+        acc = np.asarray(acc_mps2, float).reshape(-1, 3)
+        gyr = np.asarray(gyro_rps, float).reshape(-1, 3)
+        t_s = np.ascontiguousarray(np.atleast_1d(t_s), dtype=float)
+        good = np.isfinite(t_s) & np.isfinite(acc).all(axis=1) & np.isfinite(gyr).all(axis=1)
+        if not good.all():
+            acc, gyr = np.where(good[:, None], acc, 0.0), np.where(good[:, None], gyr, 0.0)
+        f_b = np.ascontiguousarray(acc @ self.cfg.imu_to_body.T)
+        w_b = np.ascontiguousarray(gyr @ self.cfg.imu_to_body.T)
+        if self._last_sample_t is not None:
+            good &= t_s > self._last_sample_t
+        if not good.all():
+            self.counts["malformed_inputs"] += int((~good).sum())
+            t_s, f_b, w_b = t_s[good], f_b[good], w_b[good]
+        if len(t_s) > 1:
+            keep = np.concatenate([[True], t_s[1:] > np.maximum.accumulate(t_s)[:-1]])
+            if not keep.all():
+                self.counts["malformed_inputs"] += int((~keep).sum())
+                t_s, f_b, w_b = t_s[keep], f_b[keep], w_b[keep]
+        if len(t_s):
+            self._last_sample_t = float(t_s[-1])
+            self._last_raw_f_b = f_b[-1].copy()
+            self._last_raw_w_b = w_b[-1].copy()
+            self._run_body(t_s, f_b, w_b)
+
+    def _run_body(self, t_s: np.ndarray, f_b: np.ndarray, w_b: np.ndarray) -> None:
+        n = len(t_s)
+        i = 0
+        ce = self.cfg.cov_every
+        while i < n:
+            j = min(n, i + ce - self._since_chunk)
+            if self.initialized:
+                t_prev = self.t_stamp_s if self.t_stamp_s is not None else t_s[i]
+                t0 = perf_counter()
+                strapdown_batch(t_s, f_b, w_b, i, j, t_prev, self.nav, self.C_nb, self.corr, self.mem,
+                                self.A, self.kidx, 1.0 / self.cfg.gyro_bias_tau_s, 1.0 / self.cfg.accel_bias_tau_s)
+                self.stage_s["strapdown"] += perf_counter() - t0
+            self.t_stamp_s = float(t_s[j - 1])
+            self._chunk_t.append(t_s[i:j])
+            self._chunk_f.append(f_b[i:j])
+            self._chunk_w.append(w_b[i:j])
+            self._since_chunk += j - i
+            i = j
+            if self._since_chunk >= ce:
+                self._end_chunk()
+
+    def _end_chunk(self) -> None:
+        """End of an IMU chunk (``cov_every`` samples): the steps below, in this order. Before the
+        filter is aligned only the first three run, and the chunk feeds the coarse alignment."""
+        t, f, w = self._take_chunk()
+        if len(t) == 0:
+            return
+        self._last_w_b = (self.mem[MEM_W:MEM_W + 3].copy() if self.initialized
+                          else w[-1] - self.corr[COR_BG:COR_BG + 3])
+        if self.noise_meter is not None:
+            self.noise_meter.feed(t, w, f)
+        self._detect_stop(f, w)
+        if self.initialized:
+            self._smooth_acceleration(float(t[-1]))
+        speed = math.sqrt(float(self.nav[3:6] @ self.nav[3:6])) if self.initialized else 0.0
+        est = self._feed_stop_calibration(t, f, w, speed)
+        if not self.initialized:
+            self._feed_alignment(t, f, w, est)
+            return
+        if np.abs(self.nav[NAV_LAT]) > DIVERGED_LATITUDE_RAD or not np.all(np.isfinite(self.nav)):
+            self.initialized = False
+            return
+        self._flush_covariance()
+        self._feed_consistency_motion(speed)
+        if est is not None:
+            self.counts["static_calibrations"] += 1
+            if self.cfg.apply_static_calibration:
+                self._update_static_calibration(est)
+        if (not self.cfg.constraints_on_request
+                and self.t_stamp_s - self._last_constraint_t >= 1.0 / self.cfg.constraint_rate_hz - TIME_TOLERANCE_S):
+            self._last_constraint_t = self.t_stamp_s
+            self._vehicle_constraints(speed)
+        self._chunks_since_ortho += 1
+        if self._chunks_since_ortho >= ORTHONORMALIZE_EVERY_CHUNKS:
+            self._chunks_since_ortho = 0
+            self.C_nb = orthonormalize(self.C_nb)
+
+    def _take_chunk(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(t, f_b, w_b) of the samples since the last chunk end; the buffers start empty."""
+        if len(self._chunk_t) == 1:
+            t, f, w = self._chunk_t[0], self._chunk_f[0], self._chunk_w[0]
+        else:
+            t = np.concatenate(self._chunk_t)
+            f = np.concatenate(self._chunk_f)
+            w = np.concatenate(self._chunk_w)
+        self._chunk_t.clear()
+        self._chunk_f.clear()
+        self._chunk_w.clear()
+        self._since_chunk = 0
+        return t, f, w
+
+    def _detect_stop(self, f: np.ndarray, w: np.ndarray) -> None:
+        """Feed the chunk to the stop detector (``motion``) and set ``static``."""
+        if self.initialized:
+            self.stops.feed(f, w, self.C_nb, self.corr[COR_BA:COR_BA + 3])
+        else:
+            self.stops.feed(f, w)
+        self.static = self.stops.is_static(self.t_s, self.corr[COR_BG:COR_BG + 3],
+                                           self.nav[3:6] if self.initialized else None)
+
+    def _smooth_acceleration(self, t_end_s: float) -> None:
+        """Kinematic acceleration for the measurement models (not for ``nav_state``): the velocity
+        change over the chunk, through a first-order low-pass of time constant
+        ``acc_smoothing_tau_s`` (gain dt / tau, at most 1)."""
+        v_now = self.nav[3:6].copy()
+        if self._v_prev_chunk is not None and t_end_s > self._t_prev_chunk:
+            dt_c = float(t_end_s - self._t_prev_chunk)
+            a_c = (v_now - self._v_prev_chunk) / dt_c
+            k = min(1.0, dt_c / max(self.cfg.acc_smoothing_tau_s, MIN_SMOOTHING_TAU_S))
+            self.acc_ned_mps2 = self.acc_ned_mps2 + k * (a_c - self.acc_ned_mps2)
+        self._v_prev_chunk, self._t_prev_chunk = v_now, t_end_s
+
+    def _feed_stop_calibration(self, t: np.ndarray, f: np.ndarray, w: np.ndarray,
+                               speed_mps: float) -> StaticBiasEstimate | None:
+        """The stop calibrator (``static_calibration``) with the chunk; below
+        ``calibration_moving_speed_mps`` it is given the normal gravity at the position."""
+        moving = self.initialized and speed_mps > self.cfg.calibration_moving_speed_mps
+        g = geo.normal_gravity_mps2(self.nav[NAV_LAT], self.nav[NAV_H]) if self.initialized and not moving else None
+        return self.calibrator.feed(t, f, w, moving=moving, gravity_mps2=g)
+
+    def _feed_alignment(self, t: np.ndarray, f: np.ndarray, w: np.ndarray, est: StaticBiasEstimate | None) -> None:
+        """Before alignment: the coarse aligner gets the bias-compensated chunk, and a stop's
+        bias estimate goes straight into the compensation."""
+        self.aligner.feed(t, f - self.corr[COR_BA:COR_BA + 3], w - self.corr[COR_BG:COR_BG + 3], self.static)
+        if est is not None:
+            self.counts["static_calibrations"] += 1
+            if self.cfg.apply_static_calibration:
+                self.corr[COR_BG:COR_BG + 3] = est.gyro_bias_rps
+                self.corr[COR_BA:COR_BA + 3] = est.accel_bias_mps2
+
+    def _feed_consistency_motion(self, speed_mps: float) -> None:
+        """Tell the consistency test (``consistency``) how far the vehicle turned since the last chunk."""
+        t_end = float(self.t_s)
+        if self._t_motion_s is not None and self.heading_known:
+            yaw_rate = float(self.C_nb[2] @ self._last_w_b)
+            self.consistency.feed_motion(t_end, t_end - self._t_motion_s, yaw_rate, speed_mps)
+        self._t_motion_s = t_end
