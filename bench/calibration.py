@@ -151,7 +151,8 @@ def fit_run(ds, gn_iterations: int = 2) -> dict:
     est = C.Estimator(ds)
     theta = est.gauss_newton(est.coarse(), iterations=gn_iterations)
     f, prob, _ = est.refine(ds, theta, iterations=2)
-    f = est.confirm(ds, f, prob)
+    from v2xpos.diagnose import identify
+    f = identify.applied(prob, est.confirm(ds, f, prob))     # the values calibrate writes back
     return {"theta": f.theta.tolist(), "sd": f.sd.tolist(), "significant": f.significant.tolist(),
             "determined": f.determined.tolist(), "active": prob.active.tolist(), "replays": est.replays,
             "cpu_s": time.process_time() - t0}

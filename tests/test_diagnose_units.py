@@ -108,6 +108,33 @@ def test_linear_fit_recovers_parameters_and_rejects_absent_ones():
     assert np.all(identify.compare(identify.fit(a), identify.fit(b)) < 3.0)
 
 
+def test_applied_values_are_conditional_on_the_effects_written_as_zero():
+    """A significant effect correlated with a not-significant one (written as 0): the joint value
+    leans on the other's noisy estimate, the applied value is the fit with the other held at 0 --
+    the set that is written back is a consistent model -- and keeps the joint (marginal) sd."""
+    rng = np.random.default_rng(2)
+    m = 3000
+    t = np.linspace(0, 300, m)
+    J = np.zeros((m, inject.N_PARAMS))
+    J[:, 0] = 100 * np.sin(t / 7.0)
+    J[:, 1] = 0.9 * J[:, 0] + 10 * np.sin(t / 2.0)   # nearly collinear with column 0, absent
+    truth = np.zeros(inject.N_PARAMS)
+    truth[0] = 0.01
+    r = -(J @ truth) + rng.normal(0, 3, m)
+    prob = identify.LinearProblem(r=r, J=J, theta0=np.zeros(inject.N_PARAMS), t_s=t,
+                                  prior_sd=np.full(inject.N_PARAMS, 1.0))
+    f = identify.fit(prob)
+    f.significant = np.zeros(inject.N_PARAMS, bool)
+    f.significant[0] = True
+    a = identify.applied(prob, f)
+    only = np.zeros(inject.N_PARAMS, bool)
+    only[0] = True
+    assert a.theta[0] == pytest.approx(identify.refit(prob, only)[0])
+    assert abs(a.theta[0] - truth[0]) < abs(f.theta[0] - truth[0])       # the absent one no longer pulls
+    assert a.sd[0] == f.sd[0] and a.theta[1] == f.theta[1]               # sd and the others as fitted
+    assert identify.cost(prob, np.where(only, a.theta, 0.0)) <= identify.cost(prob, np.where(only, f.theta, 0.0))
+
+
 def test_constraint_times_stay_midway_between_gnss_epochs():
     from v2xpos.ins.replay_engine import constraint_times
     tg = np.array([0.0, 0.1, 0.2, 0.45, 0.7])          # 10 Hz, then 4 Hz

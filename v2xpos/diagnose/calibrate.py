@@ -97,7 +97,7 @@ def calibrate_dataset(ds: Dataset, schedule: OutageSchedule, progress: bool = Tr
         theta_c = est.coarse()
         theta = est.gauss_newton(theta_c, iterations=gn_iterations)
         f, prob, out_fit = est.refine(ds, theta, iterations=2)
-        f = est.confirm(ds, f, prob)
+        f = identify.applied(prob, est.confirm(ds, f, prob))
         a, b = identify.halves(prob)
         f1 = identify.fit(a, systematic_sd=est.systematic_sd())
         f2 = identify.fit(b, systematic_sd=est.systematic_sd())
