@@ -16,7 +16,7 @@
     [validity]                        # when a computed result is VALID (docs/integrity.md)
     max_sigma_h_m = 0.10              # predicted 1-sigma horizontal relative position above it: SIGMA_EXCEEDED
     max_sigma_yaw_deg = 1.0           # predicted 1-sigma relative yaw above it: SIGMA_EXCEEDED
-    require_consistency = true        # both filters consistent and verified through turning, else INCONSISTENT
+    require_consistency = true        # both filters consistent and verified (protection level within its limit), else INCONSISTENT
 
     [link]                            # the master embeds the router by default
     mode = "router"

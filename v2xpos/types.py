@@ -139,11 +139,11 @@ class NavState:
     pos_corr: np.ndarray = field(default_factory=lambda: np.zeros(3))
     """Correlation coefficients (NE, ND, ED) of the position error (0: uncorrelated axes)."""
     consistent: bool = True
-    """False after the filter's own consistency test (windowed NIS, ``v2xpos.ins.consistency``) failed,
-    until the vehicle has turned enough with the test passing again."""
+    """False after the filter's own consistency test (block NIS, body-frame innovation mean or
+    solution separation, ``v2xpos.ins.consistency``) failed, until consecutive quiet blocks release it."""
     verified: bool = True
-    """False until the filter's consistency test has passed through enough turning (the excitation that
-    reveals a wrong lever arm, mounting or gyro scale)."""
+    """False while the protection level of the filter's solution-separation test against an
+    undeclared horizontal lever arm is above its limit (``consistency.FaultTolerantSolution``)."""
 
 
 @dataclass

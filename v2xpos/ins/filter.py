@@ -26,7 +26,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from v2xpos import geo
-from v2xpos.rotation import dcm_from_euler, skew
+from v2xpos.rotation import dcm_from_euler, exp_so3
 from v2xpos.types import FixStatus
 
 from . import ekf, updates
@@ -44,21 +44,6 @@ from .outputs import Outputs
 from .reported import reported_jacobian
 from .static_calibration import StaticBiasEstimate, StaticCalibrator
 from .updates import UpdateResult
-
-
-def _small_rotation(phi: np.ndarray) -> np.ndarray:
-    """exp([phi x]) = I + (sin a / a) K + ((1 - cos a) / a^2) K^2, K = [phi x], a = |phi|
-    (Rodrigues; series below a^2 = 1e-12). Kept for the per-update feedback although
-    ``rotation.exp_so3`` computes the same rotation: the two round differently (threshold, K^2
-    by product), and the swap moves the replay's solution in its 12th digit."""
-    a2 = float(phi @ phi)
-    if a2 < 1e-12:
-        s, c = 1.0 - a2 / 6.0, 0.5 - a2 / 24.0
-    else:
-        a = math.sqrt(a2)
-        s, c = math.sin(a) / a, (1.0 - math.cos(a)) / a2
-    K = skew(phi)
-    return np.eye(3) + s * K + c * (K @ K)
 
 
 class InsFilter(ImuPath, Initialization, Outputs):
@@ -232,7 +217,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self.nav[NAV_LON] -= dx[POS + 1] / ((r_n + h) * math.cos(lat))
         self.nav[NAV_H] += dx[POS + 2]
         self.nav[NAV_VEL:NAV_VEL + 3] -= dx[VEL:VEL + 3]
-        self.C_nb = _small_rotation(dx[ATT:ATT + 3]) @ self.C_nb
+        self.C_nb = exp_so3(dx[ATT:ATT + 3]) @ self.C_nb
         self.corr[COR_BG:COR_BG + 3] -= dx[BG:BG + 3]
         self.corr[COR_BA:COR_BA + 3] -= dx[BA:BA + 3]
         self.fx.apply_correction(self.layout, dx, self.corr)

@@ -30,11 +30,13 @@ STATE_FLAG_ATTITUDE_UNDETERMINED = 1
 STATE_FLAG_TIME_UNSYNCED = 2
 """State flag bit: the sender's clock is off GNSS time beyond its bound."""
 STATE_FLAG_INCONSISTENT = 4
-"""State flag bit: the sender's filter fails its own consistency test (windowed NIS of its GNSS
-updates, ``v2xpos.ins.consistency``): its covariance does not describe its errors."""
+"""State flag bit: the sender's filter fails its own consistency test (block NIS, body-frame
+innovation mean or solution separation, ``v2xpos.ins.consistency``): its covariance does not
+describe its errors. Released once the evidence is gone (docs/integrity.md)."""
 STATE_FLAG_UNVERIFIED = 8
-"""State flag bit: the sender's consistency test has not yet passed through enough turning to reveal
-an undeclared lever arm, mounting or gyro scale (``v2xpos.ins.consistency``)."""
+"""State flag bit: the sender's solution is not verified: the protection level of its
+solution-separation test against an undeclared horizontal lever arm is above its limit
+(``v2xpos.ins.consistency.FaultTolerantSolution``)."""
 GEOMETRY_KINDS = ("points", "polygon", "circle")
 
 
