@@ -216,7 +216,7 @@ def _toy_run(lever_error_m, rate_rps: float = 0.15, T: int = 1200, seed: int = 0
     Returns, per epoch, the main filter's position error, the protection level and the alarm, and
     the fault-tolerant solution's position next to an independent wide-prior Kalman filter's."""
     from v2xpos.ins.consistency import FaultTolerantSolution
-    from v2xpos.ins.ekf import propagate_covariance
+    from v2xpos.ins.ekf import propagate_covariance, transition_matrix
     n, L = 9, 6
     A = np.zeros((n, n))
     A[0:3, 3:6] = np.eye(3) * 0.1
@@ -236,7 +236,7 @@ def _toy_run(lever_error_m, rate_rps: float = 0.15, T: int = 1200, seed: int = 0
     for k, (C, noise) in enumerate(_toy_truth(T, rate_rps, lever_error_m, seed)):
         x_true = Phi @ x_true
         x_true[3:6] += rng.normal(0.0, math.sqrt(q[3] * 0.1), 3)
-        sep.propagate(A.copy(), q, 0.1)
+        sep.propagate(transition_matrix(A), q, 0.1)
         P = propagate_covariance(P, A.copy(), q, 0.1)
         P_ref = propagate_covariance(P_ref, A.copy(), q, 0.1)
         est, est_ref = Phi @ est, Phi @ est_ref

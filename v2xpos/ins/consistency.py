@@ -64,7 +64,9 @@ from collections import deque
 import numpy as np
 from scipy.stats import chi2, norm
 
-from .ekf import POS, VEL
+from v2xpos.rotation import skew
+
+from .ekf import POS, VEL, propagate_with_transition
 
 VERIFIED, UNVERIFIED, INCONSISTENT = "verified", "unverified", "inconsistent"
 _CAP_PROBABILITY = 1e-9
@@ -294,8 +296,7 @@ def widen_lever_arm(P: np.ndarray, lever_index: int, pos_index: int, vel_index: 
     uncertain are left alone."""
     P = P.copy()
     n = P.shape[0]
-    W = np.array([[0.0, -rate_body_rps[2], rate_body_rps[1]], [rate_body_rps[2], 0.0, -rate_body_rps[0]],
-                  [-rate_body_rps[1], rate_body_rps[0], 0.0]])
+    W = skew(rate_body_rps)
     for a in axes:
         add = sd_m ** 2 - P[lever_index + a, lever_index + a]
         if not add > 0:
@@ -329,7 +330,7 @@ class FaultTolerantSolution:
 
     Kept in the main filter's error coordinates: ``w`` is the fault-tolerant filter's estimate of
     the main filter's error state (so ``w[pos]`` is the separation main - fault-tolerant).
-    Prediction ``w <- Phi w``, ``P_w <- Phi P_w Phi^T + Q`` (``ekf.propagate_covariance``); at an
+    Prediction ``w <- Phi w``, ``P_w <- Phi P_w Phi^T + Q`` (``ekf.propagate_with_transition``); at an
     update with ``d = H e + v`` (main's prediction minus measurement) ``w <- w + K_w (d - H w)``,
     ``P_w <- (I - K_w H) P_w``, then ``w <- w - dx_main`` (the main filter feeds its correction
     back into its nominal state, which moves the origin of these coordinates).
@@ -392,21 +393,12 @@ class FaultTolerantSolution:
         self.w = None
         self.protection_m = math.inf
 
-    def propagate(self, A: np.ndarray, q_c: np.ndarray, dt_s: float) -> None:
-        """Time update with the main filter's transition (A before ``propagate_covariance`` resets it)."""
+    def propagate(self, Phi: np.ndarray, q_c: np.ndarray, dt_s: float) -> None:
+        """Time update with the main filter's transition ``Phi`` and process noise
+        (``ekf.propagate_with_transition``)."""
         if self.P is None:
             return
-        n = A.shape[0]
-        Phi = A @ A
-        Phi *= 0.5
-        Phi += A
-        Phi.flat[::n + 1] += 1.0
-        Qh = 0.5 * q_c * max(dt_s, 0.0)
-        P1 = self.P.copy()
-        P1.flat[::n + 1] += Qh
-        P = Phi @ P1 @ Phi.T
-        P.flat[::n + 1] += Qh
-        self.P = 0.5 * (P + P.T)
+        self.P = propagate_with_transition(self.P, Phi, q_c, max(dt_s, 0.0))
         self.w = Phi @ self.w
 
     def update(self, H: np.ndarray, d: np.ndarray, R: np.ndarray, dx_main: np.ndarray) -> None:

@@ -86,22 +86,34 @@ class StateLayout:
         return out
 
 
-def propagate_covariance(P: np.ndarray, A: np.ndarray, q_c: np.ndarray, dt_s: float) -> np.ndarray:
-    """P <- Phi (P + Q/2) Phi^T + Q/2 with Phi = I + A + A^2/2 and Q = diag(q_c) dt (in place on A: reset)."""
-    n = P.shape[0]
+def transition_matrix(A: np.ndarray) -> np.ndarray:
+    """Phi = I + A + A^2/2: the second-order transition of the error state over a chunk, A = sum F dt."""
+    n = A.shape[0]
     Phi = A @ A
     Phi *= 0.5
     Phi += A
     Phi.flat[::n + 1] += 1.0
+    return Phi
+
+
+def propagate_with_transition(P: np.ndarray, Phi: np.ndarray, q_c: np.ndarray, dt_s: float) -> np.ndarray:
+    """P <- Phi (P + Q/2) Phi^T + Q/2 with Q = diag(q_c) dt (trapezoidal process noise), symmetrised."""
+    n = P.shape[0]
     Qh = 0.5 * q_c * dt_s
     P1 = P.copy()
     P1.flat[::n + 1] += Qh
     P_new = Phi @ P1 @ Phi.T
     P_new.flat[::n + 1] += Qh
-    A[:] = 0.0
     P_new += P_new.T
     P_new *= 0.5
     return P_new
+
+
+def propagate_covariance(P: np.ndarray, A: np.ndarray, q_c: np.ndarray, dt_s: float) -> np.ndarray:
+    """P <- Phi (P + Q/2) Phi^T + Q/2 with Phi = I + A + A^2/2 and Q = diag(q_c) dt (in place on A: reset)."""
+    Phi = transition_matrix(A)
+    A[:] = 0.0
+    return propagate_with_transition(P, Phi, q_c, dt_s)
 
 
 def kalman_update(P: np.ndarray, H: np.ndarray, d: np.ndarray, R: np.ndarray,

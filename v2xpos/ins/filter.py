@@ -188,9 +188,11 @@ class InsFilter(ImuPath, Initialization, Outputs):
             if self.noise_meter is not None:
                 self.noise_meter.apply(self.q_c, self.C_nb)
             t0 = perf_counter()
+            Phi = ekf.transition_matrix(self.A)
+            self.A[:] = 0.0
             if self.separation is not None:
-                self.separation.propagate(self.A, self.q_c, max(dt, 0.0))
-            self.P = ekf.propagate_covariance(self.P, self.A, self.q_c, max(dt, 0.0))
+                self.separation.propagate(Phi, self.q_c, max(dt, 0.0))
+            self.P = ekf.propagate_with_transition(self.P, Phi, self.q_c, max(dt, 0.0))
             self.stage_s["covariance"] += perf_counter() - t0
             if not self.heading_known:
                 self._decouple_yaw()
