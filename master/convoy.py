@@ -125,13 +125,10 @@ def run_processes(out: Path, master: tuple, slaves: list[tuple], speed: float, l
     for _, sname, _ in slaves:
         procs.start(sname, "slave", configs[sname], nice=5)
     deadline = t0 + (timeout_s if timeout_s is not None else 120.0 + 2.0 * span / speed)
-    watch_box: list = []
     try:
         with interrupt_on_stop_signals():   # a stop signal stops the services too (see stop_signals)
-            _watch_until_done(procs, master, mcfg, port, span, deadline, t0, log, watch_box)
+            _watch_until_done(procs, master, mcfg, port, span, deadline, t0, log)
     finally:
-        for watch in watch_box:
-            watch.close()
         codes = procs.stop(grace_s=10.0, order=[master[1]] + [s[1] for s in slaves])
     summary = {}
     if (out / "master_summary.json").is_file():
@@ -140,36 +137,37 @@ def run_processes(out: Path, master: tuple, slaves: list[tuple], speed: float, l
 
 
 def _watch_until_done(procs: ServiceProcesses, master: tuple, mcfg: dict, port: int, span: float | None,
-                      deadline: float, t0: float, log, watch_box: list) -> None:
+                      deadline: float, t0: float, log) -> None:
     """Until the master ends or the deadline: fail on a slave that exits with an error, print
-    progress from the master's status every ``STATUS_PERIOD_S`` (the status subscription goes
-    into ``watch_box`` for the caller to close)."""
+    progress from the master's status every ``STATUS_PERIOD_S``."""
     watch, latest = None, {}
-    next_line = time.time() + STATUS_PERIOD_S
-    while time.time() < deadline:
-        if procs.procs[master[1]].poll() is not None:
-            break
-        dead = [k for k in procs.running()]
-        if len(dead) < len(procs.procs) and procs.procs[master[1]].poll() is None:
-            failed = [k for k, p in procs.procs.items() if p.poll() not in (None, 0)]
-            if failed:
-                raise ConvoyError(f"{failed[0]} exited with code {procs.procs[failed[0]].returncode}:\n"
-                                  f"{procs.log_tail(failed[0])}")
-        if watch is None and time.time() - t0 > 1.0:
-            watch, latest = _status_watch(mcfg["service"]["fleet"], master[1], port)
-            if watch is not None:
-                watch_box.append(watch)
-        if time.time() >= next_line:
-            next_line += STATUS_PERIOD_S
-            if latest.get("t_rel_s") is not None and latest.get("phase") == "run":
-                done = max(0.0, min(1.0, latest["t_rel_s"] / span)) if span else 0.0
-                print(f"convoy: {100 * done:5.1f} % of {span:.0f} s, results {latest.get('processed', 0)}, "
-                      f"targets {sorted(latest.get('targets', {}))}", file=log, flush=True)
-            else:
-                print(f"convoy: starting ({latest.get('phase', 'loading')})", file=log, flush=True)
-        time.sleep(0.2)
-    else:
-        print("convoy: time limit reached, stopping", file=log, flush=True)
+    try:
+        next_line = time.time() + STATUS_PERIOD_S
+        while time.time() < deadline:
+            if procs.procs[master[1]].poll() is not None:
+                break
+            dead = [k for k in procs.running()]
+            if len(dead) < len(procs.procs) and procs.procs[master[1]].poll() is None:
+                failed = [k for k, p in procs.procs.items() if p.poll() not in (None, 0)]
+                if failed:
+                    raise ConvoyError(f"{failed[0]} exited with code {procs.procs[failed[0]].returncode}:\n"
+                                      f"{procs.log_tail(failed[0])}")
+            if watch is None and time.time() - t0 > 1.0:
+                watch, latest = _status_watch(mcfg["service"]["fleet"], master[1], port)
+            if time.time() >= next_line:
+                next_line += STATUS_PERIOD_S
+                if latest.get("t_rel_s") is not None and latest.get("phase") == "run":
+                    done = max(0.0, min(1.0, latest["t_rel_s"] / span)) if span else 0.0
+                    print(f"convoy: {100 * done:5.1f} % of {span:.0f} s, results {latest.get('processed', 0)}, "
+                          f"targets {sorted(latest.get('targets', {}))}", file=log, flush=True)
+                else:
+                    print(f"convoy: starting ({latest.get('phase', 'loading')})", file=log, flush=True)
+            time.sleep(0.2)
+        else:
+            print("convoy: time limit reached, stopping", file=log, flush=True)
+    finally:
+        if watch is not None:
+            watch.close()
 
 
 def run_in_process(out: Path, master: tuple, slaves: list[tuple], rate_hz: float = 100.0, log=sys.stderr) -> dict:
