@@ -182,7 +182,13 @@ class Estimator:
         from v2xpos.ins.replay_engine import config_for
         from v2xpos.ins.replay import replay as ins_replay
         p = self.prior_sd
-        cfg = config_for(self.ds, effect_initial_sd={"lever_arm": p[P_LEVER_ARM].copy(),
+        lever_sd = p[P_LEVER_ARM].copy()
+        # a vertical antenna offset moves the antenna only through roll and pitch, which a car
+        # hardly has: online it trades against the IMU height (antenna height = IMU height - l_z)
+        # and a loose prior lets both wander (convoy_dev B: l_z +1.18 +- 0.18 m with the 0.5 m
+        # prior, 2026-11-24); it starts from the declaration, as the live filter does
+        lever_sd[2] = float(self.ds.lever_arm_sd_m)
+        cfg = config_for(self.ds, effect_initial_sd={"lever_arm": lever_sd,
                                                      "imu_time_offset": float(p[P_TIME_OFFSET]),
                                                      "misalignment": p[P_MISALIGN].copy()})
         self.bar.start("online effect states (agreement)")

@@ -219,6 +219,10 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self.nav[NAV_LON] -= dx[POS + 1] / ((r_n + h) * math.cos(lat))
         self.nav[NAV_H] += dx[POS + 2]
         self.nav[NAV_VEL:NAV_VEL + 3] -= dx[VEL:VEL + 3]
+        if self._v_prev_chunk is not None:
+            # the velocity error is the same at the last chunk end: correcting both ends keeps the
+            # measurement noise out of the acceleration of the timing rows (``_smooth_acceleration``)
+            self._v_prev_chunk = self._v_prev_chunk - dx[VEL:VEL + 3]
         self.C_nb = exp_so3(dx[ATT:ATT + 3]) @ self.C_nb
         self.corr[COR_BG:COR_BG + 3] -= dx[BG:BG + 3]
         self.corr[COR_BA:COR_BA + 3] -= dx[BA:BA + 3]
@@ -227,6 +231,12 @@ class InsFilter(ImuPath, Initialization, Outputs):
     def _update(self, kind: str, t_s: float, H: np.ndarray, d: np.ndarray, R: np.ndarray,
                 gate: bool = True, force: bool = False) -> UpdateResult:
         t0 = perf_counter()
+        if not self.heading_known and np.any(H[:, ATT + 2]):
+            # the open heading (sd ~180 deg, decoupled by ``_decouple_yaw``) stays out of the
+            # measurements too: linearised about an arbitrary yaw, a tall antenna's few mm of
+            # horizontal C l at a tilt turned it by tens of degrees at a stop, and C l with it
+            H = H.copy()
+            H[:, ATT + 2] = 0.0
         dx, P, nis, S, ok = kalman_update(self.P, H, d, R, self.gate.get(len(d), None) if gate else None, force)
         if ok:
             if self.separation is not None:

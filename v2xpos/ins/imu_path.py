@@ -170,7 +170,16 @@ class ImuPath:
     def _smooth_acceleration(self, t_end_s: float) -> None:
         """Kinematic acceleration for the measurement models (not for ``nav_state``): the velocity
         change over the chunk, through a first-order low-pass of time constant
-        ``acc_smoothing_tau_s`` (gain dt / tau, at most 1)."""
+        ``acc_smoothing_tau_s`` (gain dt / tau, at most 1).
+
+        The change is the strapdown's own: every update's velocity correction is applied to the
+        last chunk's velocity too (``InsFilter._apply``). With the corrections in it, the
+        acceleration -- the regressor of the timing columns (``H = -a``) -- carried the noise of
+        the previous epochs' innovations, with which the next innovation is negatively correlated
+        (its prediction contains the previous correction): an errors-in-variables bias (Fuller 1987
+        ch. 1) of the time offset, always positive. Measured: a simulated speed-change drive with
+        no offset 15.5 -> 11.3 ms (docs/calibration.md); convoy_dev B's online offset -16 -> -26 ms
+        against -25.8 ms offline (2026-11-24, with the antenna-fix covariance of ``initialization``)."""
         v_now = self.nav[3:6].copy()
         if self._v_prev_chunk is not None and t_end_s > self._t_prev_chunk:
             dt_c = float(t_end_s - self._t_prev_chunk)

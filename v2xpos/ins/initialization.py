@@ -19,11 +19,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from v2xpos import geo
-from v2xpos.rotation import dcm_from_euler, euler_from_dcm, rot_z
+from v2xpos.rotation import dcm_from_euler, euler_from_dcm, rot_z, skew
 
 from .ekf import ATT, BA, BG, EFFECT_SIZES, POS, VEL
 from .mechanization import COR_BA, COR_BG, MEM_F, MEM_VALID, MEM_W
-from .updates import UpdateResult
+from .updates import TIMING_STATES_POSITION, UpdateResult
 
 if TYPE_CHECKING:
     from .config import InsConfig
@@ -32,6 +32,51 @@ STOP_GYRO_BIAS_INIT_SD_FLOOR_RPS = 1e-3
 """Least initial gyro-bias sd when the filter starts from a stop calibration's estimate."""
 MIN_START_POSITION_SD_M = 0.05
 """Least initial and reset position sd [m], whatever the receiver reports."""
+
+
+def antenna_fix_inverse_jacobian(layout, C_nb: np.ndarray, lever_arm_m: np.ndarray, v_ned_mps: np.ndarray,
+                                 heading_known: bool = True) -> np.ndarray:
+    """G (3 x n): how the error of an IMU position taken from an antenna fix depends on the other
+    error states. The fix gives ``p = p_ant - C_nb l - v gap`` (``Initialization._imu_point_at_label``);
+    with errors as estimate minus truth the GNSS position model ``d = H dx + n`` (``updates.
+    gnss_position``: ``H = [I, [C l x], C, -v]`` over position, attitude, lever arm and timing)
+    solved for the position error gives ``dp = n + G dx_rest``, ``G = [-[C l x], -C, +v]`` (Groves
+    2013 eq. 14.121 inverted). The velocity's share (``-gap dv``, a few mm) is left out. With the
+    heading open (``heading_known`` False) the yaw column is 0: that error is decoupled while it
+    is unknown (``InsFilter._decouple_yaw``)."""
+    G = np.zeros((3, layout.n))
+    G[:, ATT:ATT + 3] = -skew(C_nb @ lever_arm_m)
+    if not heading_known:
+        G[:, ATT + 2] = 0.0
+    i = layout.at("lever_arm")
+    if i >= 0:
+        G[:, i:i + 3] = -C_nb
+    for name in TIMING_STATES_POSITION:
+        i = layout.at(name)
+        if i >= 0:
+            G[:, i] = v_ned_mps
+    return G
+
+
+def position_from_antenna_covariance(P: np.ndarray, G: np.ndarray, pos_sd_m: np.ndarray) -> np.ndarray:
+    """Covariance after the position rows were taken from an antenna fix with 1-sigma
+    ``pos_sd_m`` (NED): the old position rows and columns are discarded, and with ``dp = n + G
+    dx_rest`` (``antenna_fix_inverse_jacobian``; G has no position columns)
+    ``P_pp = R + G P Gᵀ``, ``P_px = G P`` (the covariance of a linear function of independent
+    Gaussians, Bierman 1977 ch. II). Then the covariance of the predicted antenna position
+    ``H dx`` equals the fix's R, as it must right after the fix. Setting ``P_pp = R`` with no
+    cross terms instead claims the *IMU point* known to the fix's centimetres whatever the lever
+    arm and attitude; the next fixes, which measure only ``p + C l``, then "determine" the lever
+    arm at once (convoy_dev B, 2026-11-24: its sd fell from 0.5 to 0.03 m in the first second at a
+    stop, the true offset 0.5 m away, and the online state never left 0). Returns a new array."""
+    P = P.copy()
+    P[POS:POS + 3, :] = 0.0
+    P[:, POS:POS + 3] = 0.0
+    GP = G @ P
+    P[POS:POS + 3, :] = GP
+    P[:, POS:POS + 3] = GP.T
+    P[POS:POS + 3, POS:POS + 3] = np.diag(np.broadcast_to(np.asarray(pos_sd_m, float), (3,)) ** 2) + GP @ G.T
+    return P
 
 
 class Initialization:
@@ -49,7 +94,11 @@ class Initialization:
                     np.array([self.cfg.init_level_sd_rad, self.cfg.init_level_sd_rad, self.cfg.init_yaw_sd_rad])
                     if att_sd_rad is None else np.asarray(att_sd_rad, float))
 
-    def _start(self, t_s, lla, v, C_nb, pos_sd, vel_sd, att_sd) -> None:
+    def _start(self, t_s, lla, v, C_nb, pos_sd, vel_sd, att_sd, from_antenna: bool = False,
+               heading_known: bool = True) -> None:
+        """Diagonal covariance (the given sds, bias and effect priors) at the given state; with
+        ``from_antenna`` the position was taken from an antenna fix with sd ``pos_sd`` and its rows
+        follow that fix (``position_from_antenna_covariance``)."""
         c = self.cfg
         n = self.layout.n
         self.nav[:3] = lla
@@ -72,6 +121,10 @@ class Initialization:
             i, k = self.layout.index[name], EFFECT_SIZES[name]
             d[i:i + k] = c.effect_initial_sd.get(name, 0.01) ** 2
         self.P[np.diag_indices(n)] = d
+        if from_antenna:
+            self.P = position_from_antenna_covariance(
+                self.P, antenna_fix_inverse_jacobian(self.layout, self.C_nb, self.fx.lever_arm_m, self.nav[3:6],
+                                                     heading_known), pos_sd)
         self.A[:] = 0.0
         self.mem[:] = 0.0
         if self._last_raw_f_b is not None:
@@ -82,7 +135,7 @@ class Initialization:
             self.t_stamp_s = t_s - self.fx.imu_time_offset_s
         self._t_cov_s = self.t_stamp_s
         self.initialized = True
-        self.heading_known = True
+        self.heading_known = heading_known
         self.consistency.restart(float(t_s))
         self._restart_separation()
         self._v_prev_chunk = None
@@ -125,8 +178,8 @@ class Initialization:
             # biases during the stop; the heading is set when the platform moves (_heading_reset)
             C = self.aligner.C_nb
             self._start(self.t_s, self._imu_point_at_label(t_s, lla, np.zeros(3), C), np.zeros(3), C, pos_sd,
-                        c.init_vel_sd_mps, np.array([c.init_level_sd_rad, c.init_level_sd_rad, math.pi]))
-            self.heading_known = False
+                        c.init_vel_sd_mps, np.array([c.init_level_sd_rad, c.init_level_sd_rad, math.pi]),
+                        from_antenna=True, heading_known=False)
             if self.separation is not None:
                 self.separation.stop()
             self.last_fix = fix
@@ -138,7 +191,8 @@ class Initialization:
         if C is None:
             return UpdateResult("gnss_pos", t_s, False, np.nan, reason="aligning: not levelled yet")
         self._start(self.t_s, self._imu_point_at_label(t_s, lla, vel, C), vel, C, pos_sd, c.init_vel_sd_mps,
-                    np.array([c.init_level_sd_rad, c.init_level_sd_rad, max(c.init_yaw_sd_rad, self._course_sd_rad)]))
+                    np.array([c.init_level_sd_rad, c.init_level_sd_rad, max(c.init_yaw_sd_rad, self._course_sd_rad)]),
+                    from_antenna=True)
         self.last_fix = fix
         self.last_gnss_t_s = t_s
         return UpdateResult("gnss_pos", t_s, False, np.nan, reason="initialised from this epoch")
@@ -158,8 +212,12 @@ class Initialization:
         pos_sd = np.maximum(sd * c.fix_sd_scale.get(fix, 2.0), MIN_START_POSITION_SD_M)
         vel_sd = c.init_vel_sd_mps if vel is not None else max(c.init_vel_sd_mps, 0.1 * err_m)
         self.P[idx, idx] = np.r_[pos_sd ** 2, np.full(3, vel_sd ** 2)]
+        G = antenna_fix_inverse_jacobian(self.layout, self.C_nb, self.fx.lever_arm_m, v, self.heading_known)
+        self.P = position_from_antenna_covariance(self.P, G, pos_sd)
         if self.separation is not None:
             self.separation.reset_states(idx, self.P)
+            if self.separation.P is not None:
+                self.separation.P = position_from_antenna_covariance(self.separation.P, G, pos_sd)
         self._gnss_rejections = 0
         self.counts["position_resets"] += 1
         self.last_fix = fix
@@ -183,6 +241,8 @@ class Initialization:
         pos_sd = np.maximum(sd * c.fix_sd_scale.get(fix, 2.0), MIN_START_POSITION_SD_M)
         self.P[idx, idx] = np.r_[pos_sd ** 2, np.full(3, c.init_vel_sd_mps ** 2),
                                  max(c.init_yaw_sd_rad, self._course_sd_rad) ** 2]
+        self.P = position_from_antenna_covariance(
+            self.P, antenna_fix_inverse_jacobian(self.layout, self.C_nb, self.fx.lever_arm_m, self.nav[3:6]), pos_sd)
         self.heading_known = True
         self.consistency.restart(float(t_s))
         self._restart_separation()
