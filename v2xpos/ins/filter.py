@@ -394,7 +394,11 @@ class InsFilter(ImuPath, Initialization, Outputs):
         if c.use_gnss_velocity and vel_ned_mps is not None and np.all(np.isfinite(vel_ned_mps)):
             # the position update has corrected v and the lever arm in place; the attitude and
             # the epoch gap are still those the position update was built with
-            m = updates.gnss_velocity(self.layout, C_before, self.fx.lever_arm_m, self.mem[MEM_W:MEM_W + 3].copy(),
+            # at a stop the body does not turn (the stop detector's rate test, ZARU): the sample's
+            # rate is vibration and noise, and as the regressor of the lever arm (w x l) it made the
+            # lever arm look known after a parked start (errors in variables, as for the timing rows)
+            rate_b = np.zeros(3) if self.static else self.mem[MEM_W:MEM_W + 3].copy()
+            m = updates.gnss_velocity(self.layout, C_before, self.fx.lever_arm_m, rate_b,
                                       v, self.acc_ned_mps2, gap, self.fx.gnss_vel_latency_s, vel_ned_mps,
                                       vel_sd_ned_mps * c.gnss_vel_sd_scale * scale, c.gnss_vel_sd_floor_mps, timing)
             rv = self._update("gnss_vel", t_s, *m)
