@@ -58,7 +58,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
     ``COR_*``); ``fx`` the other effect values (``effects.EffectValues``); ``P`` the error-state
     covariance in ``layout``; ``A`` the error dynamics summed since the last propagation;
     ``mem`` the strapdown's memory of the previous sample; ``acc_ned_mps2`` the smoothed
-    acceleration of the measurement models; ``static`` the stop detector's (``stops``) verdict;
+    acceleration of the measurement models and ``acc_strapdown_ned_mps2`` the strapdown's own (the
+    IMU time offset's column); ``static`` the stop detector's (``stops``) verdict;
     ``initialized`` / ``heading_known`` the alignment's progress; ``counts`` / ``residuals``
     what the updates did; ``on_update(result, filter)`` an optional hook after every update.
     """
@@ -130,6 +131,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self._last_sample_t: float | None = None
         self.acc_ned_mps2 = np.zeros(3)
         self._v_prev_chunk: np.ndarray | None = None
+        self._dv_corrections_mps = np.zeros(3)
+        self.acc_strapdown_ned_mps2 = np.zeros(3)
         self._t_prev_chunk = -np.inf
         self._last_raw_f_b: np.ndarray | None = None
         self._last_raw_w_b: np.ndarray | None = None
@@ -219,10 +222,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self.nav[NAV_LON] -= dx[POS + 1] / ((r_n + h) * math.cos(lat))
         self.nav[NAV_H] += dx[POS + 2]
         self.nav[NAV_VEL:NAV_VEL + 3] -= dx[VEL:VEL + 3]
-        if self._v_prev_chunk is not None:
-            # the velocity error is the same at the last chunk end: correcting both ends keeps the
-            # measurement noise out of the acceleration of the timing rows (``_smooth_acceleration``)
-            self._v_prev_chunk = self._v_prev_chunk - dx[VEL:VEL + 3]
+        # kept out of the strapdown's own acceleration (``_smooth_acceleration``)
+        self._dv_corrections_mps = self._dv_corrections_mps - dx[VEL:VEL + 3]
         self.C_nb = exp_so3(dx[ATT:ATT + 3]) @ self.C_nb
         self.corr[COR_BG:COR_BG + 3] -= dx[BG:BG + 3]
         self.corr[COR_BA:COR_BA + 3] -= dx[BA:BA + 3]
@@ -400,7 +401,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
             rate_b = np.zeros(3) if self.static else self.mem[MEM_W:MEM_W + 3].copy()
             m = updates.gnss_velocity(self.layout, C_before, self.fx.lever_arm_m, rate_b,
                                       v, self.acc_ned_mps2, gap, self.fx.gnss_vel_latency_s, vel_ned_mps,
-                                      vel_sd_ned_mps * c.gnss_vel_sd_scale * scale, c.gnss_vel_sd_floor_mps, timing)
+                                      vel_sd_ned_mps * c.gnss_vel_sd_scale * scale, c.gnss_vel_sd_floor_mps, timing,
+                                      acc_strapdown_ned_mps2=self.acc_strapdown_ned_mps2)
             rv = self._update("gnss_vel", t_s, *m)
             self.counts["gnss_vel_accepted" if rv.accepted else "gnss_vel_rejected"] += 1
         return res

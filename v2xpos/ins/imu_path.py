@@ -168,25 +168,35 @@ class ImuPath:
                                            self.nav[3:6] if self.initialized else None)
 
     def _smooth_acceleration(self, t_end_s: float) -> None:
-        """Kinematic acceleration for the measurement models (not for ``nav_state``): the velocity
-        change over the chunk, through a first-order low-pass of time constant
-        ``acc_smoothing_tau_s`` (gain dt / tau, at most 1).
+        """Two kinematic accelerations for the measurement models (not for ``nav_state``), each the
+        velocity change over the chunk through a first-order low-pass of time constant
+        ``acc_smoothing_tau_s`` (gain dt / tau, at most 1):
 
-        The change is the strapdown's own: every update's velocity correction is applied to the
-        last chunk's velocity too (``InsFilter._apply``). With the corrections in it, the
-        acceleration -- the regressor of the timing columns (``H = -a``) -- carried the noise of
-        the previous epochs' innovations, with which the next innovation is negatively correlated
-        (its prediction contains the previous correction): an errors-in-variables bias (Fuller 1987
-        ch. 1) of the time offset, always positive. Measured: a simulated speed-change drive with
-        no offset 15.5 -> 11.3 ms (docs/calibration.md); convoy_dev B's online offset -16 -> -26 ms
-        against -25.8 ms offline (2026-11-24, with the antenna-fix covariance of ``initialization``)."""
+        * ``acc_ned_mps2``: the change of the filter's velocity, updates' corrections included
+          (it follows the GNSS velocity): the models' predictions over an epoch gap and the GNSS
+          velocity latency's column, which shifts the receiver's velocity, a GNSS quantity;
+        * ``acc_strapdown_ned_mps2``: the strapdown's own change, every update's velocity
+          correction since the last chunk end taken out (``InsFilter._apply``): the columns of the
+          IMU time offset (and of the GNSS latency, which must keep the same H), which shifts the
+          IMU's propagated trajectory, whose derivative is exactly that (Li & Mourikis 2014). With
+          the corrections in this regressor it carried the noise of the previous epochs'
+          innovations, with which the next innovation is negatively correlated (its prediction
+          contains the previous correction): an errors-in-variables bias (Fuller 1987 ch. 1) of the
+          time offset, always positive. Measured 2026-11-24 (online states, ``calibrate``'s priors):
+          convoy_dev B -16.9 -> -27.2 ms (offline -28.8 +- 1.4 at the end of the drive), A +25.7 ->
+          +5.3 ms (offline -6 +- 6); the same acceleration in the velocity latency's column too made
+          drive_0708's replay outages worse (2.51 -> 2.61 m h RMS), this split 2.53 m.
+        """
         v_now = self.nav[3:6].copy()
         if self._v_prev_chunk is not None and t_end_s > self._t_prev_chunk:
             dt_c = float(t_end_s - self._t_prev_chunk)
-            a_c = (v_now - self._v_prev_chunk) / dt_c
             k = min(1.0, dt_c / max(self.cfg.acc_smoothing_tau_s, MIN_SMOOTHING_TAU_S))
+            a_c = (v_now - self._v_prev_chunk) / dt_c
             self.acc_ned_mps2 = self.acc_ned_mps2 + k * (a_c - self.acc_ned_mps2)
+            a_s = (v_now - self._v_prev_chunk - self._dv_corrections_mps) / dt_c
+            self.acc_strapdown_ned_mps2 = self.acc_strapdown_ned_mps2 + k * (a_s - self.acc_strapdown_ned_mps2)
         self._v_prev_chunk, self._t_prev_chunk = v_now, t_end_s
+        self._dv_corrections_mps = np.zeros(3)
 
     def _feed_stop_calibration(self, t: np.ndarray, f: np.ndarray, w: np.ndarray,
                                speed_mps: float) -> StaticBiasEstimate | None:

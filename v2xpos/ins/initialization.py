@@ -140,6 +140,8 @@ class Initialization:
         self._restart_separation()
         self._v_prev_chunk = None
         self.acc_ned_mps2 = np.zeros(3)
+        self.acc_strapdown_ned_mps2 = np.zeros(3)
+        self._dv_corrections_mps = np.zeros(3)
 
     def _velocity_from_positions(self, t_s, lla, sd) -> np.ndarray | None:
         """Horizontal velocity from the constant-velocity tracker when the receiver gives none;

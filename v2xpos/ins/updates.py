@@ -15,7 +15,8 @@ v_b = C^T v.
   h = r + C l + v_IMU * gap;  H_r = I, H_phi = [(C l) x], H_l = C, H_dt = H_lat = -v
   (both shorten the gap).
 * GNSS velocity at the antenna: h = v + C (w x l) + a (gap - vel_latency);  H_v = I,
-  H_phi = [(C (w x l)) x], H_bg = C [l x], H_l = C [w x], H_dt = H_lat = H_vel_lat = -a.
+  H_phi = [(C (w x l)) x], H_bg = C [l x], H_l = C [w x], H_dt = H_lat = -a_strapdown,
+  H_vel_lat = -a (``InsFilter._smooth_acceleration``: which acceleration for which state).
 * Non-holonomic constraint (Shin 2001 sec. 4.3; Dissanayake et al. 2001): the vehicle-frame lateral
   and vertical velocity are zero: h = (R_m C^T v)_{y,z};
   H_v = R_m C^T, H_phi = -R_m C^T [v x], H_mis = -[v_b x].
@@ -109,10 +110,11 @@ def gnss_position(layout: StateLayout, nav: np.ndarray, C_nb: np.ndarray, lever_
 def gnss_velocity(layout: StateLayout, C_nb: np.ndarray, lever_arm_m: np.ndarray, rate_body_rps: np.ndarray,
                   v_ned_mps: np.ndarray, acc_ned_mps2: np.ndarray, gap_s: float, vel_latency_s: float,
                   vel_meas_ned_mps: np.ndarray, sd_ned_mps: np.ndarray, sd_floor_mps: float,
-                  timing: bool) -> Measurement:
+                  timing: bool, acc_strapdown_ned_mps2: np.ndarray | None = None) -> Measurement:
     """Antenna velocity ``vel_meas_ned_mps`` with 1-sigma ``sd_ned_mps`` (floored): the IMU
     velocity plus the lever arm's rotation C (w x l), moved over the epoch gap and the velocity's
-    own latency with the acceleration."""
+    own latency with the acceleration. ``acc_strapdown_ned_mps2`` (when given) is the regressor
+    of the IMU time offset and GNSS latency columns (``InsFilter._smooth_acceleration``)."""
     Cwl = C_nb @ np.cross(rate_body_rps, lever_arm_m)
     d = v_ned_mps + Cwl + acc_ned_mps2 * (gap_s - vel_latency_s) - vel_meas_ned_mps
     H = np.zeros((3, layout.n))
@@ -125,7 +127,8 @@ def gnss_velocity(layout: StateLayout, C_nb: np.ndarray, lever_arm_m: np.ndarray
     for name in TIMING_STATES_VELOCITY:
         i = layout.at(name)
         if i >= 0 and timing:
-            H[:, i] = -acc_ned_mps2
+            clock_state = name in TIMING_STATES_POSITION and acc_strapdown_ned_mps2 is not None
+            H[:, i] = -(acc_strapdown_ned_mps2 if clock_state else acc_ned_mps2)
     R = np.diag(np.maximum(sd_ned_mps, sd_floor_mps) ** 2)
     return Measurement(H, d, R)
 
