@@ -310,3 +310,63 @@ def test_a_failed_test_excludes_the_declared_lever_arm_by_taking_the_fault_toler
     r_m = 6.36e6                                       # ~ meridian radius at 40 deg (only the sign and size matter)
     assert (north_before - flt.nav[0]) * r_m == pytest.approx(0.3, rel=0.01)
     assert not np.any(sep.w)                          # one estimate now: nothing left to separate
+
+
+def _yaw_var_after(consider: bool, yaw_rate_rps: float, seconds: float = 20.0, rate_hz: float = 100.0):
+    """Yaw-error variance of a filter started level at 10 m/s heading north with a known heading,
+    after ``seconds`` of IMU samples at a constant yaw rate (no GNSS, no vehicle constraints, so the
+    covariance is the time update alone); and the filter."""
+    from v2xpos.ins import InsConfig, InsFilter
+    from v2xpos.ins.ekf import ATT
+    cfg = InsConfig(platform="car", effects=(), consider_gyro_scale=consider, constraints_on_request=True,
+                    apply_static_calibration=False, gyro_noise_rps_rthz=1e-4,
+                    effect_initial_sd={"gyro_scale": 0.01})
+    flt = InsFilter(cfg)
+    flt.initialize(100.0, np.array([0.7, 0.2, 300.0]), np.array([10.0, 0.0, 0.0]), np.zeros(3),
+                   att_sd_rad=np.radians([0.1, 0.1, 0.1]))
+    n = int(seconds * rate_hz)
+    t = 100.0 + np.arange(1, n + 1) / rate_hz
+    acc = np.tile([0.0, 10.0 * yaw_rate_rps, -9.80665], (n, 1))    # centripetal, body y; gravity up on z
+    gyro = np.tile([0.0, 0.0, yaw_rate_rps], (n, 1))
+    flt.process_imu_batch(t, acc, gyro)
+    flt._flush_covariance()
+    return flt.P[ATT + 2, ATT + 2], flt
+
+
+def test_an_unknown_gyro_scale_grows_the_yaw_sigma_in_turns_only():
+    """The consider gyro scale (Schmidt): its heading error s * (heading turned) adds
+    (sd_s * yaw turned)^2 to the yaw variance in a turn and nothing on a straight, where the
+    heading sd stays that of the white gyro noise."""
+    straight_c, _ = _yaw_var_after(True, 0.0)
+    straight_w, _ = _yaw_var_after(False, 0.0)
+    assert straight_c == pytest.approx(straight_w, rel=1e-6)
+    rate = 0.2                                                       # 20 s at 11.5 deg/s: 229 deg
+    turn_c, flt = _yaw_var_after(True, rate)
+    turn_w, _ = _yaw_var_after(False, rate)
+    turned_rad = rate * 20.0
+    assert turn_c - turn_w == pytest.approx((0.01 * turned_rad) ** 2, rel=0.05)
+    i = flt.layout.at("gyro_scale")
+    np.testing.assert_allclose(np.sqrt(np.diag(flt.P)[i:i + 3]), 0.01)
+
+
+def test_consider_states_are_never_estimated_and_their_covariance_is_exact():
+    """``kalman_update`` with consider states: no correction and no variance reduction for them,
+    and the covariance is the Joseph form of the gain with their rows zeroed (valid for any gain)."""
+    from v2xpos.ins.ekf import kalman_update
+    rng = np.random.default_rng(3)
+    n = 7
+    A = rng.normal(size=(n, n))
+    P = A @ A.T + np.eye(n)
+    H = rng.normal(size=(2, n))
+    R = np.eye(2) * 0.2
+    d = rng.normal(size=2)
+    c = slice(4, 7)
+    dx, P_new, _, S, ok = kalman_update(P, H, d, R, None, consider=c)
+    assert ok and np.all(dx[c] == 0.0)
+    np.testing.assert_allclose(P_new[c, c], P[c, c])
+    K = P @ H.T @ np.linalg.inv(S)
+    K[c] = 0.0
+    I_KH = np.eye(n) - K @ H
+    np.testing.assert_allclose(P_new, I_KH @ P @ I_KH.T + K @ R @ K.T, atol=1e-12)
+    _, P_opt, _, _, _ = kalman_update(P, H, d, R, None)
+    assert np.all(np.diag(P_new) >= np.diag(P_opt) - 1e-12)          # not estimating costs information
