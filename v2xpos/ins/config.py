@@ -49,7 +49,8 @@ class InsConfig:
     accel_bias_init_sd_mps2: float = 0.2
     imu_noise_from_data: bool = False             # white-noise densities measured from the samples (ImuNoiseMeter),
     imu_noise_window_s: float = 10.0              # averaged over this time constant, scaled, capped by the two above
-    imu_gyro_noise_scale: float = 7.0             # attitude noise = this x the measured gyro white noise (docs/integrity.md)
+    imu_gyro_noise_scale: float = 7.0             # roll/pitch noise = this x the measured body x/y gyro white noise
+    imu_yaw_gyro_noise_scale: float = 1.0         # heading noise = this x the measured body z one (docs/integrity.md)
     imu_accel_noise_scale: float = 1.0            # velocity noise = this x the measured accelerometer white noise
     consider_gyro_scale: bool = False             # gyro scale error (sd effect_initial_sd["gyro_scale"]) carried in the
     # covariance as a Schmidt consider state, never estimated: a heading sd that grows with the angle turned

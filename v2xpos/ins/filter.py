@@ -78,7 +78,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self.mem = np.zeros(MEM_SIZE)
         self.A = np.zeros((n, n))
         self.q_c = process_noise_density(self.layout, c)
-        self.noise_meter = (ImuNoiseMeter(c.imu_noise_window_s, c.imu_gyro_noise_scale, c.imu_accel_noise_scale,
+        gyro_scale = (c.imu_gyro_noise_scale, c.imu_gyro_noise_scale, c.imu_yaw_gyro_noise_scale)
+        self.noise_meter = (ImuNoiseMeter(c.imu_noise_window_s, gyro_scale, c.imu_accel_noise_scale,
                                           c.gyro_noise_rps_rthz, c.accel_noise_mps2_rthz) if c.imu_noise_from_data else None)
         self.consistency = ConsistencyMonitor(c.consistency_window_s, c.consistency_false_alarm_per_hour,
                                               c.verify_turn_deg, reverify=c.consistency_reverify,
