@@ -111,7 +111,8 @@ def test_linear_fit_recovers_parameters_and_rejects_absent_ones():
 def test_applied_values_are_conditional_on_the_effects_written_as_zero():
     """A significant effect correlated with a not-significant one (written as 0): the joint value
     leans on the other's noisy estimate, the applied value is the fit with the other held at 0 --
-    the set that is written back is a consistent model -- and keeps the joint (marginal) sd."""
+    the set that is written back is a consistent model -- and its sd is the joint (marginal) sd
+    combined with the shift (``identify.applied``)."""
     rng = np.random.default_rng(2)
     m = 3000
     t = np.linspace(0, 300, m)
@@ -131,8 +132,41 @@ def test_applied_values_are_conditional_on_the_effects_written_as_zero():
     only[0] = True
     assert a.theta[0] == pytest.approx(identify.refit(prob, only)[0])
     assert abs(a.theta[0] - truth[0]) < abs(f.theta[0] - truth[0])       # the absent one no longer pulls
-    assert a.sd[0] == f.sd[0] and a.theta[1] == f.theta[1]               # sd and the others as fitted
+    assert a.sd[0] == pytest.approx(np.hypot(f.sd[0], a.theta[0] - f.theta[0]))   # rms error with the shift
+    assert a.theta[1] == f.theta[1] and a.sd[1] == f.sd[1]               # the others as fitted
     assert identify.cost(prob, np.where(only, a.theta, 0.0)) <= identify.cost(prob, np.where(only, f.theta, 0.0))
+
+
+def test_applied_sd_covers_the_bias_of_an_effect_held_at_zero_that_is_present():
+    """A not-significant effect that is really present (truth 2 of its sds, as a mounting roll of
+    ~1 deg against its 0.5 deg cross-slope sd) is held at 0 when the correlated significant one is
+    applied: the applied value is then biased, the joint sd does not cover it, the applied rms-error
+    sd does."""
+    n_runs = 60
+    covered_joint, covered_applied = [], []
+    for seed in range(n_runs):
+        rng = np.random.default_rng(100 + seed)
+        m = 3000
+        t = np.linspace(0, 300, m)
+        J = np.zeros((m, inject.N_PARAMS))
+        J[:, 0] = 100 * np.sin(t / 7.0)
+        J[:, 1] = 0.9 * J[:, 0] + 10 * np.sin(t / 2.0)
+        prob = identify.LinearProblem(r=np.zeros(m), J=J, theta0=np.zeros(inject.N_PARAMS), t_s=t,
+                                      prior_sd=np.full(inject.N_PARAMS, 1.0))
+        truth = np.zeros(inject.N_PARAMS)
+        truth[0] = 0.05
+        f0 = identify.fit(identify.LinearProblem(r=rng.normal(0, 3, m), J=J, theta0=prob.theta0, t_s=t,
+                                                 prior_sd=prob.prior_sd))
+        truth[1] = 2.0 * f0.sd[1]
+        prob.r = -(J @ truth) + rng.normal(0, 3, m)
+        f = identify.fit(prob)
+        f.significant = np.zeros(inject.N_PARAMS, bool)
+        f.significant[0] = True
+        a = identify.applied(prob, f)
+        covered_joint.append(abs(a.theta[0] - truth[0]) <= 2.0 * f.sd[0])
+        covered_applied.append(abs(a.theta[0] - truth[0]) <= 2.0 * a.sd[0])
+    assert np.mean(covered_applied) >= 0.9, (np.mean(covered_applied), np.mean(covered_joint))
+    assert np.mean(covered_joint) < 0.8, (np.mean(covered_applied), np.mean(covered_joint))
 
 
 def test_constraint_times_stay_midway_between_gnss_epochs():
