@@ -310,3 +310,93 @@ def test_a_failed_test_excludes_the_declared_lever_arm_by_taking_the_fault_toler
     r_m = 6.36e6                                       # ~ meridian radius at 40 deg (only the sign and size matter)
     assert (north_before - flt.nav[0]) * r_m == pytest.approx(0.3, rel=0.01)
     assert not np.any(sep.w)                          # one estimate now: nothing left to separate
+
+
+def _yaw_var_after(scale_model: str, yaw_rate_rps: float, seconds: float = 20.0, rate_hz: float = 100.0):
+    """Yaw-error variance of a filter started level at 10 m/s heading north with a known heading,
+    after ``seconds`` of IMU samples at a constant yaw rate (no GNSS, no vehicle constraints, so the
+    covariance is the time update alone); and the filter. scale_model: the gyro scale error is
+    "estimated" (a state), "consider" (Schmidt consider state) or "none" (white noise only)."""
+    from v2xpos.ins import InsConfig, InsFilter
+    from v2xpos.ins.ekf import ATT
+    cfg = InsConfig(platform="car", effects=("gyro_scale",) if scale_model == "estimated" else (),
+                    consider_gyro_scale=scale_model == "consider", constraints_on_request=True,
+                    apply_static_calibration=False, gyro_noise_rps_rthz=1e-4,
+                    effect_initial_sd={"gyro_scale": 0.01})
+    flt = InsFilter(cfg)
+    flt.initialize(100.0, np.array([0.7, 0.2, 300.0]), np.array([10.0, 0.0, 0.0]), np.zeros(3),
+                   att_sd_rad=np.radians([0.1, 0.1, 0.1]))
+    n = int(seconds * rate_hz)
+    t = 100.0 + np.arange(1, n + 1) / rate_hz
+    acc = np.tile([0.0, 10.0 * yaw_rate_rps, -9.80665], (n, 1))    # centripetal, body y; gravity up on z
+    gyro = np.tile([0.0, 0.0, yaw_rate_rps], (n, 1))
+    flt.process_imu_batch(t, acc, gyro)
+    flt._flush_covariance()
+    return flt.P[ATT + 2, ATT + 2], flt
+
+
+@pytest.mark.parametrize("scale_model", ["estimated", "consider"])
+def test_an_unknown_gyro_scale_grows_the_yaw_sigma_in_turns_only(scale_model):
+    """A gyro scale error s makes the heading error s * (heading turned): with its uncertainty in the
+    covariance (estimated state or Schmidt consider state) the yaw variance grows by
+    (sd_s * yaw turned)^2 in a turn, and not at all on a straight, where the heading sd stays that of
+    the white gyro noise."""
+    straight_s, _ = _yaw_var_after(scale_model, 0.0)
+    straight_w, _ = _yaw_var_after("none", 0.0)
+    assert straight_s == pytest.approx(straight_w, rel=1e-6)
+    rate = 0.2                                                       # 20 s at 11.5 deg/s: 229 deg
+    turn_s, flt = _yaw_var_after(scale_model, rate)
+    turn_w, _ = _yaw_var_after("none", rate)
+    turned_rad = rate * 20.0
+    assert turn_s - turn_w == pytest.approx((0.01 * turned_rad) ** 2, rel=0.05)
+    i = flt.layout.at("gyro_scale")
+    np.testing.assert_allclose(np.sqrt(np.diag(flt.P)[i:i + 3]), 0.01)
+
+
+def test_the_service_filter_estimates_the_gyro_scale_and_keeps_heading_noise_at_the_measured_one():
+    """``ins_config(integrity=True)``: gyro scale estimated (the datasheet-class prior, or the
+    calibration's value and sd), heading white noise the measured one while roll/pitch keep the
+    margin (docs/integrity.md); the meter applies the factor per body axis."""
+    from v2xpos.datasets.calibration import CalibrationEntry, CalibrationTable
+    from v2xpos.ins.calibrated import ins_config
+    from v2xpos.ins.effects import DEFAULT_INITIAL_SD
+    cfg = ins_config("car", np.eye(3), np.zeros(3), 0.02, integrity=True)
+    assert "gyro_scale" in cfg.effects
+    assert cfg.effect_initial_sd["gyro_scale"] == DEFAULT_INITIAL_SD["gyro_scale"]
+    cal = CalibrationTable({"gyro_scale": CalibrationEntry((0.0, 0.0, -0.007), (0.0, 0.0, 0.0005))}, source="x.toml")
+    cfg_cal = ins_config("car", np.eye(3), np.zeros(3), 0.02, calibration=cal, integrity=True)
+    assert list(cfg_cal.effects).count("gyro_scale") == 1
+    np.testing.assert_allclose(cfg_cal.effect_initial_sd["gyro_scale"], [0.0, 0.0, 0.0005])
+    assert "gyro_scale" not in ins_config("car", np.eye(3), np.zeros(3), 0.02).effects
+    rng = np.random.default_rng(5)
+    dt = 0.01
+    meter = ImuNoiseMeter(window_s=10.0, gyro_scale=(7.0, 7.0, 1.0))
+    n_true = 1e-4
+    t = np.arange(3000) * dt
+    meter.feed(t, rng.normal(0.0, n_true / math.sqrt(dt), (3000, 3)), np.zeros((3000, 3)))
+    q = np.zeros(15)
+    meter.apply(q, np.eye(3))
+    np.testing.assert_allclose(np.sqrt(q[6:9]), [7 * n_true, 7 * n_true, n_true], rtol=0.1)
+
+
+def test_consider_states_are_never_estimated_and_their_covariance_is_exact():
+    """``kalman_update`` with consider states: no correction and no variance reduction for them,
+    and the covariance is the Joseph form of the gain with their rows zeroed (valid for any gain)."""
+    from v2xpos.ins.ekf import kalman_update
+    rng = np.random.default_rng(3)
+    n = 7
+    A = rng.normal(size=(n, n))
+    P = A @ A.T + np.eye(n)
+    H = rng.normal(size=(2, n))
+    R = np.eye(2) * 0.2
+    d = rng.normal(size=2)
+    c = slice(4, 7)
+    dx, P_new, _, S, ok = kalman_update(P, H, d, R, None, consider=c)
+    assert ok and np.all(dx[c] == 0.0)
+    np.testing.assert_allclose(P_new[c, c], P[c, c])
+    K = P @ H.T @ np.linalg.inv(S)
+    K[c] = 0.0
+    I_KH = np.eye(n) - K @ H
+    np.testing.assert_allclose(P_new, I_KH @ P @ I_KH.T + K @ R @ K.T, atol=1e-12)
+    _, P_opt, _, _, _ = kalman_update(P, H, d, R, None)
+    assert np.all(np.diag(P_new) >= np.diag(P_opt) - 1e-12)          # not estimating costs information

@@ -74,6 +74,10 @@ def ins_config(platform: str, imu_to_body: np.ndarray, lever_arm_m: np.ndarray, 
         kw["imu_noise_from_data"] = "gyro_noise_rps_rthz" not in kw and "accel_noise_mps2_rthz" not in kw
         kw["reopen_on_inconsistency"] = True
         kw["fault_tolerant_solution"] = True     # protection level against an undeclared lever arm
+        # the heading error of a gyro scale error grows with the angle turned: estimated, from the
+        # calibration's value and sd or the datasheet-class prior (docs/integrity.md)
+        effects = tuple(kw.get("effects") or PLATFORM_EFFECTS[plat])
+        kw["effects"] = effects + (("gyro_scale",) if "gyro_scale" not in effects else ())
         # The calibration's noise is the sensor's white noise, as the online meter measures it; a
         # service's filter takes the same margin over it and the same cap in both cases
         # (docs/integrity.md, "The IMU noise behind it"): with the bare measured gyro noise the

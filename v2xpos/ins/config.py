@@ -49,8 +49,12 @@ class InsConfig:
     accel_bias_init_sd_mps2: float = 0.2
     imu_noise_from_data: bool = False             # white-noise densities measured from the samples (ImuNoiseMeter),
     imu_noise_window_s: float = 10.0              # averaged over this time constant, scaled, capped by the two above
-    imu_gyro_noise_scale: float = 7.0             # attitude noise = this x the measured gyro white noise (docs/integrity.md)
+    imu_gyro_noise_scale: float = 7.0             # roll/pitch noise = this x the measured body x/y gyro white noise
+    imu_yaw_gyro_noise_scale: float = 1.0         # heading noise = this x the measured body z one (docs/integrity.md)
     imu_accel_noise_scale: float = 1.0            # velocity noise = this x the measured accelerometer white noise
+    consider_gyro_scale: bool = False             # gyro scale error (sd effect_initial_sd["gyro_scale"]) carried in the
+    # covariance as a Schmidt consider state, never estimated: a heading sd that grows with the angle turned
+    # (ekf.kalman_update); ignored when gyro_scale is an estimated effect (docs/integrity.md: measured, off by default)
     # own consistency test (consistency.ConsistencyMonitor)
     consistency_window_s: float = 5.0
     consistency_false_alarm_per_hour: float = 1e-3  # of the block NIS and mean tests together (Bonferroni)
@@ -119,6 +123,8 @@ class InsConfig:
         self.lever_arm_m = np.asarray(self.lever_arm_m, float).reshape(3)
         if self.effects is None:
             self.effects = PLATFORM_EFFECTS[self.platform]
+        if "gyro_scale" in self.effects:
+            self.consider_gyro_scale = False
         self.effect_initial_sd = {**DEFAULT_INITIAL_SD, "lever_arm": self.lever_arm_sd_m, **self.effect_initial_sd}
         self.effect_random_walk = {**DEFAULT_RANDOM_WALK, **self.effect_random_walk}
         if self.init_yaw_sd_rad is None:

@@ -66,7 +66,7 @@ from scipy.stats import chi2, norm
 
 from v2xpos.rotation import skew
 
-from .ekf import POS, VEL, propagate_with_transition
+from .ekf import POS, VEL, kalman_update, propagate_with_transition
 
 VERIFIED, UNVERIFIED, INCONSISTENT = "verified", "unverified", "inconsistent"
 _CAP_PROBABILITY = 1e-9
@@ -348,8 +348,10 @@ class FaultTolerantSolution:
     """
 
     def __init__(self, lever_index: int, fault_sd_m: float = 0.5, false_alarm_per_hour: float = 1e-3,
-                 missed_detection: float = 1e-3, test_every_s: float = 1.0, min_sd_m: float = 1e-3):
+                 missed_detection: float = 1e-3, test_every_s: float = 1.0, min_sd_m: float = 1e-3,
+                 consider: slice | None = None):
         self.lever_index = int(lever_index)
+        self.consider = consider
         self.fault_sd_m = float(fault_sd_m)
         self.test_every_s = float(test_every_s)
         n_tests = 2.0 * 3600.0 / self.test_every_s
@@ -402,18 +404,17 @@ class FaultTolerantSolution:
         self.w = Phi @ self.w
 
     def update(self, H: np.ndarray, d: np.ndarray, R: np.ndarray, dx_main: np.ndarray) -> None:
-        """Measurement update with the data the main filter accepted (see class docstring)."""
+        """Measurement update with the data the main filter accepted (see class docstring): the
+        filter's own ``ekf.kalman_update`` (ungated: the main filter gated it) on the innovation
+        of ``w``, ``d - H w``, with the same consider states as the main filter."""
         if self.P is None:
             return
-        PHt = self.P @ H.T
-        S = H @ PHt + R
-        try:
-            K = np.linalg.solve(S, PHt.T).T
-        except np.linalg.LinAlgError:
+        dw, P, _, _, ok = kalman_update(self.P, H, np.asarray(d, float) - H @ self.w, R, None,
+                                        consider=self.consider)
+        if not ok:
             return
-        self.w = self.w + K @ (np.asarray(d, float) - H @ self.w) - dx_main
-        P = self.P - K @ PHt.T
-        self.P = 0.5 * (P + P.T)
+        self.w = self.w + dw - dx_main
+        self.P = P
 
     def reset_states(self, index, P_main: np.ndarray) -> None:
         """The main filter took these states from a measurement and reset their covariance

@@ -117,9 +117,16 @@ def propagate_covariance(P: np.ndarray, A: np.ndarray, q_c: np.ndarray, dt_s: fl
 
 
 def kalman_update(P: np.ndarray, H: np.ndarray, d: np.ndarray, R: np.ndarray,
-                  gate_chi2: float | None, force: bool = False) -> tuple:
+                  gate_chi2: float | None, force: bool = False, consider: slice | None = None) -> tuple:
     """Gated error-state update (module docstring). Returns (dx, P_new, nis, S, accepted); dx is
-    None when rejected: S singular, or NIS non-finite or above ``gate_chi2`` unless ``force``."""
+    None when rejected: S singular, or NIS non-finite or above ``gate_chi2`` unless ``force``.
+
+    consider: the states carried in the covariance but never estimated (Schmidt 1966, the
+    Schmidt-Kalman "consider" filter; Bierman 1977 ch. VIII; Brown & Hwang 2012 sec. 9.2): their
+    rows of the gain are 0, so dx is 0 there and their variance never shrinks, while the other
+    states' gain and covariance account for their uncertainty through the cross-covariances. With
+    that suboptimal gain ``P - K H P`` no longer holds; the covariance is the Joseph form
+    ``(I - K H) P (I - K H)^T + K R K^T = P - K H P - P H^T K^T + K S K^T``, exact for any gain."""
     PHt = P @ H.T
     S = H @ PHt + R
     try:
@@ -130,6 +137,12 @@ def kalman_update(P: np.ndarray, H: np.ndarray, d: np.ndarray, R: np.ndarray,
     if not force and gate_chi2 is not None and (not np.isfinite(nis) or nis > gate_chi2):
         return None, P, nis, S, False
     K = PHt @ S_inv
+    if consider is None:
+        dx = K @ d
+        P_new = P - K @ PHt.T
+        return dx, 0.5 * (P_new + P_new.T), nis, S, True
+    K[consider] = 0.0
     dx = K @ d
-    P_new = P - K @ PHt.T
+    KHP = K @ PHt.T
+    P_new = P - KHP - KHP.T + K @ S @ K.T
     return dx, 0.5 * (P_new + P_new.T), nis, S, True

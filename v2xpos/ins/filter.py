@@ -56,7 +56,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
     ``nav`` = (lat rad, lon rad, h m, v_N, v_E, v_D m/s) of the IMU point (``NAV_*`` indices);
     ``C_nb`` body -> NED; ``corr`` the compensation of the raw samples (gyro/accel bias and scale,
     ``COR_*``); ``fx`` the other effect values (``effects.EffectValues``); ``P`` the error-state
-    covariance in ``layout``; ``A`` the error dynamics summed since the last propagation;
+    covariance in ``layout`` (with ``cfg.consider_gyro_scale`` the gyro scale block, ``consider``, is
+    in it but never estimated: ``ekf.kalman_update``); ``A`` the error dynamics summed since the last propagation;
     ``mem`` the strapdown's memory of the previous sample; ``acc_ned_mps2`` the smoothed
     acceleration of the measurement models; ``static`` the stop detector's (``stops``) verdict;
     ``initialized`` / ``heading_known`` the alignment's progress; ``counts`` / ``residuals``
@@ -66,7 +67,9 @@ class InsFilter(ImuPath, Initialization, Outputs):
     def __init__(self, cfg: InsConfig | None = None):
         self.cfg = cfg or InsConfig()
         c = self.cfg
-        self.layout = StateLayout.build(c.effects)
+        self.layout = StateLayout.build(tuple(c.effects) + (("gyro_scale",) if c.consider_gyro_scale else ()))
+        i_sg = self.layout.at("gyro_scale")
+        self.consider = slice(i_sg, i_sg + 3) if c.consider_gyro_scale else None
         n = self.layout.n
         self.P = np.zeros((n, n))
         self.nav = np.zeros(6)
@@ -75,7 +78,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self.mem = np.zeros(MEM_SIZE)
         self.A = np.zeros((n, n))
         self.q_c = process_noise_density(self.layout, c)
-        self.noise_meter = (ImuNoiseMeter(c.imu_noise_window_s, c.imu_gyro_noise_scale, c.imu_accel_noise_scale,
+        gyro_scale = (c.imu_gyro_noise_scale, c.imu_gyro_noise_scale, c.imu_yaw_gyro_noise_scale)
+        self.noise_meter = (ImuNoiseMeter(c.imu_noise_window_s, gyro_scale, c.imu_accel_noise_scale,
                                           c.gyro_noise_rps_rthz, c.accel_noise_mps2_rthz) if c.imu_noise_from_data else None)
         self.consistency = ConsistencyMonitor(c.consistency_window_s, c.consistency_false_alarm_per_hour,
                                               c.verify_turn_deg, reverify=c.consistency_reverify,
@@ -83,7 +87,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
                                               detectable_m=c.verify_detectable_lever_arm_m)
         i_l = self.layout.at("lever_arm")
         self.separation = (FaultTolerantSolution(i_l, c.undeclared_lever_arm_sd_m, c.integrity_false_alarm_per_hour,
-                                                 c.integrity_missed_detection)
+                                                 c.integrity_missed_detection, consider=self.consider)
                            if c.fault_tolerant_solution and i_l >= 0 and c.undeclared_lever_arm_sd_m > 0 else None)
         self._t_motion_s: float | None = None
         self.kidx = self.layout.kernel_index()
@@ -227,7 +231,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
     def _update(self, kind: str, t_s: float, H: np.ndarray, d: np.ndarray, R: np.ndarray,
                 gate: bool = True, force: bool = False) -> UpdateResult:
         t0 = perf_counter()
-        dx, P, nis, S, ok = kalman_update(self.P, H, d, R, self.gate.get(len(d), None) if gate else None, force)
+        dx, P, nis, S, ok = kalman_update(self.P, H, d, R, self.gate.get(len(d), None) if gate else None, force,
+                                          self.consider)
         if ok:
             if self.separation is not None:
                 self.separation.update(H, d, R, dx)

@@ -69,12 +69,13 @@ def process_noise_density(layout: StateLayout, cfg: InsConfig) -> np.ndarray:
 
 class ImuNoiseMeter:
     """Running white-noise densities of gyro [rad/s/sqrt(Hz)] and accelerometer [m/s^2/sqrt(Hz)]
-    per body axis (see the module docstring)."""
+    per body axis (see the module docstring). ``gyro_scale``: the factor on the measured gyro
+    density, one number or one per body axis (x, y, z)."""
 
-    def __init__(self, window_s: float = 10.0, gyro_scale: float = 1.0, accel_scale: float = 1.0,
+    def __init__(self, window_s: float = 10.0, gyro_scale: float | tuple = 1.0, accel_scale: float = 1.0,
                  gyro_max_rps_rthz: float = math.inf, accel_max_mps2_rthz: float = math.inf):
         self.window_s = float(window_s)
-        self.gyro_scale = float(gyro_scale)
+        self.gyro_scale = np.broadcast_to(np.asarray(gyro_scale, float), (3,)).copy()
         self.accel_scale = float(accel_scale)
         self.gyro_max_rps_rthz = float(gyro_max_rps_rthz)
         self.accel_max_mps2_rthz = float(accel_max_mps2_rthz)
