@@ -372,6 +372,9 @@ class Estimator:
                 J_secant, self.J = self.J, J_saved
                 f_fd = identify.fit(self.problem(rows, theta), systematic_sd=self.systematic_sd())
                 self.J = J_secant
+                fd_wins = f_fd.sd > f.sd
+                f.dof = np.where(fd_wins, f_fd.dof, f.dof)
+                f.bandwidth_s = np.where(fd_wins, f_fd.bandwidth_s, f.bandwidth_s)
                 f.sd = np.maximum(f.sd, f_fd.sd)
                 f.sd_stat = np.maximum(f.sd_stat, f_fd.sd_stat)
                 f.determined = f.determined & f_fd.determined
@@ -383,22 +386,24 @@ class Estimator:
 
     def confirm(self, ds: Dataset, f: Fit, prob: LinearProblem, n_sigma: float = 3.0) -> Fit:
         """Real error reduction, by backward elimination with replays: the candidates are the
-        effects beyond 3 sd; in the current model (all active parameters minus those dropped,
+        effects beyond the t(dof) equivalent of 3 sd (``Fit.threshold_sd``); in the current model (all active parameters minus those dropped,
         estimated together by ``identify.refit``) each candidate is removed in turn, the others
         re-estimated without it, and the recording replayed. A candidate stays only if the replayed
         cost rises in BOTH halves of the recording and in total by more than ``n_sigma^2 kappa``,
-        where ``kappa = (sd / sd_white)^2`` is the variance factor of the robust sd over the
-        white-residual one: in the linear model the cost rise is ``(value / sd_white)^2``, so this
-        is the 3-sd test again, with the replay in place of the linearisation (a likelihood-ratio
-        test with the same non-whiteness allowance), and if it is still beyond 3 sd in the current
-        model. Otherwise the candidate with the smallest ``rise / kappa`` is dropped and the rest
+        where ``kappa = (sd / sd_white)^2`` is the variance factor of the robust (Normal-
+        equivalent) sd over the white-residual one and ``n_sigma`` is replaced by the parameter's
+        ``threshold_sd`` in the current model: in the linear model the cost rise is
+        ``(value / sd_white)^2``, so this is the same t(dof) test again, with the replay in place
+        of the linearisation (a likelihood-ratio test with the same non-whiteness allowance), and
+        if it is still beyond that threshold in the current model. Otherwise the candidate with the smallest ``rise / kappa`` is dropped and the rest
         are tested again in the model without it.
         The refit lets correlated parameters take over what they can: an IMU time offset and a
         forward lever arm that only trade along ``l_x - v tau`` (docs/calibration.md) each look
         necessary while the other is held at its joint estimate, but not when it may move.
         The significant effects' values and sd become those of the final model; the others keep
         the joint fit's."""
-        cand = [int(i) for i in np.flatnonzero(prob.active & f.determined & (np.abs(f.theta) > n_sigma * f.sd))]
+        cand = [int(i) for i in np.flatnonzero(prob.active & f.determined
+                                               & (np.abs(f.theta) > f.threshold_sd(n_sigma) * f.sd))]
         t_mid = float(np.median(prob.t_s))
         first = self.base_rows.t_s < t_mid
         gain = np.zeros(N_PARAMS)
@@ -415,6 +420,7 @@ class Estimator:
         while cand:
             sd_w = fm.sd_white
             kappa = np.maximum(np.where(sd_w > 0, (fm.sd_stat / np.where(sd_w > 0, sd_w, 1.0)) ** 2, 1.0), 1.0)
+            thr = fm.threshold_sd(n_sigma)
             worst, worst_z2, tried = None, np.inf, {}
             for i in cand:
                 without = model.copy()
@@ -425,7 +431,7 @@ class Estimator:
                 d = c - c_with
                 gain[i] = float(d.sum())
                 z2 = gain[i] / kappa[i]
-                keep = np.all(d > 0) and z2 > n_sigma ** 2 and abs(fm.theta[i]) > n_sigma * fm.sd[i]
+                keep = np.all(d > 0) and z2 > thr[i] ** 2 and abs(fm.theta[i]) > thr[i] * fm.sd[i]
                 self.confirm_log.append((PARAM_NAMES[i], d.tolist(), float(kappa[i]), float(fm.theta[i] / fm.sd[i])))
                 if not keep and z2 < worst_z2:
                     worst, worst_z2 = i, z2
@@ -440,6 +446,8 @@ class Estimator:
         f.theta = np.where(sig, fm.theta, f.theta)
         f.sd = np.where(sig, fm.sd, f.sd)
         f.sd_stat = np.where(sig, fm.sd_stat, f.sd_stat)
+        f.dof = np.where(sig, fm.dof, f.dof)
+        f.bandwidth_s = np.where(sig, fm.bandwidth_s, f.bandwidth_s)
         f.cv_gain = gain
         f.significant = sig
         return f

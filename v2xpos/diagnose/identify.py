@@ -10,20 +10,30 @@ Gauss-Newton / MAP step with a Gaussian prior N(0, diag(prior_sd^2)) is
 
     theta+ = theta - H^-1 (J^T r(theta) + P0^-1 theta),   H = J^T J + P0^-1.
 
-Uncertainty: residuals of a GNSS/INS filter are not white (RTK multipath, unmodelled dynamics),
-so the reported covariance is the larger, per parameter, of (a) H^-1 scaled by the reduced
-chi-square and (b) the cluster-robust sandwich H^-1 (sum_b g_b g_b^T) H^-1 with g_b = J_b^T r_b
-summed over time blocks (Liang & Zeger 1986, Biometrika 73(1)); blocks longer than the residual
-correlation time make (b) valid under serial correlation.
+Uncertainty: residuals of a GNSS/INS filter are not white (RTK errors are Gauss-Markov with
+time constants of tens of seconds, multipath, unmodelled dynamics), so the reported variance of
+theta_i is the largest of (a) H^-1 scaled by the reduced chi-square, (b) the heteroskedasticity-
+and autocorrelation-consistent (HAC) long-run variance of theta_i's influence series
+u_i(t) = (H^-1 J_t^T r_t)_i (``long_run_variance``: Bartlett kernel, Newey & West 1987, with the
+bandwidth chosen from the series' own autocorrelation, Andrews 1991, and the fixed-b bias
+correction of Kiefer & Vogelsang 2005) and (c) a delete-one-block jackknife over blocks no shorter than that bandwidth
+(Kunsch 1989). A 200 s drive with errors correlated over tens of seconds holds only a few
+independent blocks, so each estimate carries its degrees of freedom (nu = 1.5 T / S for the
+Bartlett estimator, G - 1 for G jackknife blocks) and the reported sd is *Normal-equivalent*:
+the standard error times q_t(nu, Phi(2)) / 2, so that value +- 2 sd is the 95.4 % t-interval
+(Cameron & Miller 2015, "A Practitioner's Guide to Cluster-Robust Inference", J. Human
+Resources 50(2), sec. VI: t(G-1) critical values with few clusters).
 
-Significance: |theta_i| > 3 sd_i AND a real error reduction: the effect, estimated on one half of
-the recording, lowers the residual cost of the other half (both ways, linearised model).
+Significance: |theta_i| beyond the two-sided t(nu_i) quantile of a 3-sigma Normal test
+(``Fit.threshold_sd``) AND a real error reduction: the effect, estimated on one half of the
+recording, lowers the residual cost of the other half (both ways, linearised model).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import stats
 
 from .inject import N_PARAMS, PARAM_NAMES
 
@@ -59,6 +69,13 @@ class Fit:
     cv_gain: np.ndarray = field(default_factory=lambda: np.zeros(N_PARAMS))
     sd_white: np.ndarray = field(default_factory=lambda: np.zeros(N_PARAMS))
     determined: np.ndarray = field(default_factory=lambda: np.ones(N_PARAMS, bool))
+    dof: np.ndarray = field(default_factory=lambda: np.full(N_PARAMS, np.inf))
+    bandwidth_s: np.ndarray = field(default_factory=lambda: np.zeros(N_PARAMS))
+
+    def threshold_sd(self, n_sigma: float = 3.0) -> np.ndarray:
+        """Per parameter, the |value| / sd beyond which the effect is significant at the level of a
+        two-sided n_sigma Normal test, for sds with ``dof`` degrees of freedom (``significance_sd``)."""
+        return significance_sd(self.dof, n_sigma)
 
     def table(self) -> list[dict]:
         return [{"name": PARAM_NAMES[i], "value": float(self.theta[i]), "sd": float(self.sd[i]),
@@ -73,6 +90,115 @@ carry at least three times the prior's information (1/sd^2 >= 4/prior^2): its va
 the recording and not the prior. Otherwise (e.g. a vertical lever arm on a flat road, which moves
 the antenna only through roll and pitch; the split of IMU offset and GNSS latency) it is reported
 as not determined and is never significant."""
+
+
+SCORE_BIN_S = 1.0
+"""Width of the time bins [s] in which the per-row influence terms are summed before their
+autocovariances are taken: far below the correlation times that matter (tens of seconds) and
+above the row spacing (0.1 s), so that the series is regular in time; the window and bandwidth
+below are found in seconds and do not depend on it while it stays that short."""
+
+SOKAL_WINDOW_C = 5.0
+"""Sokal's automatic window (reported integrated autocorrelation time): the smallest lag M with
+M >= c tau_int(M). c = 5 keeps the truncation
+bias of an exponentially decaying autocorrelation below exp(-c/2) ~ 8 % of tau_int while the
+estimator's variance grows only as (2M + 1) / T (Sokal 1997, "Monte Carlo Methods in Statistical
+Mechanics: Foundations and New Algorithms", sec. 3, recommends c ~ 4-6 for such decay)."""
+
+
+@dataclass
+class LongRunVariance:
+    """Long-run variance of the sum of a series and how it was found (``long_run_variance``)."""
+    variance_of_sum: float
+    bandwidth_s: float
+    tau_int_s: float
+    window_s: float
+    dof: float
+
+
+def long_run_variance(u: np.ndarray, bin_s: float = SCORE_BIN_S, c: float = SOKAL_WINDOW_C) -> LongRunVariance:
+    """Var(sum_t u_t) of a zero-mean, serially correlated series u (T,) sampled every bin_s.
+
+    1. Autocovariances gamma_j = (1/T) sum_t u_t u_(t+j) (not centred: u are scores at the
+       estimate, whose sum is ~0 by the normal equations).
+    2. Bandwidth S (in bins) by Andrews' (1991, Econometrica 59(3), sec. 6) AR(1) plug-in for the
+       Bartlett kernel: rho = gamma_1 / gamma_0, alpha(1) = 4 rho^2 / ((1 - rho)^2 (1 + rho)^2),
+       S = 1.1447 (alpha(1) T)^(1/3), at most T - 1; rho <= 0 gives S = 1 (white). For an
+       AR(1) the bandwidth in seconds, 1.1447 (4 tau_c^2 T bin_s)^(1/3) with tau_c the correlation
+       time, does not depend on the bin width. The nonparametric plug-in of Newey & West (1994)
+       was not used: its s1 = 2 sum j gamma_j over a pilot window is dominated by the long lags,
+       which the normal equations drive negative (the autocovariances of u sum to (sum u)^2 / T
+       = 0), so on a 200 s drive it often came out negative (S -> 1) exactly when the correlation
+       is long.
+    3. Bartlett (Newey & West 1987, Econometrica 55(3)) estimate
+       Omega = gamma_0 + 2 sum_(1 <= j < S) (1 - j/S) gamma_j, divided by 1 - b + b^2/3 with
+       b = S / T: the mean of the Bartlett estimator's fixed-b limit when u sums to zero
+       (Kiefer & Vogelsang 2005, Econometric Theory 21(6), Theorem 1 with E W(r)^2 terms; the
+       downward bias of a bandwidth that is not small against the record). Var(sum u) = T Omega.
+    4. Degrees of freedom: a Bartlett long-run variance with bandwidth S is approximately
+       chi^2_nu / nu distributed with nu = 1.5 T / S (its variance is (4/3)(S/T) Omega^2:
+       Priestley 1981, "Spectral Analysis and Time Series", sec. 6.2.4; the equivalent t(nu) of
+       Lazarus, Lewis, Stock & Watson 2018, J. Bus. Econ. Stat. 36(4)), i.e. the G - 1 of Cameron
+       & Miller (2015) with G = nu + 1 effective blocks.
+    5. For the report, the integrated autocorrelation time with Sokal's automatic window
+       (Madras & Sokal 1988, J. Stat. Phys. 50; Sokal 1997 sec. 3): tau_int(M) = 1 + 2 sum_(j<=M)
+       gamma_j / gamma_0, M the smallest lag with M >= c tau_int(M), at most T/2.
+    """
+    u = np.asarray(u, float)
+    T = len(u)
+    if T < 4 or not np.any(u):
+        return LongRunVariance(float(np.sum(u ** 2)), bin_s, bin_s, 0.0, np.inf)
+    nfft = 1 << int(np.ceil(np.log2(2 * T)))
+    f = np.fft.rfft(u, nfft)
+    gamma = np.fft.irfft(f * np.conj(f), nfft)[:T] / T
+    rho = float(gamma[1] / gamma[0])
+    if rho > 0:
+        alpha = 4.0 * rho ** 2 / ((1.0 - rho) ** 2 * (1.0 + rho) ** 2)
+        S = float(np.clip(1.1447 * (alpha * T) ** (1.0 / 3.0), 1.0, T - 1.0))
+    else:
+        S = 1.0
+    jj = np.arange(1, int(np.ceil(S)))
+    b = S / T
+    omega = (gamma[0] + 2.0 * np.sum((1.0 - jj / S) * gamma[jj])) / (1.0 - b + b * b / 3.0)
+    tau = 1.0 + 2.0 * np.cumsum(gamma[1:] / gamma[0])
+    lags = np.arange(1, T)
+    ok = np.flatnonzero((lags >= c * tau) & (lags <= max(T // 2, 1)))
+    M = int(lags[ok[0]]) if len(ok) else max(T // 2, 1)
+    return LongRunVariance(float(T * max(omega, 0.0)), S * bin_s, float(max(tau[M - 1], 0.0) * bin_s),
+                           float(M * bin_s), 1.5 * T / S)
+
+
+def influence_series(prob: LinearProblem, res: np.ndarray, Hinv: np.ndarray, active: np.ndarray,
+                     bin_s: float = SCORE_BIN_S) -> np.ndarray:
+    """u (T, P): per time bin, sum over its rows of H^-1 J_k^T r_k (the rows' contributions to the
+    estimate's error, theta_hat - theta = -H^-1 sum_k J_k^T r_k to first order), inactive columns 0."""
+    if len(res) == 0:
+        return np.zeros((0, N_PARAMS))
+    b = np.floor((prob.t_s - prob.t_s.min()) / bin_s).astype(int)
+    scores = prob.J * res[:, None]
+    scores[:, ~active] = 0.0
+    g = np.zeros((int(b.max()) + 1, N_PARAMS))
+    np.add.at(g, b, scores)
+    return g @ Hinv.T
+
+
+def normal_equivalent_factor(dof: np.ndarray | float, z: float = 2.0) -> np.ndarray:
+    """q_t(dof, Phi(z)) / z: the standard error times this is the sd whose +- z interval is the
+    t(dof) interval of the Normal z-sigma level (1 for dof = inf)."""
+    dof = np.asarray(dof, float)
+    p = stats.norm.cdf(z)
+    q = np.where(np.isfinite(dof), stats.t.ppf(p, np.where(np.isfinite(dof), np.maximum(dof, 1.0), 1.0)), z)
+    return q / z
+
+
+def significance_sd(dof: np.ndarray | float, n_sigma: float = 3.0) -> np.ndarray:
+    """|value| / (Normal-equivalent sd) at which a two-sided test with the false-alarm rate of an
+    n_sigma Normal test rejects 'effect absent' when the standard error has ``dof`` degrees of
+    freedom: q_t(dof, Phi(n_sigma)) / normal_equivalent_factor(dof) (n_sigma for dof = inf)."""
+    dof = np.asarray(dof, float)
+    fin = np.isfinite(dof)
+    q = np.where(fin, stats.t.ppf(stats.norm.cdf(n_sigma), np.where(fin, np.maximum(dof, 1.0), 1.0)), n_sigma)
+    return q / normal_equivalent_factor(dof)
 
 
 def _solve(prob: LinearProblem, active: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -110,15 +236,28 @@ def applied(prob: LinearProblem, f: Fit) -> Fit:
     clock drift at -64 +- 43 ppm (not significant, truth 0) held the IMU offset at -23.6 ms and the
     lateral lever arm at 0.392 m (correlations -0.67 with the drift, 0.7 with the unobservable roll);
     with the not-applied effects at 0: -28.7 ms (truth about -30) and 0.270 m (0.3).
-    The sd stays that of the final model: with the others free it is the marginal sd, i.e. the
-    consider covariance of the applied estimate with the not-applied effects' uncertainty from the
-    same fit (``H_ss^-1 + K C_nn K^T``, ``K = H_ss^-1 H_sn``; Bierman 1977, "Factorization Methods
-    for Discrete Sequential Estimation", ch. VIII), not the smaller conditional one."""
+    The sd is the root mean square error of this restricted estimate, sqrt(sd^2 + shift^2), with
+    sd that of the final model and shift = applied - joint value. Holding a not-applied effect at
+    0 when it is really theta_n != 0 biases the applied value by K theta_n (K = H_ss^-1 H_sn), the
+    MSE of a restricted least-squares estimate is its variance plus that bias squared (Toro-
+    Vizcarrondo & Wallace 1968, JASA 63(322)), and the shift K theta_n_hat is the data's estimate
+    of the bias. The marginal sd (the consider covariance H_ss^-1 + K C_nn K^T, Bierman 1977,
+    "Factorization Methods for Discrete Sequential Estimation", ch. VIII) covers the bias only
+    when theta_n is within its own sd of 0: in the coverage Monte-Carlo a mounting roll of ~1 deg
+    (never significant: it carries the 0.5 deg cross-slope sd) held at 0 moved the lateral lever
+    arm by 3-4 sd and the gyro z scale by 8 sd (2026-11-24, docs/calibration.md). When the
+    not-applied effects are truly 0 the shift is noise of the same size as the difference of the
+    marginal and conditional sds, so the sd is conservative by at most sqrt(2). Significance is
+    decided before (``Estimator.confirm``), in the model in which the effect was tested."""
     import copy
     out = copy.deepcopy(f)
     sig = np.asarray(f.significant, bool) & prob.active
     if sig.any():
-        out.theta = np.where(sig, refit(prob, sig), f.theta)
+        conditional = refit(prob, sig)
+        shift = np.where(sig, conditional - f.theta, 0.0)
+        out.theta = np.where(sig, conditional, f.theta)
+        out.sd = np.sqrt(f.sd ** 2 + shift ** 2)
+        out.sd_stat = np.sqrt(f.sd_stat ** 2 + shift ** 2)
     return out
 
 
@@ -132,8 +271,10 @@ def cost(prob: LinearProblem, theta: np.ndarray) -> float:
 
 
 def jackknife_var(prob: LinearProblem, active: np.ndarray, n_blocks: int = 8) -> np.ndarray:
-    """Delete-one-block jackknife variance over contiguous time blocks (Kunsch 1989, Ann. Stat.
-    17(3)): covers slow changes of the effects and of the residual statistics along the drive."""
+    """Delete-one-block jackknife variance over n_blocks contiguous time blocks (Kunsch 1989, Ann.
+    Stat. 17(3)): covers slow changes of the effects and of the residual statistics along the
+    drive. Its blocks are treated as independent, so ``fit`` makes them no shorter than the HAC
+    bandwidth; the estimate then has n_blocks - 1 degrees of freedom."""
     if n_blocks < 3 or len(prob.r) < 10 * n_blocks:
         return np.zeros(N_PARAMS)
     edges = np.quantile(prob.t_s, np.linspace(0, 1, n_blocks + 1))
@@ -142,9 +283,20 @@ def jackknife_var(prob: LinearProblem, active: np.ndarray, n_blocks: int = 8) ->
     return (n_blocks - 1) / n_blocks * np.sum((th - th.mean(axis=0)) ** 2, axis=0)
 
 
-def fit(prob: LinearProblem, block_s: float = 10.0, systematic_sd: np.ndarray | None = None,
-        active: np.ndarray | None = None, jackknife_blocks: int = 8) -> Fit:
-    """One MAP step on the linearised problem, with the robust covariance described above."""
+JACKKNIFE_MAX_BLOCKS = 8
+"""At most 8 jackknife blocks (25 s of a 200 s drive): fewer, longer blocks when the HAC
+bandwidth says the residuals are correlated for longer; never fewer than 3."""
+
+
+def fit(prob: LinearProblem, systematic_sd: np.ndarray | None = None, active: np.ndarray | None = None,
+        bin_s: float = SCORE_BIN_S) -> Fit:
+    """One MAP step on the linearised problem, with the robust variance of the module docstring.
+
+    Per active parameter i three variance estimates, each with its degrees of freedom, are made
+    Normal-equivalent (times ``normal_equivalent_factor(dof)^2``) and the largest is reported:
+    white (H^-1 chi2_red, dof = inf), HAC of the influence series (``long_run_variance``, dof
+    1.5 T / S) and the jackknife over G = clip(floor(span / S), 3, 8) blocks (dof G - 1).
+    ``dof`` records the winner's, ``threshold_sd`` turns it into the significance threshold."""
     active = prob.active if active is None else active
     theta, Hinv = _solve(prob, active)
     res = predicted_residual(prob, theta)
@@ -152,27 +304,38 @@ def fit(prob: LinearProblem, block_s: float = 10.0, systematic_sd: np.ndarray | 
     k = int(active.sum())
     chi2 = float(res @ res) / max(m - k, 1)
     cov_naive = Hinv * max(chi2, 1.0)
-    blocks = np.floor((prob.t_s - prob.t_s.min()) / block_s).astype(int) if m else np.zeros(0, int)
-    G = np.zeros((N_PARAMS, N_PARAMS))
-    for b in np.unique(blocks):
-        sel = blocks == b
-        g = prob.J[sel].T @ res[sel]
-        g[~active] = 0.0
-        G += np.outer(g, g)
-    cov_sand = Hinv @ G @ Hinv
-    var_stat = np.maximum(np.diag(cov_naive), np.diag(cov_sand))
-    var_stat = np.maximum(var_stat, jackknife_var(prob, active, n_blocks=jackknife_blocks))
+    var_white = np.diag(cov_naive).copy()
+    var_hac = np.zeros(N_PARAMS)
+    dof_hac = np.full(N_PARAMS, np.inf)
+    bandwidth_s = np.zeros(N_PARAMS)
+    u = influence_series(prob, res, Hinv, active, bin_s)
+    span_s = len(u) * bin_s
+    for i in np.flatnonzero(active):
+        lrv = long_run_variance(u[:, i], bin_s)
+        var_hac[i], dof_hac[i], bandwidth_s[i] = lrv.variance_of_sum, lrv.dof, lrv.bandwidth_s
+    n_jack = np.clip(np.floor(span_s / np.maximum(bandwidth_s, bin_s)), 3, JACKKNIFE_MAX_BLOCKS).astype(int)
+    var_jack = np.zeros(N_PARAMS)
+    for n in np.unique(n_jack[active]):
+        sel = active & (n_jack == n)
+        var_jack[sel] = jackknife_var(prob, active, n_blocks=int(n))[sel]
+    dof_jack = n_jack - 1.0
+    cand_var = np.vstack([var_white, var_hac * normal_equivalent_factor(dof_hac) ** 2,
+                          var_jack * normal_equivalent_factor(dof_jack) ** 2])
+    cand_dof = np.vstack([np.full(N_PARAMS, np.inf), dof_hac, dof_jack])
+    win = np.argmax(cand_var, axis=0)
+    var_stat = cand_var[win, np.arange(N_PARAMS)]
+    dof = np.where(active, cand_dof[win, np.arange(N_PARAMS)], np.inf)
     sys = np.zeros(N_PARAMS) if systematic_sd is None else np.asarray(systematic_sd, float)
     var_stat = np.where(active, var_stat, prob.prior_sd ** 2)
     sd_stat = np.sqrt(var_stat)
     sd = np.sqrt(var_stat + sys ** 2)
-    sd_white = np.sqrt(np.diag(cov_naive))
+    sd_white = np.sqrt(var_white)
     scale = np.where(sd_white > 0, sd_stat / np.maximum(sd_white, 1e-300), 1.0)
     cov = cov_naive * np.outer(scale, scale)
     determined = active & (sd < DETERMINED_RATIO * prob.prior_sd)
     return Fit(theta=theta, cov=cov, sd=sd, sd_stat=sd_stat, cost_before=cost(prob, np.zeros(N_PARAMS)),
                cost_after=float(res @ res), n_rows=m, reduced_chi2=chi2, sd_white=sd_white,
-               determined=determined)
+               determined=determined, dof=dof, bandwidth_s=bandwidth_s)
 
 
 def halves(prob: LinearProblem, t_split_s: float | None = None) -> tuple[LinearProblem, LinearProblem]:
@@ -199,10 +362,11 @@ def cross_validated_gain(prob: LinearProblem, active: np.ndarray) -> np.ndarray:
 
 
 def decide(prob: LinearProblem, f: Fit, n_sigma: float = 3.0, active: np.ndarray | None = None) -> Fit:
-    """Mark parameters significant: beyond n_sigma sd and a positive cross-validated gain."""
+    """Mark parameters significant: beyond the t(dof) equivalent of an n_sigma Normal test
+    (``Fit.threshold_sd``) and a positive cross-validated gain."""
     active = prob.active if active is None else active
     f.cv_gain = cross_validated_gain(prob, active)
-    f.significant = active & f.determined & (np.abs(f.theta) > n_sigma * f.sd) & (f.cv_gain > 0)
+    f.significant = active & f.determined & (np.abs(f.theta) > f.threshold_sd(n_sigma) * f.sd) & (f.cv_gain > 0)
     return f
 
 

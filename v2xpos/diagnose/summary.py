@@ -69,7 +69,7 @@ def summary_text(cal) -> str:
     f = cal.fit
     lines = [f"calibration of {cal.dataset}" + (f" ({cal.source})" if cal.source else ""), ""]
     lines += _table(("effect", "value", "sd", "unit", "significant"), summary_rows(f, cal.problem.active))
-    lines += ["", "significant: beyond 3 sd and confirmed by replays without it (docs/calibration.md); "
+    lines += ["", "significant: beyond the t(dof) equivalent of 3 sd and confirmed by replays without it (docs/calibration.md); "
               "not determined: the recording cannot tell it (sd not below half the prior's)", ""]
     lines += _table(("error", "before", "after", "unit"), metric_rows(cal.before, cal.after))
     if getattr(cal, "online", None):
