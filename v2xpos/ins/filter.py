@@ -239,9 +239,15 @@ class InsFilter(ImuPath, Initialization, Outputs):
         if not self.heading_known and np.any(H[:, ATT + 2]):
             # the open heading (sd ~180 deg, decoupled by ``_decouple_yaw``) stays out of the
             # measurements too: linearised about an arbitrary yaw, a tall antenna's few mm of
-            # horizontal C l at a tilt turned it by tens of degrees at a stop, and C l with it
+            # horizontal C l at a tilt turned it by tens of degrees at a stop, and C l with it.
+            # What the yaw does to the prediction is noise instead: a horizontal vector u turned by
+            # a uniformly distributed yaw is uniform on a circle, covariance |u|^2/2 per horizontal
+            # axis, and |u| = |dh/dyaw| (NED rows: GNSS position and velocity)
+            h_yaw = H[:, ATT + 2].copy()
             H = H.copy()
             H[:, ATT + 2] = 0.0
+            if len(d) == 3:
+                R = R + 0.5 * float(h_yaw @ h_yaw) * np.diag([1.0, 1.0, 0.0])
         dx, P, nis, S, ok = kalman_update(self.P, H, d, R, self.gate.get(len(d), None) if gate else None, force,
                                           self.consider)
         if ok:
