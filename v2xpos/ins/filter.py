@@ -228,6 +228,12 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self.corr[COR_BA:COR_BA + 3] -= dx[BA:BA + 3]
         self.fx.apply_correction(self.layout, dx, self.corr)
 
+    def _malformed_input(self, kind: str, what: str, t_s: float = np.nan) -> UpdateResult:
+        """A measurement input that cannot be used: counted in ``counts["malformed_inputs"]``,
+        the filter unchanged, the result not accepted with ``malformed <what>`` as its reason."""
+        self.counts["malformed_inputs"] += 1
+        return UpdateResult(kind, t_s, False, np.nan, reason=f"malformed {what}")
+
     def _update(self, kind: str, t_s: float, H: np.ndarray, d: np.ndarray, R: np.ndarray,
                 gate: bool = True, force: bool = False) -> UpdateResult:
         t0 = perf_counter()
@@ -349,9 +355,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
             if not (np.all(np.isfinite(lla)) and np.all(np.isfinite(sd)) and abs(lla[0]) <= math.pi / 2):
                 raise ValueError("non-finite or out-of-range position")
         except (ValueError, TypeError) as e:
-            self.counts["malformed_inputs"] += 1
-            return UpdateResult("gnss_pos", t_s if isinstance(t_s, float) else np.nan, False, np.nan,
-                                reason=f"malformed GNSS input: {e}")
+            return self._malformed_input("gnss_pos", f"GNSS input: {e}", t_s if isinstance(t_s, float) else np.nan)
         if fix in (FixStatus.NONE, FixStatus.DEAD_RECKONING):
             return UpdateResult("gnss_pos", t_s, False, np.nan, reason="no fix")
         if vel_ned_mps is not None and np.all(np.isfinite(vel_ned_mps)):
@@ -453,8 +457,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
                     and np.all(np.isfinite(baseline)) and math.hypot(baseline[0], baseline[1]) > 0):
                 raise ValueError("non-finite, sd <= 0 or a vertical baseline")
         except (TypeError, ValueError):
-            self.counts["malformed_inputs"] += 1
-            return UpdateResult("heading", np.nan, False, np.nan, reason="malformed heading input")
+            return self._malformed_input("heading", "heading input")
         if not self.initialized:
             return UpdateResult("heading", t_s, False, np.nan, reason="not initialised")
         self._flush_covariance()
@@ -475,8 +478,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
             if not (math.isfinite(t_s) and math.isfinite(speed_mps)):
                 raise ValueError("non-finite")
         except (TypeError, ValueError):
-            self.counts["malformed_inputs"] += 1
-            return UpdateResult("odometer", np.nan, False, np.nan, reason="malformed wheel-speed input")
+            return self._malformed_input("odometer", "wheel-speed input")
         if not self.initialized:
             return UpdateResult("odometer", t_s, False, np.nan, reason="not initialised")
         self._flush_covariance()

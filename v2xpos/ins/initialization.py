@@ -183,12 +183,7 @@ class Initialization:
         turn_rad = math.remainder(heading_rad - math.atan2(u[1], u[0]), 2.0 * math.pi)
         C_before = self.C_nb
         self.C_nb = rot_z(turn_rad) @ C_before
-        dp_ned_m = (C_before - self.C_nb) @ self.fx.lever_arm_m
-        lat, h = self.nav[0], self.nav[2]
-        r_m, r_n = geo.radii_m(lat)
-        self.nav[0] += dp_ned_m[0] / (r_m + h)
-        self.nav[1] += dp_ned_m[1] / ((r_n + h) * math.cos(lat))
-        self.nav[2] -= dp_ned_m[2]
+        self.nav[:3] = geo.ned_to_lla((C_before - self.C_nb) @ self.fx.lever_arm_m, self.nav[:3])
         self.heading_known = True
         m = updates.dual_antenna_heading(self.layout, self.C_nb, R_vb, baseline_vehicle_m, heading_rad, sd_rad)
         res = self._update("heading", t_s, *m, gate=False)
