@@ -233,7 +233,7 @@ def run(args: argparse.Namespace) -> int:
     if not 0 < args.speed <= 100:
         print(f"v2xpos convoy: --speed {args.speed} outside (0, 100]", file=sys.stderr)
         return 2
-    out = Path(args.out)
+    out = Path(args.out).resolve()   # the services resolve config paths against the config's directory
     try:
         idents = [dataset_identity(p) for p in args.datasets]
         names = [i[1] for i in idents]

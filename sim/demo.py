@@ -54,7 +54,8 @@ def run_demo(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 10
              degradations: bool = True, spikes: bool = True, live: bool = True, port: int = 0,
              plots: bool = True, log=sys.stderr, rtk_vertical_factor: float = 1.0) -> dict:
     """Run the multi-process demo and return the report dict (also written to out/report.json)."""
-    out = Path(out)
+    # absolute: the services resolve every path in their configs against the config's directory
+    out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     sc = build("convoy", vehicles=vehicles, duration_s=duration_s, latency_ms=latency_ms, jitter_ms=jitter_ms,
                seed=seed, pedestrian=pedestrian, degradations=degradations, spikes=spikes,

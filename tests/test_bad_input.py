@@ -271,9 +271,12 @@ def test_demo_ctrl_c_writes_a_partial_report(tmp_path):
     non-interactive shell gives an asynchronous command): a SIGINT to its process group must still
     stop it with a partial report, not let it report a cut-short run as complete."""
     out = tmp_path / "demo"
+    # a relative --out from another working directory, as `make demo` gives it (the services
+    # resolve their config paths against the config's directory: a relative out once broke them)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
     p = subprocess.Popen([sys.executable, "-m", "v2xpos", "demo", "--vehicles", "2", "--duration", "20",
-                          "--no-live", "--no-pedestrian", "--out", str(out)], cwd=ROOT, stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True, start_new_session=True,
+                          "--no-live", "--no-pedestrian", "--out", "demo"], cwd=tmp_path, env=env,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
     seen = ""
     t_end = time.time() + 180

@@ -222,3 +222,58 @@ def test_field_doc_config_examples_are_valid():
         finally:
             src.close()
         parse_corrections(cfg["corrections"])
+
+
+# ------------------------------------------------------------------ dual-antenna heading
+def _parked_device_source(table_extra: dict):
+    """A device source (no ports opened) of a car parked level, fed decoded records directly: IMU
+    100 Hz, RTK fixes 10 Hz, and NAV-RELPOSNED-like headings of 30 deg (+-0.3 deg) each epoch."""
+    from v2xpos.devices.records import GnssEpoch, HeadingObs, ImuRecord
+    from v2xpos.sources.device import check_table
+    from v2xpos.ins.calibrated import ins_config
+    from v2xpos.types import FixStatus
+    where = "[source]"
+    table = {"gnss": {"format": "ubx", "tcp": "127.0.0.1:9"}, "imu": "receiver", "lever_arm_m": [0.3, 0.0, -1.2],
+             **table_extra}
+    v = check_table(table, where)
+    cfg = ins_config("car", v["imu_to_body"], v["lever"], v["lever_sd"], integrity=True)
+    gnss = DeviceStream("gnss", "ubx", None, lambda r: None)
+    src = DeviceSource(gnss, None, cfg, HostGnssClock(), heading_baseline_m=v["heading_baseline"])
+    t0 = 1.4e9
+    lla = np.array([math.radians(48.1), math.radians(11.6), 520.0])
+    rng = np.random.default_rng(5)
+    states = []
+    for k in range(1, 2001):
+        t = t0 + k * 0.01
+        src.inbox.append(("gnss", ImuRecord(k * 0.01, np.array([0.0, 0.0, -9.80665]) + rng.normal(0, 0.02, 3),
+                                            rng.normal(0, 2e-4, 3), t + 0.005)))
+        if k % 10 == 0:
+            src.inbox.append(("gnss", GnssEpoch(t, lla, np.full(3, 0.02), FixStatus.FIXED, t + 0.03,
+                                                np.zeros(3), np.full(3, 0.03), 20, "NAV-PVT")))
+            src.inbox.append(("gnss", HeadingObs(t, math.radians(30.0), math.radians(0.3), t + 0.03, 1.0,
+                                                 "NAV-RELPOSNED")))
+        states += src.advance(t + 0.02)
+    return src, states
+
+
+def test_a_dual_antenna_heading_makes_a_parked_start_attitude_determined():
+    """Without the baseline declared a parked car's heading stays pending (never a guess); with it
+    the states carry the baseline's heading and ``attitude_ok`` after the filter starts."""
+    src, states = _parked_device_source({})
+    assert states and not any(s.attitude_ok for s in states)
+    assert src.counts["headings"] > 100 and src.counts["headings_used"] == 0
+    assert src.status()["heading"]["used_by_filter"] is False
+    src, states = _parked_device_source({"heading_baseline_m": [0.0, -1.0, 0.0]})   # secondary antenna on the left
+    assert states[-1].attitude_ok and src.counts["headings_used"] > 100
+    # the baseline points left of the car (-90 deg), so the car heads 30 + 90 deg
+    assert abs(math.degrees(states[-1].rpy_rad[2]) - 120.0) < 0.1
+    assert src.status()["heading"]["used_by_filter"] is True
+
+
+def test_heading_baseline_is_validated():
+    ctx = SourceContext("v1")
+    base = {"type": "device", "gnss": {"format": "ubx", "tcp": "127.0.0.1:9"}, "imu": "receiver"}
+    with pytest.raises(SourceError, match=r"\[source\]\.heading_baseline_m: a vertical baseline has no azimuth"):
+        make_source({**base, "heading_baseline_m": [0.0, 0.0, 1.0]}, "[source]", ctx)
+    with pytest.raises(SourceError, match=r"\[source\]\.heading_baseline_m: expected a finite array of shape"):
+        make_source({**base, "heading_baseline_m": [1.0, 0.0]}, "[source]", ctx)

@@ -113,3 +113,33 @@ def test_stop_models_measure_the_bias_errors():
     np.testing.assert_allclose(stop.d, stop.H @ dx, atol=1e-12)
     np.testing.assert_allclose(np.sqrt(np.diag(stop.R)),
                                [updates.STOP_GYRO_BIAS_SD_FLOOR_RPS] * 3 + [0.35] * 3)
+
+
+@pytest.mark.parametrize("baseline_vehicle_m", [[1.2, 0.0, 0.0], [0.1, -0.9, 0.05], [-0.7, 0.4, -0.3]])
+def test_dual_antenna_heading_residual_is_h_times_the_error(baseline_vehicle_m):
+    """The true azimuth of the baseline from its NED vector; the estimate's attitude off by phi and
+    its misalignment (vehicle <- body) by dm, R_est = exp(dm) R_true."""
+    b = np.asarray(baseline_vehicle_m)
+    R_vb = dcm_from_euler(0.01, -0.02, 0.03)
+    u_true = C_NB @ R_vb.T @ b
+    z = float(np.arctan2(u_true[1], u_true[0])) % (2 * np.pi)
+    dx = _error(att=[4e-3, -3e-3, 5e-3], misalignment=[-2e-3, 3e-3, -4e-3])
+    R_est = exp_so3(dx[LAYOUT.at("misalignment"):][:3]) @ R_vb
+    m = updates.dual_antenna_heading(LAYOUT, exp_so3(-dx[ATT:ATT + 3]) @ C_NB, R_est, b, z, 0.01)
+    assert abs(float((m.H @ dx)[0])) > 5e-4
+    np.testing.assert_allclose(m.d, m.H @ dx, atol=1e-4)
+    # each block on its own (a misalignment error alone moves the vehicle's heading too)
+    for blocks in ({"att": dx[ATT:ATT + 3]}, {"misalignment": dx[LAYOUT.at("misalignment"):][:3]}):
+        e = _error(**blocks)
+        R_e = exp_so3(e[LAYOUT.at("misalignment"):][:3]) @ R_vb
+        m = updates.dual_antenna_heading(LAYOUT, exp_so3(-e[ATT:ATT + 3]) @ C_NB, R_e, b, z, 0.01)
+        assert abs(float((m.H @ e)[0])) > 1e-3
+        np.testing.assert_allclose(m.d, m.H @ e, atol=1e-4)
+    assert m.R[0, 0] == pytest.approx(1e-4)
+
+
+def test_dual_antenna_heading_residual_wraps_at_north():
+    """A baseline just east of north measured just west of it: the residual is the small angle."""
+    C = dcm_from_euler(0.0, 0.0, 0.01)
+    m = updates.dual_antenna_heading(LAYOUT, C, np.eye(3), np.array([1.0, 0.0, 0.0]), 2 * np.pi - 0.01, 0.01)
+    assert float(m.d[0]) == pytest.approx(0.02, abs=1e-9)

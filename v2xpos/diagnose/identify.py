@@ -182,23 +182,25 @@ def influence_series(prob: LinearProblem, res: np.ndarray, Hinv: np.ndarray, act
     return g @ Hinv.T
 
 
+def t_equivalent(z: float, dof: np.ndarray | float) -> np.ndarray:
+    """q_t(dof, Phi(z)): the t(dof) quantile at the probability of the Normal z-sigma level
+    (z for dof = inf; dof below 1 taken as 1)."""
+    dof = np.asarray(dof, float)
+    fin = np.isfinite(dof)
+    return np.where(fin, stats.t.ppf(stats.norm.cdf(z), np.where(fin, np.maximum(dof, 1.0), 1.0)), z)
+
+
 def normal_equivalent_factor(dof: np.ndarray | float, z: float = 2.0) -> np.ndarray:
     """q_t(dof, Phi(z)) / z: the standard error times this is the sd whose +- z interval is the
     t(dof) interval of the Normal z-sigma level (1 for dof = inf)."""
-    dof = np.asarray(dof, float)
-    p = stats.norm.cdf(z)
-    q = np.where(np.isfinite(dof), stats.t.ppf(p, np.where(np.isfinite(dof), np.maximum(dof, 1.0), 1.0)), z)
-    return q / z
+    return t_equivalent(z, dof) / z
 
 
 def significance_sd(dof: np.ndarray | float, n_sigma: float = 3.0) -> np.ndarray:
     """|value| / (Normal-equivalent sd) at which a two-sided test with the false-alarm rate of an
     n_sigma Normal test rejects 'effect absent' when the standard error has ``dof`` degrees of
     freedom: q_t(dof, Phi(n_sigma)) / normal_equivalent_factor(dof) (n_sigma for dof = inf)."""
-    dof = np.asarray(dof, float)
-    fin = np.isfinite(dof)
-    q = np.where(fin, stats.t.ppf(stats.norm.cdf(n_sigma), np.where(fin, np.maximum(dof, 1.0), 1.0)), n_sigma)
-    return q / normal_equivalent_factor(dof)
+    return t_equivalent(n_sigma, dof) / normal_equivalent_factor(dof)
 
 
 def _solve(prob: LinearProblem, active: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

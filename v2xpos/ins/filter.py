@@ -233,6 +233,12 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self.corr[COR_BA:COR_BA + 3] -= dx[BA:BA + 3]
         self.fx.apply_correction(self.layout, dx, self.corr)
 
+    def _malformed_input(self, kind: str, what: str, t_s: float = np.nan) -> UpdateResult:
+        """A measurement input that cannot be used: counted in ``counts["malformed_inputs"]``,
+        the filter unchanged, the result not accepted with ``malformed <what>`` as its reason."""
+        self.counts["malformed_inputs"] += 1
+        return UpdateResult(kind, t_s, False, np.nan, reason=f"malformed {what}")
+
     def _update(self, kind: str, t_s: float, H: np.ndarray, d: np.ndarray, R: np.ndarray,
                 gate: bool = True, force: bool = False) -> UpdateResult:
         t0 = perf_counter()
@@ -366,9 +372,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
             if not (np.all(np.isfinite(lla)) and np.all(np.isfinite(sd)) and abs(lla[0]) <= math.pi / 2):
                 raise ValueError("non-finite or out-of-range position")
         except (ValueError, TypeError) as e:
-            self.counts["malformed_inputs"] += 1
-            return UpdateResult("gnss_pos", t_s if isinstance(t_s, float) else np.nan, False, np.nan,
-                                reason=f"malformed GNSS input: {e}")
+            return self._malformed_input("gnss_pos", f"GNSS input: {e}", t_s if isinstance(t_s, float) else np.nan)
         if fix in (FixStatus.NONE, FixStatus.DEAD_RECKONING):
             return UpdateResult("gnss_pos", t_s, False, np.nan, reason="no fix")
         if vel_ned_mps is not None and np.all(np.isfinite(vel_ned_mps)):
@@ -459,6 +463,36 @@ class InsFilter(ImuPath, Initialization, Outputs):
                                 est.accel_bias_mps2, self.cfg.static_calibration.level_fx_max_mps2)
         self._update("static_calibration", self.t_s, *m)
 
+    def update_heading(self, t_s: float, heading_rad: float, sd_rad: float,
+                       baseline_vehicle_m: np.ndarray) -> UpdateResult:
+        """Dual-antenna heading: the azimuth of the antenna baseline ``baseline_vehicle_m`` (vehicle
+        axes like the lever arm, primary -> secondary antenna) at GPS time t_s, clockwise from north, with its 1-sigma.
+        While the heading is still pending (at a stop after alignment) it sets the heading
+        (``Initialization._heading_from_baseline``); afterwards it is a gated Kalman update
+        (``updates.dual_antenna_heading``). The label gap to the filter's state adds the body's
+        turn over it, ``|w_z| |t_s - t_state|``, to the sd. Counts ``heading``,
+        ``heading_rejected``, ``heading_sets`` (created on first use)."""
+        try:
+            t_s, heading_rad, sd_rad = float(t_s), float(heading_rad), float(sd_rad)
+            baseline = np.asarray(baseline_vehicle_m, dtype=float).reshape(3)
+            if not (math.isfinite(t_s) and math.isfinite(heading_rad) and math.isfinite(sd_rad) and sd_rad > 0
+                    and np.all(np.isfinite(baseline)) and math.hypot(baseline[0], baseline[1]) > 0):
+                raise ValueError("non-finite, sd <= 0 or a vertical baseline")
+        except (TypeError, ValueError):
+            return self._malformed_input("heading", "heading input")
+        if not self.initialized:
+            return UpdateResult("heading", t_s, False, np.nan, reason="not initialised")
+        self._flush_covariance()
+        sd_rad = math.hypot(sd_rad, float(self._last_w_b[2]) * (t_s - self.t_s))
+        if not self.heading_known:
+            self.counts["heading_sets"] = self.counts.get("heading_sets", 0) + 1
+            return self._heading_from_baseline(t_s, heading_rad, sd_rad, baseline)
+        m = updates.dual_antenna_heading(self.layout, self.C_nb, self.misalignment_dcm(), baseline, heading_rad, sd_rad)
+        r = self._update("heading", t_s, *m)
+        key = "heading" if r.accepted else "heading_rejected"
+        self.counts[key] = self.counts.get(key, 0) + 1
+        return r
+
     def update_wheel_speed(self, t_s: float, speed_mps: float) -> UpdateResult:
         """Odometer: forward speed of the vehicle [m/s] at GPS time t_s (Shin 2001 sec. 4.3)."""
         try:
@@ -466,8 +500,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
             if not (math.isfinite(t_s) and math.isfinite(speed_mps)):
                 raise ValueError("non-finite")
         except (TypeError, ValueError):
-            self.counts["malformed_inputs"] += 1
-            return UpdateResult("odometer", np.nan, False, np.nan, reason="malformed wheel-speed input")
+            return self._malformed_input("odometer", "wheel-speed input")
         if not self.initialized:
             return UpdateResult("odometer", t_s, False, np.nan, reason="not initialised")
         self._flush_covariance()

@@ -23,6 +23,7 @@ from v2xpos.rotation import dcm_from_euler, euler_from_dcm, rot_z, skew
 
 from .ekf import ATT, BA, BG, EFFECT_SIZES, POS, VEL
 from .mechanization import COR_BA, COR_BG, MEM_F, MEM_VALID, MEM_W
+from . import updates
 from .updates import TIMING_STATES_POSITION, UpdateResult
 
 if TYPE_CHECKING:
@@ -226,6 +227,30 @@ class Initialization:
         self.last_gnss_t_s = t_s
         return UpdateResult("gnss_pos", t_s, False, np.nan,
                             reason=f"position reset: the filter was {err_m:.1f} m off after rejections")
+
+    def _heading_from_baseline(self, t_s: float, heading_rad: float, sd_rad: float,
+                               baseline_vehicle_m: np.ndarray) -> UpdateResult:
+        """Pending heading set from a dual-antenna baseline azimuth: turn the attitude about down
+        by the azimuth difference (a turn about down changes every NED azimuth by the same angle),
+        move the IMU point so the antenna stays where it was (``p_ant = p + C l``), then apply the
+        azimuth as an ungated measurement at the turned state (residual 0, so only the covariance
+        changes): the yaw error, open while pending (``InsFilter._decouple_yaw``), takes the
+        measurement's variance together with its correlation to the misalignment states, since the
+        baseline fixes the vehicle's heading, not the IMU's. Level, biases and velocity keep what
+        the stop taught."""
+        R_vb = self.misalignment_dcm()
+        u = self.C_nb @ R_vb.T @ baseline_vehicle_m
+        turn_rad = math.remainder(heading_rad - math.atan2(u[1], u[0]), 2.0 * math.pi)
+        C_before = self.C_nb
+        self.C_nb = rot_z(turn_rad) @ C_before
+        self.nav[:3] = geo.ned_to_lla((C_before - self.C_nb) @ self.fx.lever_arm_m, self.nav[:3])
+        self.heading_known = True
+        m = updates.dual_antenna_heading(self.layout, self.C_nb, R_vb, baseline_vehicle_m, heading_rad, sd_rad)
+        res = self._update("heading", t_s, *m, gate=False)
+        self.consistency.restart(float(t_s))
+        self._restart_separation()
+        res.reason = f"heading set from the dual-antenna baseline (turned {math.degrees(turn_rad):.1f} deg)"
+        return res
 
     def _heading_reset(self, t_s, lla, sd, fix, vel) -> UpdateResult:
         """First epoch fast enough for a course: turn the attitude about down so that the body x axis

@@ -23,6 +23,10 @@ v_b = C^T v.
 * Odometer (wheel speed = (1 + s_odo) x forward speed, Shin 2001 sec. 4.3): h = (1 + s_odo)
   ((R_m C^T v)_x + a_fwd gap); H as the NHC rows (x component) times (1 + s_odo),
   H_s = (R_m C^T v)_x.
+* Dual-antenna heading (a moving-base receiver's baseline azimuth, u-blox NAV-RELPOSNED): with
+  u = C R_vb^T b the baseline in NED (b in vehicle axes), h = atan2(u_E, u_N); the baseline turns
+  with the attitude error as the lever arm does, du = [u x] phi, so H_phi = g^T [u x] with
+  g = (-u_E, u_N, 0) / (u_N^2 + u_E^2) (level: H_phi = (0, 0, -1)); H_mis = g^T C R_vb^T [b x].
 * ZUPT: h = v, H_v = I. ZARU: h = w - C^T w_ie, H_bg = -I (Groves 2013 sec. 15.3).
 * Stop calibration (``static_calibration``): the biases measured directly, h = b, H_b = I.
 
@@ -182,6 +186,28 @@ def zupt(layout: StateLayout, v_ned_mps: np.ndarray, sd_mps: float) -> Measureme
     H = np.zeros((3, layout.n))
     H[:, VEL:VEL + 3] = np.eye(3)
     return Measurement(H, v_ned_mps.copy(), np.eye(3) * sd_mps ** 2)
+
+
+def dual_antenna_heading(layout: StateLayout, C_nb: np.ndarray, R_vb: np.ndarray, baseline_vehicle_m: np.ndarray,
+                         heading_rad: float, sd_rad: float) -> Measurement:
+    """A moving-base receiver's baseline azimuth (clockwise from north) as a measurement of the
+    vehicle's attitude: model in the module docstring; ``d`` is wrapped to (-pi, pi]. The baseline
+    is fixed to the vehicle (declared in vehicle axes like the lever arm), so the body's
+    misalignment R_vb enters too: u = C R_vb^T b, and with R_vb,est = (I + [dm x]) R_vb,true (the
+    NHC rows' convention) H_mis = g^T C R_vb^T [b x]. The baseline's horizontal length must be
+    nonzero (checked by the caller's configuration)."""
+    b = np.asarray(baseline_vehicle_m, float)
+    CRt = C_nb @ R_vb.T
+    u = CRt @ b
+    h2 = u[0] * u[0] + u[1] * u[1]
+    g = np.array([-u[1], u[0], 0.0]) / h2
+    H = np.zeros((1, layout.n))
+    H[0, ATT:ATT + 3] = g @ skew(u)
+    i = layout.at("misalignment")
+    if i >= 0:
+        H[0, i:i + 3] = g @ CRt @ skew(b)
+    d = math.remainder(math.atan2(u[1], u[0]) - heading_rad, 2.0 * math.pi)
+    return Measurement(H, np.array([d]), np.array([[sd_rad ** 2]]))
 
 
 def zaru(layout: StateLayout, C_nb: np.ndarray, lat_rad: float, mean_rate_body_rps: np.ndarray,

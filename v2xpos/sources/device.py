@@ -36,8 +36,14 @@ window; a GNSS epoch that arrives later than the window is applied at once (the 
 it with its velocity over the gap) and counted as ``gnss_late``. States are returned one per IMU
 sample once the filter is aligned, with strictly increasing times.
 
-Heading from NAV-RELPOSNED / HDT is decoded and reported in ``status()``; ``v2xpos.ins.InsFilter``
-has no heading update yet, so it does not enter the solution.
+Dual-antenna heading. NAV-RELPOSNED / HDT headings are decoded and reported in ``status()``. With
+``heading_baseline_m = [x, y, z]`` (the vector from the primary to the secondary antenna in body
+axes, x fwd y right z down [m]) in the table, each heading that has a time and an accuracy is
+applied in time order with the GNSS epochs (``InsFilter.update_heading``): at a stop it sets the
+heading the filter cannot otherwise know before the vehicle drives off, so results become VALID
+without a guess; later it is a measurement. Without the key headings are not used: the baseline's
+direction in the body is what turns an azimuth into a heading. Headings without a time (HDT) or
+without an accuracy are counted (``headings_unusable``) and not used.
 """
 from __future__ import annotations
 
@@ -56,7 +62,7 @@ from v2xpos.sources.gnss_clock import HostGnssClock, clock_from_config
 from v2xpos.types import FixStatus, NavState
 
 SOURCE_KEYS = ("gnss", "imu", "platform", "imu_to_body", "lever_arm_m", "lever_arm_sd_m", "reorder_window_s",
-               "clock", "calibration", "imu_clock_min_span_s")
+               "clock", "calibration", "imu_clock_min_span_s", "heading_baseline_m")
 PLATFORMS = ("car", "pedestrian", "generic")
 GNSS_WITHOUT_IMU_S = 1.0
 """A GNSS epoch still waiting for IMU samples this long after its time is applied anyway."""
@@ -78,7 +84,8 @@ class DeviceSource(VehicleSource):
     name = "device"
 
     def __init__(self, gnss: DeviceStream, imu: DeviceStream | None, ins_config, clock: HostGnssClock,
-                 reorder_window_s: float = 0.1, imu_clock_min_span_s: float = 5.0, calibration=None):
+                 reorder_window_s: float = 0.1, imu_clock_min_span_s: float = 5.0, calibration=None,
+                 heading_baseline_m: np.ndarray | None = None):
         from v2xpos.ins import InsFilter
         self.gnss_stream = gnss
         self.imu_stream = imu
@@ -98,9 +105,11 @@ class DeviceSource(VehicleSource):
         self.last_out_t_s = -math.inf
         self.last_gnss: GnssEpoch | None = None
         self.last_heading: HeadingObs | None = None
+        self.heading_baseline_m = None if heading_baseline_m is None else np.asarray(heading_baseline_m, float)
+        self.pending_headings: list[HeadingObs] = []
         self.counts = {"imu_samples": 0, "gnss_epochs": 0, "gnss_used": 0, "gnss_late": 0, "gnss_without_imu": 0,
                        "gnss_out_of_order": 0, "imu_non_monotonic": 0, "states": 0, "states_non_monotonic": 0,
-                       "headings": 0, "ignored_imu_records": 0}
+                       "headings": 0, "headings_used": 0, "headings_unusable": 0, "ignored_imu_records": 0}
         self._closed = False
         self._started = False
 
@@ -160,11 +169,31 @@ class DeviceSource(VehicleSource):
             elif isinstance(rec, HeadingObs):
                 self.counts["headings"] += 1
                 self.last_heading = rec
+                if self.heading_baseline_m is None:
+                    continue
+                if not (math.isfinite(rec.t_s) and math.isfinite(rec.heading_sd_rad) and rec.heading_sd_rad > 0):
+                    self.counts["headings_unusable"] += 1
+                    continue
+                self.pending_headings.append(rec)
 
     def _apply_gnss(self, g: GnssEpoch) -> None:
         self.filter.update_gnss(g.t_s, g.lla, g.sd_ned_m, g.fix, vel_ned_mps=g.vel_ned_mps,
                                 vel_sd_ned_mps=g.vel_sd_ned_mps)
         self.counts["gnss_used"] += 1
+        self._apply_headings(g.t_s)
+
+    def _apply_headings(self, t_upto_s: float) -> None:
+        """Headings stamped up to the epoch just applied, in time order (a moving-base receiver
+        reports NAV-RELPOSNED for the same epoch as its NAV-PVT)."""
+        ph = self.pending_headings
+        if not ph:
+            return
+        ph.sort(key=lambda h: h.t_s)
+        while ph and ph[0].t_s <= t_upto_s:
+            h = ph.pop(0)
+            r = self.filter.update_heading(h.t_s, h.heading_rad, h.heading_sd_rad, self.heading_baseline_m)
+            if r.accepted:
+                self.counts["headings_used"] += 1
 
     def _gnss_threshold(self, g: GnssEpoch) -> float:
         """IMU stamps up to this go into the filter before the epoch (as ``v2xpos replay`` does)."""
@@ -230,7 +259,7 @@ class DeviceSource(VehicleSource):
         if h is not None:
             out["heading"] = {"t_s": h.t_s, "heading_deg": math.degrees(h.heading_rad),
                               "sd_deg": math.degrees(h.heading_sd_rad), "baseline_m": h.baseline_m,
-                              "message": h.message, "used_by_filter": False}
+                              "message": h.message, "used_by_filter": self.heading_baseline_m is not None}
         if self.calibration is not None:
             out["calibration"] = {"source": self.calibration.source, "date": self.calibration.date,
                                   "effects": sorted(self.calibration.effects)}
@@ -273,6 +302,12 @@ def check_table(table: dict, where: str) -> dict:
     for key, v in (("lever_arm_sd_m", lever_sd), ("reorder_window_s", window), ("imu_clock_min_span_s", span)):
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
             raise SourceError(f"{where}.{key}: expected a number >= 0, got {v!r}")
+    heading_baseline = None
+    if "heading_baseline_m" in table:
+        heading_baseline = _matrix(table["heading_baseline_m"], (3,), f"{where}.heading_baseline_m")
+        if math.hypot(heading_baseline[0], heading_baseline[1]) == 0.0:
+            raise SourceError(f"{where}.heading_baseline_m: a vertical baseline has no azimuth; "
+                              f"got {heading_baseline.tolist()}")
     calibration = None
     if "calibration" in table:
         try:
@@ -284,7 +319,8 @@ def check_table(table: dict, where: str) -> dict:
     except ValueError as exc:
         raise SourceError(str(exc)) from None
     return {"platform": platform, "imu_to_body": imu_to_body, "lever": lever, "lever_sd": float(lever_sd),
-            "window": float(window), "span": float(span), "calibration": calibration, "clock": clock}
+            "window": float(window), "span": float(span), "calibration": calibration, "clock": clock,
+            "heading_baseline": heading_baseline}
 
 
 def from_config(table: dict, where: str, ctx: SourceContext) -> DeviceSource:
@@ -315,7 +351,7 @@ def from_config(table: dict, where: str, ctx: SourceContext) -> DeviceSource:
     except ValueError as exc:
         raise SourceError(str(exc)) from None
     src = DeviceSource(gnss, imu, cfg, clock, reorder_window_s=float(window), imu_clock_min_span_s=float(span),
-                       calibration=calibration)
+                       calibration=calibration, heading_baseline_m=v["heading_baseline"])
     holder["source"] = src
     src.start()
     return src
