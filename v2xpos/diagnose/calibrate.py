@@ -8,7 +8,8 @@ Pipeline (docs/calibration.md gives the reasoning):
 3. *batch fit*: at theta_c the inputs are corrected (``inject.correct``) and replayed without
    outages; the whitened innovations r(theta) and their finite-difference Jacobian through the
    replay give a Gauss-Newton/MAP estimate (``identify``), refined by chord iterations with the
-   same Jacobian. Robust sd, 3-sd + cross-validated significance, first/second half estimates.
+   same Jacobian and a last step (with the sds) from a central-difference Jacobian at the final
+   iterate (``Estimator.refine``). Robust sd, 3-sd + cross-validated significance, first/second half estimates.
 4. *after*: the significant effects are corrected and the outage replay is run again.
 
 Before and after are ``v2xpos replay``'s own metrics (``metrics_replay``); the fit replays run the
@@ -90,7 +91,7 @@ def calibrate_dataset(ds: Dataset, schedule: OutageSchedule, progress: bool = Tr
     on the ``--write-dataset`` descriptor."""
     from .writeback import calibration_table
     n_active = int(active_parameters(ds.platform).sum())
-    bar = Progress(progress, total=6 + gn_iterations * (n_active + 4) + 3 + 8)
+    bar = Progress(progress, total=6 + gn_iterations * (n_active + 4) + 3 + 2 * n_active + 8)
     try:
         est = Estimator(ds, progress=bar)
         before = metrics_replay(ds, schedule, bar, "before: the vehicle as declared")

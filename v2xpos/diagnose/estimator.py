@@ -1,6 +1,7 @@
 """The batch estimator of ``v2xpos calibrate``: fit replays at effect vectors theta, their residual
-rows (``rows``), the finite-difference Jacobian, Gauss-Newton with backtracking, Broyden refinement
-and significance by backward elimination with replays (docs/calibration.md gives the reasoning).
+rows (``rows``), the finite-difference Jacobian, Gauss-Newton with backtracking, chord refinement
+with a central-difference Jacobian at the final iterate, and significance by backward elimination
+with replays (docs/calibration.md gives the reasoning).
 """
 from __future__ import annotations
 
@@ -338,47 +339,66 @@ class Estimator:
                 break
         return theta
 
+    def central_jacobian(self, ds: Dataset, theta: np.ndarray, label: str = "Jacobian at the estimate") -> np.ndarray:
+        """Central-difference Jacobian of the residual rows of ``ds`` at theta (two replays per active
+        parameter with an ``FD_STEP``): ``J_p = (r(theta + h e_p) - r(theta - h e_p)) / 2h``, error
+        O(h^2) against O(h) for the one-sided difference of ``linearize``, which is the slope at
+        theta + h/2 (10 ms away for the IMU offset). The GNSS latency and clock drift columns follow
+        from the IMU offset's as in ``linearize``."""
+        J = np.zeros((len(self.base_rows.r), N_PARAMS))
+        for p in [p for p in np.flatnonzero(FD_STEP > 0) if self.active[p]]:
+            side = []
+            for sign in (+1.0, -1.0):
+                th = theta.copy()
+                th[p] += sign * FD_STEP[p]
+                rows, _ = self.rows(ds, th, f"{label} d/d {PARAM_NAMES[p]} ({'+' if sign > 0 else '-'})")
+                side.append(align(self.base_rows, rows))
+            J[:, p] = (side[0] - side[1]) / (2.0 * FD_STEP[p])
+        J[:, P_GNSS_LATENCY] = J[:, P_TIME_OFFSET]
+        J[:, P_CLOCK_DRIFT] = J[:, P_TIME_OFFSET] * 1e-6 * (self.base_rows.t_s - self.t0_s)
+        return J
+
     def refine(self, ds: Dataset, theta_start: np.ndarray, iterations: int = 1) -> tuple[Fit, LinearProblem, ReplayOutcome]:
-        """Quasi-Newton iterations on ``ds`` starting from the stored finite-difference Jacobian,
-        improved after every step by Broyden's rank-one update J += (dr - J dth) dth^T / |dth|^2
-        (Broyden 1965, Math. Comp. 19) so that a recording derived from the linearised one
-        converges with a few replays; then the fit at the final point."""
+        """Fit of ``ds`` from theta_start: ``iterations`` chord (simplified Gauss-Newton) steps with
+        the stored finite-difference Jacobian held fixed, then the Jacobian taken again at the final
+        iterate by central differences (``central_jacobian``) and the MAP step and sds computed
+        with it (Dennis & Schnabel 1983, "Numerical Methods for Unconstrained Optimization and
+        Nonlinear Equations", secs. 5.4 and 10.2).
+
+        Why not a secant (Broyden 1965) update of J, as until 2026-11-24: (1) Broyden's update is the
+        least change of J in the Frobenius norm of the raw parameter units, so it is not invariant to
+        their scaling: with seconds, ppm, radians and metres a clock-drift step of a few ppm
+        dominated |dtheta|^2 and the rank-one corrections landed in the drift column. (2) Scaled
+        versions (least change in the metric of the prior covariance, or of the information
+        J^T J + P0^-1, which is invariant to linear reparametrisation) do not help, because the
+        secant difference r(theta + s) - r(theta) - J s over the refinement's steps (0.2-5 ms, a few
+        ppm, fractions of a mrad) is not a derivative of the replays: measured on drive_0708 it was
+        50-70 % of |J s| (the replays are not smooth at that scale; a difference quotient needs a step
+        large against that noise, More & Wild 2012, ACM TOMS 38(3)). (3) The update depends on the
+        path, so two fits of the same drive, one with an injected effect, end at different points of
+        J^T r = 0: the estimate is then not equivariant under ``inject``/``correct``, which the
+        replayed residuals are (r_injected(theta + e) = r(theta)). Measured (drive_0708, one
+        effect injected, largest move of another parameter in sd): raw-unit update 1.80 sd (roll,
+        pitch fail), prior metric 3.14 sd (stamps +5 ms came out -8.7 ms), information metric 0.96
+        sd but stamps +5 ms came out +0.4 ms; no update 0.11 sd.
+        Why the Jacobian at the final iterate: the chord iterations converge to the point where the
+        stored (one-sided, linearisation-point) J satisfies J^T r + P0^-1 theta = 0, which is not a
+        stationary point of the replayed cost when J changes between there and here; on drive_0708
+        the step with the central-difference Jacobian at the chord point lowered the replayed cost
+        11,844 -> 11,708 (the chord and raw-Broyden points 11,844 / 11,841; the Gauss-Newton start
+        11,835). Cost: two replays per active parameter. Both steps are equivariant under
+        ``inject``/``correct``, so paired fits move only by the injected effect."""
+        theta = theta_start.copy()
+        rows, out = self.rows(ds, theta, "refine start")
+        for k in range(iterations):
+            new = identify.fit(self.problem(rows, theta), systematic_sd=self.systematic_sd()).theta
+            rows, out = self.rows(ds, new, f"refine {k + 1}")
+            theta = new
         J_saved = self.J
-        self.J = self.J.copy()
         try:
-            theta = theta_start.copy()
-            rows, out = self.rows(ds, theta, "refine start")
-            r_prev = align(self.base_rows, rows)
-            for k in range(iterations):
-                prob = self.problem(rows, theta)
-                new = identify.fit(prob, systematic_sd=self.systematic_sd()).theta
-                rows, out = self.rows(ds, new, f"refine {k + 1}")
-                r_new = align(self.base_rows, rows)
-                dth = new - theta
-                ok = np.isfinite(r_new) & np.isfinite(r_prev) & np.all(np.isfinite(self.J), axis=1)
-                nrm = float(dth[self.active] @ dth[self.active])
-                if nrm > 0:
-                    upd = np.zeros_like(self.J)
-                    upd[ok] = np.outer(r_new[ok] - r_prev[ok] - self.J[ok] @ dth, dth) / nrm
-                    upd[:, ~self.active] = 0.0
-                    self.J = self.J + upd
-                theta, r_prev = new, r_new
+            self.J = self.central_jacobian(ds, theta)
             prob = self.problem(rows, theta)
-            f = identify.fit(prob, systematic_sd=self.systematic_sd())
-            if iterations > 0:
-                # the secant-updated J serves the estimate; its columns need not be good derivatives
-                # (the update lands mostly in the columns with large raw steps), so each sd is the
-                # larger of the one it gives and the one from the finite-difference Jacobian
-                J_secant, self.J = self.J, J_saved
-                f_fd = identify.fit(self.problem(rows, theta), systematic_sd=self.systematic_sd())
-                self.J = J_secant
-                fd_wins = f_fd.sd > f.sd
-                f.dof = np.where(fd_wins, f_fd.dof, f.dof)
-                f.bandwidth_s = np.where(fd_wins, f_fd.bandwidth_s, f.bandwidth_s)
-                f.sd = np.maximum(f.sd, f_fd.sd)
-                f.sd_stat = np.maximum(f.sd_stat, f_fd.sd_stat)
-                f.determined = f.determined & f_fd.determined
-            f = identify.decide(prob, f)
+            f = identify.decide(prob, identify.fit(prob, systematic_sd=self.systematic_sd()))
             return f, prob, out
         finally:
             self.J_refined = self.J
