@@ -10,6 +10,12 @@ vehicle with a failing unit ``degraded`` and shows ``imu_grades`` in its status 
 It runs in its own process so grading (tens to hundreds of ms of numpy per regrade) never holds
 the GIL of the master's message path.
 
+Regrades follow the data, not the worker's publication clock: every IMU payload steps its vehicle's
+grader (a regrade when ``regrade_every_s`` of new data arrived), so a starved worker (it runs niced)
+grades the same data times as an idle one. On stop the worker publishes its grades once more with
+``"final": true``; the master waits for that message before it writes its report, so the last
+regrade is not lost.
+
 The IMU payload is ``v2xpos.wire``'s IMU stream (``encode_imu_payload`` / ``decode_imu_payload``,
 docs/protocol.md). Malformed payloads are counted and skipped.
 
@@ -44,6 +50,9 @@ FAIL_CONFIRM_REGRADES = 2
 the demo's false degradation was one regrade of raw "fail" on a healthy vehicle (docs/quality.md)."""
 FAIL_CLEAR_REGRADES = 3
 """Consecutive regrades without a raw "fail" before a published "fail" is lifted."""
+FINAL_LINGER_S = 0.5
+"""Seconds the worker stays connected after its final publication: closing the session at once may
+drop a message still in its transmission queue."""
 HISTORY_REGRADES = 16
 """Regrades kept per vehicle in the published ``history`` (raw and published grades)."""
 
@@ -127,6 +136,7 @@ class FleetGrader:
         self.first_degraded_t: dict[str, float | None] = {}
         self.malformed = 0
         self.lock = threading.Lock()
+        self.latest: dict[str, dict] = {}
 
     def add_payload(self, data: bytes) -> None:
         from v2xpos.quality import VehicleGrader
@@ -147,6 +157,8 @@ class FleetGrader:
                 self.filters[p.vehicle_id] = GradeHysteresis(self.confirm_regrades, self.clear_regrades)
         for uid, (t, acc, gyro) in p.units.items():
             g.add(uid, t, gyro, acc)
+        with self.lock:                     # a regrade due at this data time happens now, whoever asks
+            self.latest[p.vehicle_id] = self._filtered(p.vehicle_id, g.grades())
 
     def _filtered(self, vid: str, r: dict) -> dict:
         """Published grades of vehicle ``vid`` from its grader's answer ``r`` (one filter step per new regrade)."""
@@ -181,11 +193,9 @@ class FleetGrader:
         counters are cumulative over the run: ``degraded_regrades`` > 0 means the vehicle was DEGRADED
         at some point."""
         with self.lock:
-            graders = dict(self.graders)
-        out = {}
-        for vid, g in graders.items():
-            out[vid] = self._filtered(vid, g.grades())
-        return out
+            for vid, g in self.graders.items():
+                self.latest[vid] = self._filtered(vid, g.grades())
+            return dict(self.latest)
 
 
 def run_worker(endpoint: str, fleet: str, master_id: str, period_s: float = 1.0,
@@ -200,12 +210,19 @@ def run_worker(endpoint: str, fleet: str, master_id: str, period_s: float = 1.0,
     try:
         link.subscribe(imu_key(fleet, "*"), lambda p, k, a, t: fg.add_payload(p))
         pub = link.publisher(grades_key(fleet, master_id), express=False)
+        def publish(final: bool) -> None:
+            pub.put(json.dumps({"t_wall_s": time.time(), "malformed": fg.malformed, "final": final,
+                                "vehicles": fg.grades()}, default=_json_default).encode())
+
+        orphan = False
         while not stop.wait(period_s):
             if os.getppid() != parent:          # the master is gone: do not linger as an orphan
+                orphan = True
                 break
-            grades = fg.grades()
-            pub.put(json.dumps({"t_wall_s": time.time(), "malformed": fg.malformed, "vehicles": grades},
-                               default=_json_default).encode())
+            publish(final=False)
+        if not orphan:
+            publish(final=True)
+            time.sleep(FINAL_LINGER_S)
     finally:
         link.close()
     return 0

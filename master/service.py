@@ -53,6 +53,9 @@ from v2xpos.sources import SourceContext, SourceError, make_source
 from v2xpos.wire import STATE_KEY_ALL, grades_key, relative_key, status_key
 
 GRADING_NICE = 10
+FINAL_GRADES_TIMEOUT_S = 10.0
+"""Longest wait at shutdown for the grading worker's final grades (a starved, niced worker may need
+seconds to finish the regrade in hand)."""
 """CPU priority offset of the IMU grading worker: grading is background analysis (windows of
 seconds); it must not preempt the master's real-time pipeline on a shared core."""
 NAV_TICK_S = 0.01
@@ -168,6 +171,7 @@ class MasterService:
             self.pipeline = RecordingPipeline(self.pipeline, self.recorder)
         self.status_pub = self.link.publisher(status_key(cfg.fleet, cfg.master_id), express=False)
         self.imu_grades: dict = {}
+        self._final_grades = threading.Event()
         if cfg.grading:
             self.link.subscribe(grades_key(cfg.fleet, cfg.master_id), self._on_grades)
 
@@ -194,6 +198,8 @@ class MasterService:
             return
         with self.lock:
             self.imu_grades = vehicles
+            if doc.get("final") is True:
+                self._final_grades.set()
             for vid, g in vehicles.items():
                 units = g.get("units") or {}
                 if any(v == "fail" for v in units.values()):
@@ -384,6 +390,7 @@ class MasterService:
             if self.cfg.dispatch != "inline" and self.nav is not None:
                 for item in sub.drain():          # nothing received is left unprocessed
                     self.pipeline.handle(item.payload, item.key, self.nav, self.gps_now(), item.t_arrival_wall_s)
+            grades_final = await asyncio.to_thread(self._collect_final_grades) if self.cfg.grading else None
             with self.lock:
                 self.closing = True
                 final = self.status(window=None)
@@ -392,12 +399,28 @@ class MasterService:
                 final["handler_cpu_ms_per_message"] = sub.cpu_s / sub.received * 1e3
                 final["dispatch_batches"] = sub.batches
             final["dispatch"] = self.cfg.dispatch
+            final["imu_grades_final"] = grades_final
             final["realtime_priority"] = self.cfg.realtime_priority if self.realtime else 0
             self._write_outputs(final)
             self._close()
             if isinstance(sub, InlineDispatch):
                 sub.close_verifier()
         return final
+
+    def _collect_final_grades(self, timeout_s: float = FINAL_GRADES_TIMEOUT_S) -> bool:
+        """Stop the grading worker and wait for its final grades (master/grading.py: it publishes
+        them once more on SIGTERM), so the report holds the last regrade of the data received. False
+        when there is no worker or it did not answer within ``timeout_s`` (the last periodic grades
+        then stand, and the report says so with ``imu_grades_final`` false)."""
+        proc = self.grading_proc
+        if proc is None or proc.poll() is not None:
+            return False
+        proc.terminate()
+        got = self._final_grades.wait(timeout_s)
+        if not got:
+            print(f"v2xpos master: no final IMU grades from the grading worker within {timeout_s:.0f} s; "
+                  "the report keeps its last periodic grades", file=sys.stderr)
+        return got
 
     def _early_exit(self) -> dict:
         """Stopped before the session started: close what is open, report the phase."""

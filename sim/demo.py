@@ -203,6 +203,7 @@ def make_report(sc, plan: FleetPlan, duration_s: float, exit_codes: dict) -> dic
                                                 if clean else None),
         "scene": scene,
         "imu_grades": summary.get("imu_grades", {}),
+        "imu_grades_final": summary.get("imu_grades_final"),
         "imu_faults_injected": {a.actor_id: {"unit": f"imu{a.imu_fault[0] + 1}", "fault": a.imu_fault[1]}
                                 for a in sc.actors.values() if a.imu_fault},
         "degraded_vehicles": summary.get("degraded_vehicles", []),

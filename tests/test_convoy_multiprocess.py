@@ -46,6 +46,7 @@ def test_report_layout_and_processes(report):
     assert report["rejected"] == {}
     grades = report["imu_grades"]               # live IMU grading: faulty unit fails, vehicle degraded
     faulty = report["imu_faults_injected"]
+    assert report["imu_grades_final"] is True    # the worker's last regrade reached the report
     assert set(faulty) == {"t2"} and grades["t2"]["units"][faulty["t2"]["unit"]] == "fail"
     assert all(v == "pass" for u, v in grades["t1"]["units"].items())
     assert report["degraded_vehicles"] == ["t2"] and report["degraded_vehicles_ever"] == ["t2"]

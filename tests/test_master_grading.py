@@ -150,3 +150,22 @@ def test_one_filter_step_per_regrade_not_per_publication():
     assert out["t1"]["transient_fails"] == {"imu1": 1, "imu2": 1, "imu3": 1}
     assert out["t2"]["degraded_regrades"] == 4 and out["t2"]["first_degraded_t_s"] == 110.0
     assert [h["published"]["imu3"] for h in out["t2"]["history"]] == ["warn", "fail", "fail", "fail", "fail"]
+
+
+def test_regrades_follow_the_data_not_the_publication_clock():
+    """A starved worker (niced, under load) may not publish for many seconds; every regrade due in
+    the data still happens, at the same data times as when it is asked every second. Before the
+    payloads stepped the graders, a worker asked once at the end regraded once (the demo's faulty
+    unit published "warn" instead of "fail" on a loaded machine)."""
+    v = simulate_vehicle(3, "gyro_scale", seed=4, duration_s=35.0, grade="tactical")
+    polled, starved = FleetGrader(min_history_s=10.0, regrade_every_s=5.0), FleetGrader(min_history_s=10.0,
+                                                                                         regrade_every_s=5.0)
+    for k, p in enumerate(chunks(v, "car1")):
+        polled.add_payload(p)
+        starved.add_payload(p)
+        if k % 4 == 3:
+            polled.grades()
+    a, b = polled.grades()["car1"], starved.grades()["car1"]
+    assert b["regrades"] == a["regrades"] == 5
+    assert [h["t_s"] for h in b["history"]] == [h["t_s"] for h in a["history"]]
+    assert b["units"] == a["units"] and b["units"][v.faulty] == "fail"
