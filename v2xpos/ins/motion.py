@@ -11,12 +11,8 @@ Groves 2013 sec. 15.3.1):
     sd(|f|) = sqrt(mean |f|^2 - (mean |f|)^2) < static_acc_std_max_mps2   (no driving vibration)
     |mean w - b_g|                           < static_gyro_mean_max_rps   (not turning)
 
-and, with a navigation solution, |v| < static_max_speed_mps and, in every chunk of the window,
-|mean f_h^n| < static_acc_h_max_mps2 (a stop has no horizontal acceleration). Per chunk, not over
-the window: a car pulling away passes the window-mean test until the window holds ~0.1 m/s of
-speed gain (0.5 s x 0.2 m/s^2), and a ZUPT at that speed is turned by the filter into a pitch error
-(g x pitch error = the "missing" acceleration; 0.07 deg after a simulated pull-away, which then
-biased the calibration fit's accelerometer x scale, docs/calibration.md). And, with a GNSS speed at most
+and, with a navigation solution, |v| < static_max_speed_mps and |mean f_h^n| <
+static_acc_h_max_mps2 (a stop has no horizontal acceleration), and, with a GNSS speed at most
 ``static_gnss_speed_max_age_s`` old, that speed < static_max_gnss_speed_mps. A window that is not
 yet full is never static. The window's mean rate is also what the ZARU measures
 (``updates.zaru``).
@@ -81,9 +77,9 @@ class StopDetector:
         w_mean = math.sqrt(float(dw @ dw))
         ok = acc_sd < c.static_acc_std_max_mps2 and w_mean < c.static_gyro_mean_max_rps
         if ok and v_ned_mps is not None:
-            fh_chunk = self.window[:, _SUM_FH:_SUM_FH + 2] / self.window[:, _N:_N + 1]
+            fh = tot[_SUM_FH:_SUM_FH + 2] / n
             ok = (float(v_ned_mps @ v_ned_mps) < c.static_max_speed_mps ** 2
-                  and float(np.max(np.einsum("ij,ij->i", fh_chunk, fh_chunk))) < c.static_acc_h_max_mps2 ** 2)
+                  and float(fh @ fh) < c.static_acc_h_max_mps2 ** 2)
         if (ok and self.gnss_speed_mps is not None
                 and t_s - self.gnss_speed_t_s < c.static_gnss_speed_max_age_s):
             ok = self.gnss_speed_mps < c.static_max_gnss_speed_mps
