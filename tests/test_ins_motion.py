@@ -64,4 +64,3 @@ def test_a_recent_gnss_speed_vetoes_and_a_stale_one_does_not():
     det.note_gnss_speed(100.0, 2 * CFG.static_max_gnss_speed_mps)
     assert not det.is_static(100.0 + 0.5 * CFG.static_gnss_speed_max_age_s, np.zeros(3), np.zeros(3))
     assert det.is_static(100.0 + 2 * CFG.static_gnss_speed_max_age_s, np.zeros(3), np.zeros(3))
-
