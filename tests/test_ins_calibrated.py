@@ -98,7 +98,6 @@ def test_every_filter_takes_the_same_noise_margin_over_a_calibrated_noise():
     service's filter (integrity=True) and an offline one (replay, calibrate's "after") apply the
     same margin and cap to it."""
     from v2xpos.datasets.calibration import parse_calibration
-    from v2xpos.ins import InsConfig
     table = parse_calibration({"imu_gyro_noise_rps_rthz": {"value": 1e-4, "sd": 1e-6},
                                "imu_accel_noise_mps2_rthz": {"value": 1e-3, "sd": 1e-5}}, "test: [calibration]")
     offline = ins_config("car", B, LEVER, 0.05, table)
@@ -124,12 +123,12 @@ def test_a_calibrated_noise_never_makes_the_outage_worse_on_a_drive_without_effe
     from v2xpos.diagnose.tuning import imu_noise_density
     from v2xpos.ins.replay import replay
     from v2xpos.ins.replay_engine import OutageSchedule
+    sched = OutageSchedule(10.0, 30.0, 30.0)
     for grade, drive in (("tactical", "figure_eights"), ("automotive", "urban")):
         ds, _ = simulated_recording(150.0, seed=2, imu_grade=grade, gnss_rate_hz=10.0, drive=drive)
         g, a = imu_noise_density(ds.imu)
         tab = CalibrationTable(effects={"imu_gyro_noise_rps_rthz": CalibrationEntry(g, 0.01 * g),
                                         "imu_accel_noise_mps2_rthz": CalibrationEntry(a, 0.01 * a)})
-        sched = OutageSchedule(10.0, 30.0, 30.0)
         rms = {label: replay(ds, sched, cfg=cfg, progress=False, keep_series=False).summary["outage_h_rms_m"]
                for label, cfg in (("default", None),
                                   ("measured", ins_config(ds.platform, ds.imu_to_body, ds.lever_arm_m,
