@@ -210,6 +210,7 @@ def run_worker(endpoint: str, fleet: str, master_id: str, period_s: float = 1.0,
     try:
         link.subscribe(imu_key(fleet, "*"), lambda p, k, a, t: fg.add_payload(p))
         pub = link.publisher(grades_key(fleet, master_id), express=False)
+
         def publish(final: bool) -> None:
             pub.put(json.dumps({"t_wall_s": time.time(), "malformed": fg.malformed, "final": final,
                                 "vehicles": fg.grades()}, default=_json_default).encode())

@@ -53,11 +53,11 @@ from v2xpos.sources import SourceContext, SourceError, make_source
 from v2xpos.wire import STATE_KEY_ALL, grades_key, relative_key, status_key
 
 GRADING_NICE = 10
+"""CPU priority offset of the IMU grading worker: grading is background analysis (windows of
+seconds); it must not preempt the master's real-time pipeline on a shared core."""
 FINAL_GRADES_TIMEOUT_S = 10.0
 """Longest wait at shutdown for the grading worker's final grades (a starved, niced worker may need
 seconds to finish the regrade in hand)."""
-"""CPU priority offset of the IMU grading worker: grading is background analysis (windows of
-seconds); it must not preempt the master's real-time pipeline on a shared core."""
 NAV_TICK_S = 0.01
 """The own source is advanced every 10 ms of session time."""
 

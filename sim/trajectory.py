@@ -121,7 +121,12 @@ def generate(segments: list[Segment], dt_s: float = 0.01, lla0: np.ndarray | Non
     pitch_now = pitch0_rad
     for seg in segments:
         k1 = min(n, k0 + int(round(seg.duration_s / dt_s)))
-        acc_cmd[k0:k1] = seg.accel_mps2
+        if k1 > k0:
+            # the segment's speed change accel x duration is kept on the sample grid: its held
+            # acceleration is scaled by duration / (samples x dt). Rounding the duration alone
+            # changed the speed by up to accel x dt / 2 per segment (1.25 cm/s at 2.5 m/s^2), so a
+            # "stop" reached after such changes crept at ~1 cm/s with the engine off
+            acc_cmd[k0:k1] = seg.accel_mps2 * seg.duration_s / ((k1 - k0) * dt_s)
         yr_cmd[k0:k1] = seg.yaw_rate_rps
         if seg.pitch_rad is not None:
             pitch_now = seg.pitch_rad

@@ -86,3 +86,39 @@ def test_summary_shows_degrees_and_not_determined():
     assert "-25" in line["IMU time offset"] and "ms" in line["IMU time offset"]
     assert "not determined" in line["lever arm z (down)"]
     assert "2.300" in line["outage horizontal RMS"] and "1.600" in line["outage horizontal RMS"]
+
+
+def test_not_determined_rows_are_never_judged_in_summary_report_or_agreement():
+    """An effect the recording cannot determine is shown as "not determined" in the verdict of the
+    summary, report.md and the online-agreement rows -- not "no"/"YES", and not "NO" agreement
+    even when its (prior-pulled) offline value is far from the online state."""
+    from types import SimpleNamespace
+    from v2xpos.diagnose.calibrate import agreement, to_json
+    from v2xpos.diagnose.summary import markdown_tables, summary_text
+    theta, sd, sig, det, prior = _fit_vectors()
+    lz = P_LEVER_ARM.start + 2
+    sig_flags = sig.copy()
+    sig_flags[lz] = True                       # a stale flag must not make it "YES"
+    f = Fit(theta=theta, cov=np.diag(sd ** 2), sd=sd, sd_stat=sd, cost_before=0.0, cost_after=0.0, n_rows=1,
+            reduced_chi2=1.0, significant=sig_flags, determined=det)
+    online = {lz: (theta[lz] + 10 * sd[lz], 0.01),                                      # |z| ~ 10
+              P_LEVER_ARM.start: (theta[P_LEVER_ARM.start] + 10 * sd[P_LEVER_ARM.start], 0.001)}
+    rows = agreement(f, online, 100.0)
+    by = {r["index"]: r for r in rows}
+    assert by[lz]["agree"] is None and not by[lz]["determined"]
+    assert by[P_LEVER_ARM.start]["agree"] is False                # a determined row is still judged
+    metrics = {"outage_h_rms_m": 2.3, "outage_h_max_m": 3.7, "aided_h_rms_m": 0.13, "nis_mean": 2.2}
+    cal = SimpleNamespace(fit=f, dataset="B", source="B/dataset.toml", problem=SimpleNamespace(active=np.ones(N_PARAMS, bool)),
+                          before=metrics, after=metrics, tuning={}, replays=30, online=rows)
+    text = summary_text(cal)
+    z_lines = [ln for ln in text.splitlines() if ln.startswith("lever arm z (down)")]
+    assert len(z_lines) == 2                                      # the effect row and the agreement row
+    for ln in z_lines:
+        verdict = ln.rsplit("  ", 1)[-1].strip()
+        assert verdict == "not determined", ln
+    x_agree = [ln for ln in text.splitlines() if ln.startswith("lever arm x (forward)")][-1]
+    assert x_agree.rstrip().endswith("NO")
+    md = [ln for ln in markdown_tables(cal) if ln.startswith("| lever arm z (down)")]
+    assert len(md) == 2 and all(ln.rstrip(" |").endswith("not determined") for ln in md)
+    js = to_json(SimpleNamespace(dataset="B", fit=f, before=metrics, after=metrics, online=rows))
+    assert js["online_agreement"]["lever_arm_z_m"]["agree"] is None

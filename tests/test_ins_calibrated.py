@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from v2xpos.datasets.calibration import CalibrationEntry, CalibrationTable
+from v2xpos.ins import InsConfig
 from v2xpos.ins.calibrated import ins_config
 from v2xpos.rotation import dcm_from_euler
 
@@ -53,7 +54,8 @@ def test_measured_imu_noise_replaces_the_default():
     t.effects["imu_gyro_noise_rps_rthz"] = CalibrationEntry(8.7e-5, 1e-6)
     t.effects["imu_accel_noise_mps2_rthz"] = CalibrationEntry(1.0e-3, 1e-5)
     cfg = ins_config("car", B, LEVER, 0.05, t)
-    assert cfg.gyro_noise_rps_rthz == 8.7e-5 and cfg.accel_noise_mps2_rthz == 1.0e-3
+    assert cfg.gyro_noise_rps_rthz == pytest.approx(InsConfig.imu_gyro_noise_scale * 8.7e-5)
+    assert cfg.accel_noise_mps2_rthz == pytest.approx(InsConfig.imu_accel_noise_scale * 1.0e-3)
     assert ins_config("car", B, LEVER, 0.05, _table()).gyro_noise_rps_rthz == ins_config("car", B, LEVER, 0.05).gyro_noise_rps_rthz
 
 
@@ -91,18 +93,44 @@ def test_applied_in_the_filter_equals_rewriting_the_recording():
     assert rms["ins_config"] < rms["rewritten"] + 0.05, rms
 
 
-def test_a_service_filter_takes_the_same_noise_margin_over_a_calibrated_noise():
+def test_every_filter_takes_the_same_noise_margin_over_a_calibrated_noise():
     """The calibration's measured IMU noise and the online meter's are the same quantity: a
-    service's filter (integrity=True) applies the same margin and cap to both."""
+    service's filter (integrity=True) and an offline one (replay, calibrate's "after") apply the
+    same margin and cap to it."""
     from v2xpos.datasets.calibration import parse_calibration
-    from v2xpos.ins import InsConfig
     table = parse_calibration({"imu_gyro_noise_rps_rthz": {"value": 1e-4, "sd": 1e-6},
                                "imu_accel_noise_mps2_rthz": {"value": 1e-3, "sd": 1e-5}}, "test: [calibration]")
     offline = ins_config("car", B, LEVER, 0.05, table)
     service = ins_config("car", B, LEVER, 0.05, table, integrity=True)
-    assert offline.gyro_noise_rps_rthz == pytest.approx(1e-4)
+    assert offline.gyro_noise_rps_rthz == service.gyro_noise_rps_rthz
+    assert offline.accel_noise_mps2_rthz == service.accel_noise_mps2_rthz
     assert service.gyro_noise_rps_rthz == pytest.approx(InsConfig.imu_gyro_noise_scale * 1e-4)
     assert service.accel_noise_mps2_rthz == pytest.approx(InsConfig.imu_accel_noise_scale * 1e-3)
     assert not service.imu_noise_from_data
     loud = parse_calibration({"imu_gyro_noise_rps_rthz": {"value": 1e-2, "sd": 1e-4}}, "test: [calibration]")
     assert ins_config("car", B, LEVER, 0.05, loud, integrity=True).gyro_noise_rps_rthz == InsConfig.gyro_noise_rps_rthz
+
+
+def test_a_calibrated_noise_never_makes_the_outage_worse_on_a_drive_without_effects():
+    """Nothing undeclared in the drive, the table carries only the IMU white noise that
+    ``calibrate`` measures from the samples (``tuning.imu_noise_density``). The filter given it
+    must navigate the outages about as well as with the default noise: the bare white noise leaves
+    out what it does not hold (vibration, bias instability, the integration of the motion), and a
+    filter given it alone was overconfident -- on generated two-car recordings with nothing
+    undeclared the outage error after calibration was 2.4 m against 0.44 m before; on the simulated
+    urban drive with an automotive IMU 0.50 m against 0.37 m with the default noise."""
+    from sim.calibration_drive import simulated_recording
+    from v2xpos.diagnose.tuning import imu_noise_density
+    from v2xpos.ins.replay import replay
+    from v2xpos.ins.replay_engine import OutageSchedule
+    sched = OutageSchedule(10.0, 30.0, 30.0)
+    for grade, drive in (("tactical", "figure_eights"), ("automotive", "urban")):
+        ds, _ = simulated_recording(150.0, seed=2, imu_grade=grade, gnss_rate_hz=10.0, drive=drive)
+        g, a = imu_noise_density(ds.imu)
+        tab = CalibrationTable(effects={"imu_gyro_noise_rps_rthz": CalibrationEntry(g, 0.01 * g),
+                                        "imu_accel_noise_mps2_rthz": CalibrationEntry(a, 0.01 * a)})
+        rms = {label: replay(ds, sched, cfg=cfg, progress=False, keep_series=False).summary["outage_h_rms_m"]
+               for label, cfg in (("default", None),
+                                  ("measured", ins_config(ds.platform, ds.imu_to_body, ds.lever_arm_m,
+                                                          ds.lever_arm_sd_m, tab)))}
+        assert rms["measured"] <= rms["default"], (grade, drive, rms)

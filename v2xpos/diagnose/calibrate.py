@@ -124,7 +124,8 @@ def calibrate_dataset(ds: Dataset, schedule: OutageSchedule, progress: bool = Tr
 def agreement(f: Fit, online: dict, t_end_s: float) -> list[dict]:
     """Offline estimate against the live filter's state per effect: ``z = (online - offline) /
     sqrt(sd_on^2 + sd_off^2)``, agreeing when |z| <= 2. The offline IMU offset is moved to the end
-    of the drive with its clock drift (the online state is the offset at that time)."""
+    of the drive with its clock drift (the online state is the offset at that time). A row whose
+    offline value is not determined (``Fit.determined``) is not judged: ``agree`` is None."""
     rows = []
     for i, (v_on, sd_on) in sorted(online.items()):
         v_off, var_off = float(f.theta[i]), float(f.sd[i]) ** 2
@@ -136,8 +137,8 @@ def agreement(f: Fit, online: dict, t_end_s: float) -> list[dict]:
         comb = np.sqrt(var_off + sd_on ** 2)
         z = (v_on - v_off) / comb if comb > 0 else np.inf
         rows.append({"index": int(i), "name": PARAM_NAMES[i], "offline": v_off, "offline_sd": float(np.sqrt(var_off)),
-                     "online": v_on, "online_sd": sd_on, "z": float(z), "agree": bool(abs(z) <= 2.0),
-                     "determined": bool(f.determined[i])})
+                     "online": v_on, "online_sd": sd_on, "z": float(z),
+                     "agree": bool(abs(z) <= 2.0) if f.determined[i] else None, "determined": bool(f.determined[i])})
     return rows
 
 
@@ -167,6 +168,6 @@ def to_json(cal: Calibration) -> dict:
             "effects": effects_json(cal.fit),
             "before": {k: cal.before[k] for k in METRIC_KEYS},
             "after": {k: cal.after[k] for k in METRIC_KEYS},
-            "online_agreement": {r["name"]: {k: r[k] for k in ("offline", "offline_sd", "online", "online_sd", "z", "agree")}
+            "online_agreement": {r["name"]: {k: r[k] for k in ("offline", "offline_sd", "online", "online_sd", "z", "agree", "determined")}
                                  for r in cal.online}}
 

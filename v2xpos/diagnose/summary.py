@@ -33,18 +33,44 @@ METRICS = (("outage_h_rms_m", "outage horizontal RMS", "m"), ("outage_h_max_m", 
            ("aided_h_rms_m", "aided horizontal RMS", "m"), ("nis_mean", "mean NIS (3 expected)", ""))
 
 
+NOT_DETERMINED = "not determined"
+"""What a row shows, in place of a value and a verdict, for an effect the recording cannot
+determine (``Fit.determined`` false: its sd is not below half the prior's, so the value is the
+prior's pull and no test on it means anything)."""
+
+
 def summary_rows(fit, active: np.ndarray | None = None) -> list[tuple[str, str, str, str, str]]:
-    """(effect, value, sd, unit, verdict) strings per parameter."""
+    """(effect, value, sd, unit, verdict) strings per parameter; a not-determined effect is
+    neither "YES" nor "no" but ``NOT_DETERMINED`` (whatever its flags say)."""
     rows = []
     active = np.ones(N_PARAMS, bool) if active is None else np.asarray(active, bool)
     for i, label, unit, k in DISPLAY:
         if not active[i]:
             rows.append((label, "-", "-", unit, "not estimated"))
         elif not fit.determined[i]:
-            rows.append((label, "not determined", f"{fit.sd[i] * k:.3g}", unit, "no"))
+            rows.append((label, NOT_DETERMINED, f"{fit.sd[i] * k:.3g}", unit, NOT_DETERMINED))
         else:
             rows.append((label, f"{fit.theta[i] * k:+.4g}", f"{fit.sd[i] * k:.3g}", unit,
                          "YES" if fit.significant[i] else "no"))
+    return rows
+
+
+AGREEMENT_HEADER = ("effect", "offline", "online (end of drive)", "unit", "z", "within 2 sd")
+
+
+def agreement_rows(online: list[dict]) -> list[tuple[str, str, str, str, str, str]]:
+    """Rows of the online-agreement table from ``calibrate.agreement``: a row whose offline value
+    is not determined is not judged (offline, z and verdict ``NOT_DETERMINED``): there is no
+    offline measurement to agree or disagree with."""
+    rows = []
+    for r in online:
+        _, label, unit, k = DISPLAY[r["index"]]
+        on = f"{r['online'] * k:+.4g} +- {r['online_sd'] * k:.2g}"
+        if not r.get("determined", True):
+            rows.append((label, NOT_DETERMINED, on, unit, "-", NOT_DETERMINED))
+        else:
+            rows.append((label, f"{r['offline'] * k:+.4g} +- {r['offline_sd'] * k:.2g}", on, unit,
+                         f"{r['z']:+.1f}", "yes" if r["agree"] else "NO"))
     return rows
 
 
@@ -73,14 +99,8 @@ def summary_text(cal) -> str:
               "not determined: the recording cannot tell it (sd not below half the prior's)", ""]
     lines += _table(("error", "before", "after", "unit"), metric_rows(cal.before, cal.after))
     if getattr(cal, "online", None):
-        rows = []
-        for r in cal.online:
-            _, label, unit, k = DISPLAY[r["index"]]
-            rows.append((label, f"{r['offline'] * k:+.4g} +- {r['offline_sd'] * k:.2g}",
-                         f"{r['online'] * k:+.4g} +- {r['online_sd'] * k:.2g}", unit, f"{r['z']:+.1f}",
-                         "yes" if r["agree"] else "NO"))
         lines += ["", "the live filter's own effect states (v2xpos replay's filter, same priors) against this calibration:"]
-        lines += _table(("effect", "offline", "online (end of drive)", "unit", "z", "within 2 sd"), rows)
+        lines += _table(AGREEMENT_HEADER, agreement_rows(cal.online))
     t = cal.tuning or {}
     if t.get("gyro_noise_rps_rthz") is not None:
         lines += ["", f"fit predictor: IMU noise from the samples, gyro {t['gyro_noise_rps_rthz']:.2e} rad/s/sqrt(Hz), "
@@ -89,9 +109,14 @@ def summary_text(cal) -> str:
 
 
 def markdown_tables(cal) -> list[str]:
-    """The same two tables as markdown lines (for report.md)."""
+    """The same tables as markdown lines (for report.md): errors, effects and, when the live
+    filter's states were compared, the online agreement."""
     def md(header, rows):
         return ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)] + \
                ["| " + " | ".join(str(x) for x in r) + " |" for r in rows]
-    return (md(("error", "before", "after", "unit"), metric_rows(cal.before, cal.after)) + [""] +
-            md(("effect", "value", "sd", "unit", "significant"), summary_rows(cal.fit, cal.problem.active)))
+    out = (md(("error", "before", "after", "unit"), metric_rows(cal.before, cal.after)) + [""] +
+           md(("effect", "value", "sd", "unit", "significant"), summary_rows(cal.fit, cal.problem.active)))
+    if getattr(cal, "online", None):
+        out += ["", "The live filter's own effect states (v2xpos replay's filter, same priors) against this "
+                    "calibration:", ""] + md(AGREEMENT_HEADER, agreement_rows(cal.online))
+    return out
