@@ -351,6 +351,14 @@ class InsFilter(ImuPath, Initialization, Outputs):
     def _gap_s(self, t_meas_s: float) -> float:
         return t_meas_s - self.fx.gnss_latency_s - self.t_s
 
+    def _timing_in_models(self, v_ned_mps: np.ndarray) -> bool:
+        """Whether the GNSS models carry the timing columns at this state (``updates``: not at a
+        stop and faster than ``timing_min_speed_mps``, below which the time offset is not
+        observable against the noise); the antenna-fix covariance of a start or reset follows the
+        same models (``initialization.antenna_fix_inverse_jacobian``)."""
+        v = np.asarray(v_ned_mps, float)
+        return not self.static and float(v @ v) > self.cfg.timing_min_speed_mps ** 2
+
     # ------------------------------------------------------------------ GNSS
     def update_gnss(self, t_s: float, lla: np.ndarray, sd_ned_m: np.ndarray, fix: FixStatus | int,
                     vel_ned_mps: np.ndarray | None = None,
@@ -389,7 +397,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
         gap = self._gap_s(t_s)
         C_before = self.C_nb
         v = self.nav[3:6]
-        timing = not self.static and float(v @ v) > c.timing_min_speed_mps ** 2
+        timing = self._timing_in_models(v)
         scale = c.fix_sd_scale.get(fix, 2.0)
         m = updates.gnss_position(self.layout, self.nav, C_before, self.fx.lever_arm_m, v, gap, lla, sd * scale,
                                   c.gnss_pos_sd_floor_m, timing)

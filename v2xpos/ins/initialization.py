@@ -36,7 +36,7 @@ MIN_START_POSITION_SD_M = 0.05
 
 
 def antenna_fix_inverse_jacobian(layout, C_nb: np.ndarray, lever_arm_m: np.ndarray, v_ned_mps: np.ndarray,
-                                 heading_known: bool = True) -> np.ndarray:
+                                 heading_known: bool = True, timing: bool = True) -> np.ndarray:
     """G (3 x n): how the error of an IMU position taken from an antenna fix depends on the other
     error states. The fix gives ``p = p_ant - C_nb l - v gap`` (``Initialization._imu_point_at_label``);
     with errors as estimate minus truth the GNSS position model ``d = H dx + n`` (``updates.
@@ -44,7 +44,20 @@ def antenna_fix_inverse_jacobian(layout, C_nb: np.ndarray, lever_arm_m: np.ndarr
     solved for the position error gives ``dp = n + G dx_rest``, ``G = [-[C l x], -C, +v]`` (Groves
     2013 eq. 14.121 inverted). The velocity's share (``-gap dv``, a few mm) is left out. With the
     heading open (``heading_known`` False) the yaw column is 0: that error is decoupled while it
-    is unknown (``InsFilter._decouple_yaw``)."""
+    is unknown (``InsFilter._decouple_yaw``).
+
+    G must be minus the rest of the H that the *following* fixes are processed with, or the reset
+    covariance and the updates describe two different models. The timing columns are therefore
+    there only when ``timing`` is True, i.e. when the filter's GNSS models carry them at this state
+    (``InsFilter._timing_in_models``: moving faster than ``timing_min_speed_mps``, not at a stop).
+    Below that speed H has no timing column (the time offset is treated as not observable); a
+    timing column in G then tells the filter that the IMU point holds ``v dt`` of time-offset error
+    which the next fixes' model says is not in their prediction, so every innovation after the
+    reset is partly read as a time offset. Measured 2026-11-24 on walk_0827 (heading reset at
+    0.55 m/s, the time offset's prior sd 300 ms): with the timing columns the time offset left its
+    prior within 0.5 s of the reset while still below the speed threshold (-42 ms, sd 300 -> 80
+    ms), and 11 s later two fixes were gated out (position NIS 32 and 51); without them none
+    (NIS at most 19 there)."""
     G = np.zeros((3, layout.n))
     G[:, ATT:ATT + 3] = -skew(C_nb @ lever_arm_m)
     if not heading_known:
@@ -52,7 +65,7 @@ def antenna_fix_inverse_jacobian(layout, C_nb: np.ndarray, lever_arm_m: np.ndarr
     i = layout.at("lever_arm")
     if i >= 0:
         G[:, i:i + 3] = -C_nb
-    for name in TIMING_STATES_POSITION:
+    for name in TIMING_STATES_POSITION if timing else ():
         i = layout.at(name)
         if i >= 0:
             G[:, i] = v_ned_mps
@@ -125,7 +138,7 @@ class Initialization:
         if from_antenna:
             self.P = position_from_antenna_covariance(
                 self.P, antenna_fix_inverse_jacobian(self.layout, self.C_nb, self.fx.lever_arm_m, self.nav[3:6],
-                                                     heading_known), pos_sd)
+                                                     heading_known, self._timing_in_models(self.nav[3:6])), pos_sd)
         self.A[:] = 0.0
         self.mem[:] = 0.0
         if self._last_raw_f_b is not None:
@@ -215,7 +228,8 @@ class Initialization:
         pos_sd = np.maximum(sd * c.fix_sd_scale.get(fix, 2.0), MIN_START_POSITION_SD_M)
         vel_sd = c.init_vel_sd_mps if vel is not None else max(c.init_vel_sd_mps, 0.1 * err_m)
         self.P[idx, idx] = np.r_[pos_sd ** 2, np.full(3, vel_sd ** 2)]
-        G = antenna_fix_inverse_jacobian(self.layout, self.C_nb, self.fx.lever_arm_m, v, self.heading_known)
+        G = antenna_fix_inverse_jacobian(self.layout, self.C_nb, self.fx.lever_arm_m, v, self.heading_known,
+                                         self._timing_in_models(v))
         self.P = position_from_antenna_covariance(self.P, G, pos_sd)
         if self.separation is not None:
             self.separation.reset_states(idx, self.P)
@@ -227,6 +241,31 @@ class Initialization:
         self.last_gnss_t_s = t_s
         return UpdateResult("gnss_pos", t_s, False, np.nan,
                             reason=f"position reset: the filter was {err_m:.1f} m off after rejections")
+
+    def _turn_about_down(self, turn: np.ndarray) -> None:
+        """Turn the attitude about down by the rotation ``turn`` (NED, ``C_nb <- turn C_nb``) when
+        the pending heading is set, and the attitude error's rows and columns of P with it.
+
+        With errors as ``C_est = (I - [phi x]) C_true`` (``InsFilter._apply``), an estimate whose
+        heading is off by the open yaw ``-a`` and whose tilt is off by ``phi`` is
+        ``C_est = (I - [phi x]) R_z(-a) C_true``; the turn ``R_z(a)`` gives
+        ``R_z(a) C_est = (I - [(R_z(a) phi) x]) C_true``: the tilt error is the same tilt of the
+        body, expressed in NED axes turned with it (Groves 2013 sec. 2.3.3 for the small-angle
+        form). So the tilt error and every covariance the stop taught it -- above all the
+        accelerometer bias, which the levelling ties to it through ``g x phi = -C b`` with the
+        estimated C -- are transformed as ``phi' = R_z(a) phi`` (P <- T P T^T, T the identity with
+        ``turn`` in the attitude block); the yaw row is set afterwards. Without it the tilt's
+        correlations stayed in the axes of the arbitrary pre-turn yaw (up to 180 deg away):
+        measured 2026-11-24 on a generated two-car pair with an undeclared 0.8 m antenna lever arm
+        (tests/test_integrity_recordings.py, heading turned by ~150 deg at the reset), with the
+        antenna-fix covariance of the start the rows the filter reported VALID after its
+        exclusion were within 3 sd in x only 69 % of the time; turned, 100 %, moving
+        horizontal RMS 0.042 -> 0.017 m; on walk_0827 the position NIS 10.5-12 s after the reset
+        fell from 12-19 to 5-8."""
+        self.C_nb = turn @ self.C_nb
+        T = np.eye(self.layout.n)
+        T[ATT:ATT + 3, ATT:ATT + 3] = turn
+        self.P = T @ self.P @ T.T
 
     def _heading_from_baseline(self, t_s: float, heading_rad: float, sd_rad: float,
                                baseline_vehicle_m: np.ndarray) -> UpdateResult:
@@ -242,7 +281,7 @@ class Initialization:
         u = self.C_nb @ R_vb.T @ baseline_vehicle_m
         turn_rad = math.remainder(heading_rad - math.atan2(u[1], u[0]), 2.0 * math.pi)
         C_before = self.C_nb
-        self.C_nb = rot_z(turn_rad) @ C_before
+        self._turn_about_down(rot_z(turn_rad))
         self.nav[:3] = geo.ned_to_lla((C_before - self.C_nb) @ self.fx.lever_arm_m, self.nav[:3])
         self.heading_known = True
         m = updates.dual_antenna_heading(self.layout, self.C_nb, R_vb, baseline_vehicle_m, heading_rad, sd_rad)
@@ -258,7 +297,7 @@ class Initialization:
         (biases and level keep what the stop taught them)."""
         c = self.cfg
         yaw_now = float(euler_from_dcm(self.C_nb)[2])
-        self.C_nb = rot_z(float(np.arctan2(vel[1], vel[0])) - yaw_now) @ self.C_nb
+        self._turn_about_down(rot_z(float(np.arctan2(vel[1], vel[0])) - yaw_now))
         self.nav[:3] = self._imu_point_at_label(t_s, lla, vel, self.C_nb)
         self.nav[3:6] = vel
         self._v_prev_chunk = None
@@ -269,7 +308,8 @@ class Initialization:
         self.P[idx, idx] = np.r_[pos_sd ** 2, np.full(3, c.init_vel_sd_mps ** 2),
                                  max(c.init_yaw_sd_rad, self._course_sd_rad) ** 2]
         self.P = position_from_antenna_covariance(
-            self.P, antenna_fix_inverse_jacobian(self.layout, self.C_nb, self.fx.lever_arm_m, self.nav[3:6]), pos_sd)
+            self.P, antenna_fix_inverse_jacobian(self.layout, self.C_nb, self.fx.lever_arm_m, self.nav[3:6],
+                                                 timing=self._timing_in_models(self.nav[3:6])), pos_sd)
         self.heading_known = True
         self.consistency.restart(float(t_s))
         self._restart_separation()
