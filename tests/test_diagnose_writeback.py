@@ -122,3 +122,25 @@ def test_not_determined_rows_are_never_judged_in_summary_report_or_agreement():
     assert len(md) == 2 and all(ln.rstrip(" |").endswith("not determined") for ln in md)
     js = to_json(SimpleNamespace(dataset="B", fit=f, before=metrics, after=metrics, online=rows))
     assert js["online_agreement"]["lever_arm_z_m"]["agree"] is None
+
+
+def test_report_signal_table_has_no_nan_rows_and_reads_yaw_rates_in_degrees():
+    """The report's residual-against-signal table: an effect whose correlation cannot be computed
+    (the clock drift's 60-s blocks on a short drive: 3 blocks) says "not determined" and why,
+    never "nan"; yaw rates are shown in deg/s."""
+    from v2xpos.diagnose import report
+    rng = np.random.default_rng(0)
+    t = np.arange(400) * 0.1
+    r, x = rng.normal(size=400), rng.normal(size=400)
+    yr = np.radians(10.0) * np.sin(t)
+    pairs = {"lever_arm_x_m": (r, np.degrees(yr), "lateral vel. innovation [m/s]", "yaw rate [deg/s]", t),
+             "imu_clock_drift_ppm": (np.array([0.01, 0.02, 0.015]), np.array([30.0, 90.0, 150.0]),
+                                     "slope dv/a_x per 60 s block [s]", "time [s]", np.array([30.0, 90.0, 150.0]))}
+    st = {"lever_arm_x_m": {"correlation": report.structure.correlation(r, x).as_dict()}}
+    rows = report.signal_rows(pairs, pairs, st, st)
+    assert len(rows) == 2
+    text = "\n".join(rows)
+    assert "nan" not in text.lower()
+    drift = [row for row in rows if row.startswith("| IMU clock drift")]
+    assert drift and "not determined (3 60-s blocks" in drift[0], rows
+    assert "yaw rate [deg/s]" in text and "rad/s" not in text

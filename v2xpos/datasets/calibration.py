@@ -19,9 +19,12 @@ write this table::
     accel_scale = { value = [0.0, 0.0, 0.0], sd = [0.01, 0.01, 0.01] }
     imu_gyro_noise_rps_rthz = { value = 8.7e-5, sd = 1e-6 }    # measured white noise of this IMU
     imu_accel_noise_mps2_rthz = { value = 1.0e-3, sd = 1e-5 }   # (replaces the filter's default)
+    imu_gyro_allan_rps_rthz = { value = 1.2e-4, sd = 4e-5 }    # white density covering the Allan
+    imu_accel_allan_mps2_rthz = { value = 1.1e-3, sd = 4e-4 }  # deviation at the stops (tau >= 1 s)
 
-Effects left out are zero (not estimated); the two noise entries, when present, replace the
-filter's default IMU noise densities (they are totals, not corrections). An entry's sd is its 1-sigma; a value whose sd is 0
+Effects left out are zero (not estimated); the noise entries, when present, replace the
+filter's default IMU noise densities (they are totals, not corrections; the larger of the white
+noise and the Allan-covering density of a sensor is used, ``v2xpos.ins.calibrated``). An entry's sd is its 1-sigma; a value whose sd is 0
 is taken as exact. Unknown keys are rejected with the table and the key named.
 """
 from __future__ import annotations
@@ -35,6 +38,7 @@ EFFECT_SHAPES: dict[str, int] = {
     "imu_time_offset_s": 1, "imu_clock_drift_ppm": 1, "gnss_latency_s": 1,
     "imu_misalignment_deg": 3, "gnss_lever_arm_m": 3, "gyro_scale": 3, "accel_scale": 3,
     "imu_gyro_noise_rps_rthz": 1, "imu_accel_noise_mps2_rthz": 1,
+    "imu_gyro_allan_rps_rthz": 1, "imu_accel_allan_mps2_rthz": 1,
 }
 """Effect name -> number of components (1 = scalar)."""
 INFO_KEYS = ("source", "date", "software")

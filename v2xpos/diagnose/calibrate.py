@@ -89,6 +89,7 @@ def calibrate_dataset(ds: Dataset, schedule: OutageSchedule, progress: bool = Tr
     values and the dataset's own ``[calibration]``, if any); *after* is the same replay with the
     table this calibration writes back (``ins_config``), i.e. exactly what ``v2xpos replay`` gives
     on the ``--write-dataset`` descriptor."""
+    from .tuning import allan_at_stops
     from .writeback import calibration_table
     n_active = int(active_parameters(ds.platform).sum())
     bar = Progress(progress, total=6 + gn_iterations * (n_active + 4) + 3 + 2 * n_active + 8)
@@ -108,8 +109,15 @@ def calibrate_dataset(ds: Dataset, schedule: OutageSchedule, progress: bool = Tr
         if "gyro_noise_rps_rthz" in est.config:
             # the predictor's IMU noise (``Estimator.tune``) goes back into the vehicle with the fit
             noise = (est.config["gyro_noise_rps_rthz"], est.config["accel_noise_mps2_rthz"], len(ds.imu.t_s))
+        # the Allan deviation at the stops: what the process noise must cover beyond the white part
+        allan = allan_at_stops(ds.imu, ds.gnss)
+        cover = None
+        if noise is not None:
+            (gc, gr), (ac, ar) = allan.covering("gyro", noise[0]), allan.covering("accel", noise[1])
+            cover = (gc, ac, gr, ar)
+        tuning = {**est.tuning, "allan": allan, "allan_cover": cover}
         table = calibration_table(f.theta, f.sd, f.significant, f.determined, est.prior_sd, ds.lever_arm_sd_m,
-                                  source=source, imu_noise=noise)
+                                  source=source, imu_noise=noise, imu_allan=cover)
         after = metrics_replay(with_calibration(ds, table), schedule, bar, "after: the calibrated vehicle")
         online = agreement(f, est.online(), est.online_t_end_s)
         base_fit = est._replay(ds, np.zeros(N_PARAMS), "declared model (report)")
@@ -118,7 +126,7 @@ def calibrate_dataset(ds: Dataset, schedule: OutageSchedule, progress: bool = Tr
     return Calibration(dataset=ds.name, fit=f, problem=prob, theta_coarse=theta_c, fit_first=f1,
                        fit_second=f2, effects_significant=sig, before=before, after=after,
                        log_before=base_fit.log, log_after=out_fit.log, coarse_report=est.coarse_report,
-                       replays=est.replays + 2, table=table, tuning=est.tuning, source=source, online=online)
+                       replays=est.replays + 2, table=table, tuning=tuning, source=source, online=online)
 
 
 def agreement(f: Fit, online: dict, t_end_s: float) -> list[dict]:

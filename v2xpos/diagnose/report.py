@@ -42,8 +42,9 @@ def _pairs(log: ResidualLog) -> dict[str, tuple]:
         ax = s.acc_body_mps2[:, 0]
         yr = s.rate_body_rps[:, 2]
         out["imu_time_offset_s"] = (vb[:, 0], ax, "along-track vel. innovation [m/s]", "a_x [m/s^2]", s.t_s)
-        out["lever_arm_x_m"] = (vb[:, 1], yr, "lateral vel. innovation [m/s]", "yaw rate [rad/s]", s.t_s)
-        out["lever_arm_y_m"] = (vb[:, 0], yr, "along-track vel. innovation [m/s]", "yaw rate [rad/s]", s.t_s)
+        out["lever_arm_x_m"] = (vb[:, 1], np.degrees(yr), "lateral vel. innovation [m/s]", "yaw rate [deg/s]", s.t_s)
+        out["lever_arm_y_m"] = (vb[:, 0], np.degrees(yr), "along-track vel. innovation [m/s]", "yaw rate [deg/s]",
+                                s.t_s)
         out["gyro_scale_z"] = (vb[:, 1], s.speed_mps * yr, "lateral vel. innovation [m/s]",
                                "speed x yaw rate [m/s^2]", s.t_s)
         out["accel_scale_x"] = (vb[:, 0], s.f_body_mps2[:, 0], "along-track vel. innovation [m/s]", "f_x [m/s^2]", s.t_s)
@@ -61,7 +62,7 @@ def _pairs(log: ResidualLog) -> dict[str, tuple]:
             out["gnss_latency_s"] = out["imu_time_offset_s"]
             out["lever_arm_x_m"] = (pb[:, 0], p.speed_mps, "along-track pos. innovation [m] (intercept)",
                                     "speed [m/s]", p.t_s)
-            out["lever_arm_y_m"] = (pb[:, 1], yr, "lateral pos. innovation [m]", "yaw rate [rad/s]", p.t_s)
+            out["lever_arm_y_m"] = (pb[:, 1], np.degrees(yr), "lateral pos. innovation [m]", "yaw rate [deg/s]", p.t_s)
             out["gyro_scale_z"] = (pb[:, 1], p.speed_mps * yr, "lateral pos. innovation [m]",
                                    "speed x yaw rate [m/s^2]", p.t_s)
             out["accel_scale_x"] = (pb[:, 0], p.f_body_mps2[:, 0], "along-track pos. innovation [m]", "f_x [m/s^2]", p.t_s)
@@ -101,17 +102,71 @@ def _block_slopes(r: np.ndarray, a: np.ndarray, t: np.ndarray, block_s: float = 
     return (np.asarray(sl), np.asarray(tt), "slope dv/a_x per 60 s block [s]", "time [s]", np.asarray(tt) + t[0])
 
 
+MIN_POINTS = 5
+"""Residual/signal pairs needed before the report tests their correlation (fewer: "not determined")."""
+
+
 def residual_structure(log: ResidualLog) -> dict:
     """For every effect: correlation of its residual with its signal (structure.correlation) and the
     whiteness / bias of the residual."""
     out = {}
     for name, (r, x, *_rest) in _pairs(log).items():
-        if len(r) < 5:
+        if len(r) < MIN_POINTS:
             continue
         out[name] = {"correlation": structure.correlation(r, x).as_dict(),
                      "ljung_box": structure.ljung_box(r).as_dict(),
                      "mean_bias": structure.mean_bias(r).as_dict()}
     return out
+
+
+def _points(pairs: dict, name: str) -> str:
+    n = len(pairs[name][0]) if name in pairs else 0
+    what = "60-s blocks with enough acceleration" if name == "imu_clock_drift_ppm" else "innovations above 2 m/s"
+    return f"{n} {what}"
+
+
+def signal_rows(before: dict, after: dict, s_before: dict, s_after: dict) -> list[str]:
+    """Markdown rows (effect, signal, r and p before / after) of the residual-against-signal table.
+    An effect whose correlation could not be computed on either side (fewer than ``MIN_POINTS``
+    pairs, e.g. the clock drift's 60-s blocks on a short drive, or a constant signal) gets a row
+    that says so instead of NaN figures."""
+    rows = []
+    for name in PARAM_NAMES:
+        if name not in before or name not in after:
+            continue
+        shown = DISPLAY[PARAM_NAMES.index(name)][1]
+        cells = []
+        for pairs, st in ((before, s_before), (after, s_after)):
+            c = st.get(name, {}).get("correlation", {})
+            r, p = c.get("detail", {}).get("r"), c.get("p_value")
+            if r is None or p is None or not (np.isfinite(r) and np.isfinite(p)) or c.get("n", 0) < MIN_POINTS:
+                cells.append(f"not determined ({_points(pairs, name)}, {MIN_POINTS} needed) | -")
+            elif not np.isfinite(c.get("detail", {}).get("slope_sd", 0.0)):
+                cells.append("not determined (the signal or the residual is constant) | -")
+            else:
+                cells.append(f"{r:+.3f} | {p:.1e}")
+        rows.append(f"| {shown} | {before[name][3]} | {cells[0]} | {cells[1]} |")
+    return rows
+
+
+def allan_markdown(allan, gyro_white: float | None = None, accel_white: float | None = None) -> list[str]:
+    """The report's section on the IMU's Allan deviation at the stops (gyro in deg/s, accelerometer
+    in m/s^2, per IMU axis and cluster time; only the cluster times the stops resolve)."""
+    if allan is None:
+        return []
+    from .summary import allan_lines
+    md = ["", "## IMU noise at the stops (overlapping Allan deviation, IEEE Std 952-1997)", ""]
+    md += [x.strip() for x in allan_lines(allan, gyro_white, accel_white)[1:]]
+    ok = np.isfinite(allan.gyro_adev_rps[:, 0])
+    if ok.any():
+        md += ["", "| tau [s] | clusters | gyro x | gyro y | gyro z [deg/s] | accel x | accel y | accel z [m/s^2] |",
+               "|---|---|---|---|---|---|---|---|"]
+        for i in np.flatnonzero(ok):
+            g = np.degrees(allan.gyro_adev_rps[i])
+            a = allan.accel_adev_mps2[i]
+            md.append(f"| {allan.tau_s[i]:.3g} | {int(allan.clusters[i])} | " + " | ".join(f"{v:.2e}" for v in g) + " | "
+                      + " | ".join(f"{v:.2e}" for v in a) + " |")
+    return md
 
 
 def _binned(x: np.ndarray, y: np.ndarray, n_bins: int = 15) -> tuple:
@@ -200,6 +255,8 @@ def write_report(cal, out_dir: Path) -> Path:
           "not determined = the recording cannot tell the effect (its sd is not below half the prior's).",
           "", "## Errors before / after and effects", ""]
     md += markdown_tables(cal)
+    t = cal.tuning or {}
+    md += allan_markdown(t.get("allan"), t.get("gyro_noise_rps_rthz"), t.get("accel_noise_mps2_rthz"))
     md += ["", "![outage errors](outage_errors.png)" if len(ob) else "", "",
            "## Halves of the recording", "",
            "| effect | unit | first half | second half | halves diff / combined sd | residual-cost gain |",
@@ -213,13 +270,7 @@ def write_report(cal, out_dir: Path) -> Path:
            f"replays: {cal.replays}.", "",
            "## Residual against the signal that reveals each effect", "",
            "| effect | signal | r before | p before | r after | p after |", "|---|---|---|---|---|---|"]
-    for name, png in figures:
-        name_shown = DISPLAY[PARAM_NAMES.index(name)][1]
-        cb = s_before.get(name, {}).get("correlation", {})
-        ca = s_after.get(name, {}).get("correlation", {})
-        md.append(f"| {name_shown} | {before[name][3]} | {cb.get('detail', {}).get('r', float('nan')):+.3f} | "
-                  f"{cb.get('p_value', float('nan')):.1e} | {ca.get('detail', {}).get('r', float('nan')):+.3f} | "
-                  f"{ca.get('p_value', float('nan')):.1e} |")
+    md += signal_rows(before, after, s_before, s_after)
     md.append("")
     for name, png in figures:
         name_shown = DISPLAY[PARAM_NAMES.index(name)][1]

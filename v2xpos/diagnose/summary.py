@@ -103,9 +103,36 @@ def summary_text(cal) -> str:
         lines += _table(AGREEMENT_HEADER, agreement_rows(cal.online))
     t = cal.tuning or {}
     if t.get("gyro_noise_rps_rthz") is not None:
-        lines += ["", f"fit predictor: IMU noise from the samples, gyro {t['gyro_noise_rps_rthz']:.2e} rad/s/sqrt(Hz), "
-                      f"accel {t['accel_noise_mps2_rthz']:.2e} m/s^2/sqrt(Hz); {cal.replays} replays"]
+        lines += ["", f"fit predictor: IMU noise from the samples, gyro {np.degrees(t['gyro_noise_rps_rthz']):.2e} "
+                      f"deg/s/sqrt(Hz), accel {t['accel_noise_mps2_rthz']:.2e} m/s^2/sqrt(Hz); {cal.replays} replays"]
+    lines += allan_lines(t.get("allan"), t.get("gyro_noise_rps_rthz"), t.get("accel_noise_mps2_rthz"))
     return "\n".join(lines)
+
+
+def allan_lines(allan, gyro_white: float | None = None, accel_white: float | None = None) -> list[str]:
+    """What the Allan deviation at the stops says (``tuning.AllanAtStops``), angles in degrees:
+    white noise at tau = 1 s, the density that covers a significant excess over the white noise
+    of the second differences for tau >= 1 s (written to the table) and the bias instability, an
+    upper bound when the stops end before the flat part."""
+    if allan is None:
+        return []
+    if not allan.stops_s:
+        return ["", "IMU at stops (Allan deviation): no stop long enough; the table carries the white noise only"]
+    out = ["", f"IMU at stops (Allan deviation, IEEE 952; {len(allan.stops_s)} stops, {allan.stop_time_s:.0f} s):"]
+    for which, white, unit, k, bunit, bk in (
+            ("gyro", gyro_white, "deg/s/sqrt(Hz)", np.degrees(1.0), "deg/h", np.degrees(3600.0)),
+            ("accel", accel_white, "m/s^2/sqrt(Hz)", 1.0, "mg", 1e3 / 9.80665)):
+        w = allan.white(which)
+        b, bound = allan.bias_instability(which)
+        fmt = (lambda v, u: "not determined (stops shorter than 1 s)" if not np.isfinite(v) else f"{v:.2e} {u}")
+        line = f"  {which}: white (tau 1 s) {fmt(w * k, unit)}; bias instability {'<= ' if bound else ''}{fmt(b * bk, bunit)}"
+        line += " (stops too short for the flat part)" if bound and np.isfinite(b) else ""
+        if white is not None and np.isfinite(white):
+            c, _r = allan.covering(which, white)
+            line += (f"; above the white noise (tau >= 1 s, 3 sd): {fmt(c * k, unit)} written to the table"
+                     if np.isfinite(c) else "; nothing above the white noise at tau >= 1 s (3 sd)")
+        out.append(line)
+    return out
 
 
 def markdown_tables(cal) -> list[str]:

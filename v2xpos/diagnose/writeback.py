@@ -63,11 +63,15 @@ def software_version() -> str:
 def calibration_table(theta: np.ndarray, sd: np.ndarray, significant: np.ndarray, determined: np.ndarray,
                       prior_sd: np.ndarray, declared_lever_sd_m: float, source: str,
                       date: str | None = None, software: str | None = None,
-                      imu_noise: tuple[float, float, int] | None = None) -> CalibrationTable:
+                      imu_noise: tuple[float, float, int] | None = None,
+                      imu_allan: tuple[float, float, float, float] | None = None) -> CalibrationTable:
     """The ``[calibration]`` table of a fit (parameter vectors in the ``inject.P_*`` layout).
     ``imu_noise``: (gyro [rad/s/sqrt(Hz)], accelerometer [m/s^2/sqrt(Hz)], samples) measured from
     the recording (``tuning.imu_noise_density``), written as the vehicle's IMU noise with the sd of
-    a variance estimate from that many samples (relative sd of the density 1/sqrt(2 n))."""
+    a variance estimate from that many samples (relative sd of the density 1/sqrt(2 n)).
+    ``imu_allan``: (gyro, accelerometer density, their relative sds) that cover the Allan deviation
+    measured at the recording's stops (``tuning.AllanAtStops.covering``), written as
+    ``imu_gyro_allan_rps_rthz`` / ``imu_accel_allan_mps2_rthz``; NaN entries are left out."""
     theta, sd, prior_sd = (np.asarray(x, float) for x in (theta, sd, prior_sd))
     sig, det = np.asarray(significant, bool), np.asarray(determined, bool)
     value = np.where(sig, theta, 0.0)
@@ -89,6 +93,11 @@ def calibration_table(theta: np.ndarray, sd: np.ndarray, significant: np.ndarray
             table.effects["imu_gyro_noise_rps_rthz"] = CalibrationEntry(float(g), float(g * rel))
         if np.isfinite(a) and a > 0:
             table.effects["imu_accel_noise_mps2_rthz"] = CalibrationEntry(float(a), float(a * rel))
+    if imu_allan is not None:
+        g, a, rg, ra = imu_allan
+        for key, v, r in (("imu_gyro_allan_rps_rthz", g, rg), ("imu_accel_allan_mps2_rthz", a, ra)):
+            if np.isfinite(v) and v > 0:
+                table.effects[key] = CalibrationEntry(float(v), float(v * r) if np.isfinite(r) else float(v))
     return table
 
 

@@ -22,7 +22,10 @@ a correction to what the descriptor declares, not a total):
 * GNSS latency: a solution tagged t is valid at ``t - gnss_latency_s``;
 * scale factors: ``measured = (1 + s) true`` per vehicle axis (the filter's correction vector);
 * IMU white noise (``imu_gyro_noise_rps_rthz``, ``imu_accel_noise_mps2_rthz``, measured by
-  ``calibrate`` from the samples): the filter's process noise instead of its automotive default.
+  ``calibrate`` from the samples): the filter's process noise instead of its automotive default;
+  with ``imu_gyro_allan_rps_rthz`` / ``imu_accel_allan_mps2_rthz`` (the white density whose Allan
+  line covers the Allan deviation measured at the recording's stops for tau >= 1 s,
+  ``v2xpos.diagnose.tuning.AllanAtStops``) the larger of the two, before the margin and cap below.
   A filter whose attitude noise is far above the sensor's (e.g. 3e-3 against 8.7e-5 rad/s/sqrt(Hz))
   lets every GNSS epoch move its roll, pitch and heading; for two cars 10-27 m apart that heading
   noise was most of the relative error (convoy-kind recording: 0.053 m with the defaults, 0.024 m
@@ -132,10 +135,13 @@ def _calibrated_fields(platform: str, B: np.ndarray, lever: np.ndarray, lever_sd
         if name in eff:
             init[name] = _vec(eff[name].value)
             sd0[name] = _vec(eff[name].sd)
-    for key, field_name in (("imu_gyro_noise_rps_rthz", "gyro_noise_rps_rthz"),
-                            ("imu_accel_noise_mps2_rthz", "accel_noise_mps2_rthz")):
-        if key in eff and float(eff[key].value) > 0:
-            out[field_name] = float(eff[key].value)
+    for keys, field_name in ((("imu_gyro_noise_rps_rthz", "imu_gyro_allan_rps_rthz"), "gyro_noise_rps_rthz"),
+                             (("imu_accel_noise_mps2_rthz", "imu_accel_allan_mps2_rthz"), "accel_noise_mps2_rthz")):
+        # the larger of the white noise (second differences) and the density whose Allan line
+        # covers the deviation measured at the stops (``v2xpos.diagnose.tuning.AllanAtStops``)
+        v = [float(eff[k].value) for k in keys if k in eff and float(eff[k].value) > 0]
+        if v:
+            out[field_name] = max(v)
     out["effects"] = tuple(states)
     out["effect_initial_sd"] = sd0
     out["initial_effects"] = init

@@ -49,6 +49,32 @@ def density_from_mean_square(mean_d2: np.ndarray | float, dt_s: float) -> np.nda
     return np.sqrt(np.asarray(mean_d2, float) / 6.0 * dt_s)
 
 
+def allan_sums(x: np.ndarray, dt_s: float, m: int) -> tuple[np.ndarray, int]:
+    """Sums of squared second differences of the integrated rate behind the overlapping Allan
+    variance at cluster size ``m`` (tau = m dt), per column, and their count. With theta the
+    integral of the rate x, IEEE Std 952-1997 (Annex C) / El-Sheimy et al. 2008 (eq. 4):
+    ``AVAR(tau) = sum_k (theta_{k+2m} - 2 theta_{k+m} + theta_k)^2 / (2 tau^2 (N - 2m))``.
+    The sums (not the variance) are returned so that several stops can be pooled."""
+    x = np.asarray(x, float).reshape(len(x), -1)
+    return allan_sums_theta(np.vstack((np.zeros((1, x.shape[1])), np.cumsum(x, axis=0) * dt_s)), m)
+
+
+def allan_sums_theta(theta: np.ndarray, m: int) -> tuple[np.ndarray, int]:
+    """``allan_sums`` from the integrated rate ``theta`` sampled every dt (rows)."""
+    theta = np.asarray(theta, float).reshape(len(theta), -1)
+    if 2 * m >= len(theta):
+        return np.zeros(x.shape[1]), 0
+    d = theta[2 * m:] - 2.0 * theta[m:-m] + theta[:-2 * m]
+    return np.einsum("ij,ij->j", d, d), len(d)
+
+
+def allan_deviation(x: np.ndarray, dt_s: float, m: int) -> np.ndarray:
+    """Overlapping Allan deviation of rate samples ``x`` (one column per axis) at tau = m dt (see
+    ``allan_sums``); NaN when the record is shorter than 2 tau."""
+    s, n = allan_sums(x, dt_s, m)
+    return np.sqrt(s / (2.0 * (m * dt_s) ** 2 * n)) if n else np.full(s.shape, np.nan)
+
+
 def process_noise_density(layout: StateLayout, cfg: InsConfig) -> np.ndarray:
     """Diagonal of the continuous process noise Q_c (per second) from the configured IMU figures
     (``ImuNoiseMeter.apply`` later replaces the white-noise parts with measured densities).
