@@ -63,7 +63,7 @@ def allan_sums_theta(theta: np.ndarray, m: int) -> tuple[np.ndarray, int]:
     """``allan_sums`` from the integrated rate ``theta`` sampled every dt (rows)."""
     theta = np.asarray(theta, float).reshape(len(theta), -1)
     if 2 * m >= len(theta):
-        return np.zeros(x.shape[1]), 0
+        return np.zeros(theta.shape[1]), 0
     d = theta[2 * m:] - 2.0 * theta[m:-m] + theta[:-2 * m]
     return np.einsum("ij,ij->j", d, d), len(d)
 
