@@ -295,12 +295,16 @@ class Estimator:
             th[p] += FD_STEP[p]
             rows, _ = self.rows(self.ds, th, f"Jacobian d/d {PARAM_NAMES[p]}")
             J[:, p] = (align(self.base_rows, rows) - r0) / FD_STEP[p]
-        # identical relative timing: GNSS latency (tags moved back) = IMU offset (stamps moved on);
-        # a slow clock drift acts as the local offset 1e-6 d (t - t0) (filter memory << drive)
+        self.J = self._with_timing_columns(J)
+        return rows0
+
+    def _with_timing_columns(self, J: np.ndarray) -> np.ndarray:
+        """J with the GNSS latency and clock drift columns taken from the IMU offset's (in place):
+        identical relative timing, GNSS latency (tags moved back) = IMU offset (stamps moved on); a
+        slow clock drift acts as the local offset 1e-6 d (t - t0) (filter memory << drive)."""
         J[:, P_GNSS_LATENCY] = J[:, P_TIME_OFFSET]
         J[:, P_CLOCK_DRIFT] = J[:, P_TIME_OFFSET] * 1e-6 * (self.base_rows.t_s - self.t0_s)
-        self.J = J
-        return rows0
+        return J
 
     def problem(self, rows: RowSet, theta: np.ndarray) -> LinearProblem:
         """Linear problem at theta from residual rows of a replay at theta and the stored J."""
@@ -344,7 +348,7 @@ class Estimator:
         parameter with an ``FD_STEP``): ``J_p = (r(theta + h e_p) - r(theta - h e_p)) / 2h``, error
         O(h^2) against O(h) for the one-sided difference of ``linearize``, which is the slope at
         theta + h/2 (10 ms away for the IMU offset). The GNSS latency and clock drift columns follow
-        from the IMU offset's as in ``linearize``."""
+        from the IMU offset's (``_with_timing_columns``)."""
         J = np.zeros((len(self.base_rows.r), N_PARAMS))
         for p in [p for p in np.flatnonzero(FD_STEP > 0) if self.active[p]]:
             side = []
@@ -354,9 +358,7 @@ class Estimator:
                 rows, _ = self.rows(ds, th, f"{label} d/d {PARAM_NAMES[p]} ({'+' if sign > 0 else '-'})")
                 side.append(align(self.base_rows, rows))
             J[:, p] = (side[0] - side[1]) / (2.0 * FD_STEP[p])
-        J[:, P_GNSS_LATENCY] = J[:, P_TIME_OFFSET]
-        J[:, P_CLOCK_DRIFT] = J[:, P_TIME_OFFSET] * 1e-6 * (self.base_rows.t_s - self.t0_s)
-        return J
+        return self._with_timing_columns(J)
 
     def refine(self, ds: Dataset, theta_start: np.ndarray, iterations: int = 1) -> tuple[Fit, LinearProblem, ReplayOutcome]:
         """Fit of ``ds`` from theta_start: ``iterations`` chord (simplified Gauss-Newton) steps with

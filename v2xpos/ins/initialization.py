@@ -136,9 +136,7 @@ class Initialization:
             d[i:i + k] = c.effect_initial_sd.get(name, 0.01) ** 2
         self.P[np.diag_indices(n)] = d
         if from_antenna:
-            self.P = position_from_antenna_covariance(
-                self.P, antenna_fix_inverse_jacobian(self.layout, self.C_nb, self.fx.lever_arm_m, self.nav[3:6],
-                                                     heading_known, self._timing_in_models(self.nav[3:6])), pos_sd)
+            self.P = position_from_antenna_covariance(self.P, self._antenna_fix_jacobian(heading_known), pos_sd)
         self.A[:] = 0.0
         self.mem[:] = 0.0
         if self._last_raw_f_b is not None:
@@ -228,8 +226,7 @@ class Initialization:
         pos_sd = np.maximum(sd * c.fix_sd_scale.get(fix, 2.0), MIN_START_POSITION_SD_M)
         vel_sd = c.init_vel_sd_mps if vel is not None else max(c.init_vel_sd_mps, 0.1 * err_m)
         self.P[idx, idx] = np.r_[pos_sd ** 2, np.full(3, vel_sd ** 2)]
-        G = antenna_fix_inverse_jacobian(self.layout, self.C_nb, self.fx.lever_arm_m, v, self.heading_known,
-                                         self._timing_in_models(v))
+        G = self._antenna_fix_jacobian(self.heading_known)
         self.P = position_from_antenna_covariance(self.P, G, pos_sd)
         if self.separation is not None:
             self.separation.reset_states(idx, self.P)
@@ -241,6 +238,13 @@ class Initialization:
         self.last_gnss_t_s = t_s
         return UpdateResult("gnss_pos", t_s, False, np.nan,
                             reason=f"position reset: the filter was {err_m:.1f} m off after rejections")
+
+    def _antenna_fix_jacobian(self, heading_known: bool) -> np.ndarray:
+        """``antenna_fix_inverse_jacobian`` at the current attitude, lever arm and velocity, its
+        timing columns as the GNSS models carry them now (``InsFilter._timing_in_models``)."""
+        v = self.nav[3:6]
+        return antenna_fix_inverse_jacobian(self.layout, self.C_nb, self.fx.lever_arm_m, v, heading_known,
+                                            self._timing_in_models(v))
 
     def _turn_about_down(self, turn: np.ndarray) -> None:
         """Turn the attitude about down by the rotation ``turn`` (NED, ``C_nb <- turn C_nb``) when
@@ -307,9 +311,7 @@ class Initialization:
         pos_sd = np.maximum(sd * c.fix_sd_scale.get(fix, 2.0), MIN_START_POSITION_SD_M)
         self.P[idx, idx] = np.r_[pos_sd ** 2, np.full(3, c.init_vel_sd_mps ** 2),
                                  max(c.init_yaw_sd_rad, self._course_sd_rad) ** 2]
-        self.P = position_from_antenna_covariance(
-            self.P, antenna_fix_inverse_jacobian(self.layout, self.C_nb, self.fx.lever_arm_m, self.nav[3:6],
-                                                 timing=self._timing_in_models(self.nav[3:6])), pos_sd)
+        self.P = position_from_antenna_covariance(self.P, self._antenna_fix_jacobian(True), pos_sd)
         self.heading_known = True
         self.consistency.restart(float(t_s))
         self._restart_separation()
