@@ -113,6 +113,26 @@ class Dataset:
     table (estimated effects to apply), or None."""
 
 
+
+class FilterReason(IntEnum):
+    """Why a vehicle's navigation solution is not verified (``NavState.reason``); ``OK`` when it is.
+
+    The filter sets the first that applies in this order; services carry it on the wire, in the
+    status and in ``results.csv``, and the monitor turns it into an instruction for the operator.
+    """
+    OK = 0
+    ALIGNING = 1                  # the filter has not started (no GNSS fix yet, or re-aligning)
+    HEADING_PENDING = 2           # started at a standstill: the heading is open until the vehicle drives off
+    COASTING = 3                  # no GNSS position used for longer than the filter's coast limit
+    TIME_OFFSET_CONVERGING = 4    # the IMU time offset is not yet known well enough for the limit
+    SETUP_UNVERIFIED = 5          # an undeclared set-up error (lever arm, mounting) not yet excluded: drive a turn
+    PROTECTION_EXCEEDED = 6       # the protection level is above its limit for another reason
+    TEST_POSITION = 7             # the GNSS position innovations failed the consistency test
+    TEST_VELOCITY = 8             # the GNSS velocity innovations failed the consistency test
+    TEST_SEPARATION = 9           # the solution-separation (fault) test failed
+    RECEIVER_FLOAT = 10           # the receiver is not RTK fixed (float or worse)
+
+
 @dataclass
 class NavState:
     """Navigation solution of one vehicle at GPS time t_s.
@@ -144,6 +164,11 @@ class NavState:
     verified: bool = True
     """False while the protection level of the filter's solution-separation test against an
     undeclared horizontal lever arm is above its limit (``consistency.FaultTolerantSolution``)."""
+    reason: FilterReason = FilterReason.OK
+    """Why the solution is not verified (``FilterReason``; OK when it is)."""
+    protection_m: float = float("nan")
+    """Horizontal protection level [m] of the solution at the integrity risk of its configuration
+    (NaN when the filter computes none)."""
 
 
 @dataclass
