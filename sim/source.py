@@ -90,11 +90,14 @@ def filter_noise(imu_grade: str, margin: float = 3.0) -> dict:
 
 
 class InsSimSource:
-    """Simulated sensors of one actor through the real GNSS/INS filter (see module docstring)."""
+    """Simulated sensors of one actor through the real GNSS/INS filter on the driver (see module
+    docstring): the samples up to the session time go to ``v2xpos.ins.driver.InsDriver`` as they
+    become due, which orders and applies them as for every other source."""
 
     def __init__(self, sc: Scenario, actor: Actor, platform: str | None = None, effects: tuple = (),
                  cov_every: int = 10):
         from v2xpos.ins import InsConfig, InsFilter
+        from v2xpos.ins.driver import InsDriver
         self.name = "ins"
         self.actor = actor
         self.sensors = _SimSensors(sc, actor)
@@ -107,22 +110,14 @@ class InsSimSource:
                                           # when it passes again (docs/integrity.md)
                                           verify_turn_deg=0.0, consistency_reverify=True,
                                           **filter_noise(actor.imu_grade)))
+        self.driver = InsDriver(self.filter, emit_states=True)
         self._init_rng = np.random.default_rng(actor.seed + 7)
         self.initialized = False
-        self._make_filter = lambda: InsFilter(self.filter.cfg)
 
     def warm_up(self) -> None:
-        """Run a throw-away filter over 0.3 s of data so JIT compilation (or loading the numba cache)
-        happens before real time starts."""
-        f = self._make_filter()
-        imu, gnss = self.sensors.imu, self.sensors.gnss
-        s = self.actor.truth.sample(float(imu.t_s[0]))
-        f.initialize(float(imu.t_s[0]), s["lla"][0], s["v_ned_mps"][0], s["rpy_rad"][0])
-        for k in range(1, 31):
-            f.process_imu(float(imu.t_s[k]), imu.acc_mps2[k], imu.gyro_rps[k])
-        f.update_gnss(float(gnss.t_s[1]), gnss.lla[1], gnss.sd_ned_m[1], FixStatus(int(gnss.fix[1])),
-                      vel_ned_mps=gnss.vel_ned_mps[1], vel_sd_ned_mps=gnss.vel_sd_ned_mps[1])
-        f.nav_state()
+        """Compile the filter's kernels (or load the numba cache) before real time starts."""
+        from v2xpos.ins.driver import warm_up
+        warm_up(self.filter.cfg)
 
     def _initialize(self, t_s: float) -> None:
         s = self.actor.truth.sample(t_s)
@@ -131,30 +126,28 @@ class InsSimSource:
         lla = geo.ned_to_lla(r_ned, self.actor.truth.lla0)
         v = s["v_ned_mps"][0] + rng.normal(0, 0.02, 3)
         rpy = s["rpy_rad"][0] + rng.normal(0, 1.0, 3) * np.radians([0.1, 0.1, 0.3])
-        self.filter.initialize(t_s, lla, v, rpy)
+        self.driver.initialize(t_s, lla, v, rpy)
         self.initialized = True
 
     def advance(self, t_gps_s: float) -> list[NavState]:
         imu, gnss, sen = self.sensors.imu, self.sensors.gnss, self.sensors
-        out: list[NavState] = []
-        n_imu = len(imu.t_s)
-        while sen.i_imu < n_imu and imu.t_s[sen.i_imu] <= t_gps_s:
-            k = sen.i_imu
-            t_k = float(imu.t_s[k])
-            if not self.initialized:
-                sen.seek(t_k)
-                self._initialize(t_k)
-                sen.i_imu = k + 1
-                continue
-            self.filter.process_imu(t_k, imu.acc_mps2[k], imu.gyro_rps[k])
-            while sen.i_gnss < len(gnss.t_s) and gnss.t_s[sen.i_gnss] <= t_k + 1e-6:
-                j = sen.i_gnss
-                self.filter.update_gnss(float(gnss.t_s[j]), gnss.lla[j], gnss.sd_ned_m[j], FixStatus(int(gnss.fix[j])),
-                                        vel_ned_mps=gnss.vel_ned_mps[j], vel_sd_ned_mps=gnss.vel_sd_ned_mps[j])
-                sen.i_gnss += 1
-            sen.i_imu = k + 1
-            out.append(self.filter.nav_state())
-        return out
+        if not self.initialized:
+            if sen.i_imu >= len(imu.t_s) or imu.t_s[sen.i_imu] > t_gps_s:
+                return []
+            t_k = float(imu.t_s[sen.i_imu])
+            sen.seek(t_k)
+            self._initialize(t_k)
+            sen.i_imu += 1
+        j = int(np.searchsorted(imu.t_s, t_gps_s, side="right"))
+        if j > sen.i_imu:
+            self.driver.push_imu_block(imu.t_s[sen.i_imu:j], imu.acc_mps2[sen.i_imu:j], imu.gyro_rps[sen.i_imu:j])
+            sen.i_imu = j
+        j = int(np.searchsorted(gnss.t_s, t_gps_s, side="right"))
+        for k in range(sen.i_gnss, j):
+            self.driver.push_gnss(float(gnss.t_s[k]), gnss.lla[k], gnss.sd_ned_m[k], FixStatus(int(gnss.fix[k])),
+                                  gnss.vel_ned_mps[k], gnss.vel_sd_ned_mps[k])
+        sen.i_gnss = max(sen.i_gnss, j)
+        return self.driver.run()
 
 
 class TruthNoiseSource:

@@ -7,8 +7,8 @@ import json
 import sys
 from pathlib import Path
 
-from v2xpos.commands.replay import (add_input_arguments, add_schedule_arguments, check_only, command_provenance,
-                                    load_for_command)
+from v2xpos.commands.replay import (add_input_arguments, add_profile_argument, add_schedule_arguments, check_only,
+                                    command_provenance, load_for_command)
 from v2xpos.diagnose.calibrate import calibrate_dataset, to_json
 from v2xpos.ins.replay_engine import OutageSchedule
 
@@ -24,6 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_input_arguments(parser)
     parser.add_argument("--iterations", type=int, default=2, help="Gauss-Newton iterations (default 2)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_profile_argument(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -35,7 +36,8 @@ def run(args: argparse.Namespace) -> int:
     if args.check:
         return check_only(ds, "calibrate", args.json)
     schedule = OutageSchedule(args.outage_length, args.outage_every, args.outage_first)
-    cal = calibrate_dataset(ds, schedule, progress=not args.no_progress, gn_iterations=args.iterations)
+    cal = calibrate_dataset(ds, schedule, progress=not args.no_progress, gn_iterations=args.iterations,
+                            profile=args.profile)
     out = to_json(cal)
     out["input_checks"] = ds.notes.get("input_check", {})
     out["warnings"] = len(out["input_checks"].get("warnings", []))

@@ -123,6 +123,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "effect states) to FILE: .csv or .mcap")
     parser.add_argument("--solution-hz", type=float, default=None,
                         help="solution output rate [Hz] (default: every GNSS epoch, the filter's own epochs)")
+    add_profile_argument(parser)
+
+
+def add_profile_argument(parser: argparse.ArgumentParser) -> None:
+    """``--profile``, shared by ``v2xpos replay`` and ``v2xpos calibrate`` (``v2xpos.ins.profiles``)."""
+    from v2xpos.ins.profiles import DEFAULT_PROFILE
+    parser.add_argument("--profile", choices=("service", "plain"), default=DEFAULT_PROFILE,
+                        help="filter profile: service (default, the filter the services run) or plain "
+                             "(without its integrity machinery: configured IMU noise, no reopening, no "
+                             "fault-tolerant solution, no gyro-scale state)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -146,7 +156,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"v2xpos replay: {exc}", file=sys.stderr)
             return 2
     try:
-        res = replay(ds, sched, progress=not args.no_progress, solution=writer, solution_hz=args.solution_hz)
+        res = replay(ds, sched, progress=not args.no_progress, solution=writer, solution_hz=args.solution_hz,
+                     profile=args.profile)
     finally:
         if writer is not None:
             writer.close()
@@ -157,7 +168,7 @@ def run(args: argparse.Namespace) -> int:
                      f"{ds.source or ds.name}: no outage was scored ({res.summary['outages_skipped_no_imu']} "
                      "scheduled outage(s) not covered by the IMU); the recording may be shorter than "
                      "--outage-first + --outage-length")
-    keys = ("dataset", "imu_samples", "gnss_epochs", "malformed_lines", "warnings", "outage_count",
+    keys = ("dataset", "profile", "imu_samples", "gnss_epochs", "malformed_lines", "warnings", "outage_count",
             "outages_skipped_no_imu", "outage_h_rms_m",
             "outage_h_max_m", "outage_v_rms_m", "aided_h_rms_m", "aided_h_rms_steady_m", "wall_s",
             "imu_samples_per_s",

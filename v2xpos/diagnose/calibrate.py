@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from v2xpos.ins.profiles import DEFAULT_PROFILE
 from v2xpos.types import Dataset
 
 from . import identify
@@ -53,20 +54,21 @@ class Calibration:
     tuning: dict = field(default_factory=dict)
     source: str = ""
     online: list = field(default_factory=list)    # ``agreement`` rows: offline vs the live filter's states
+    profile: str = DEFAULT_PROFILE                 # the filter profile of before, after and online
 
 
 def metrics_replay(ds: Dataset, schedule: OutageSchedule, progress: bool | Progress = False,
-                   label: str = "outage replay") -> dict:
-    """Outage metrics exactly as ``v2xpos replay`` computes them (default filter configuration,
-    the dataset's ``[calibration]`` applied by ``ins_config``), plus ``nis_mean`` of the accepted
-    GNSS position and velocity updates."""
+                   label: str = "outage replay", profile: str = DEFAULT_PROFILE) -> dict:
+    """Outage metrics exactly as ``v2xpos replay`` computes them (the vehicle's filter in
+    ``profile``, default the services' one, the dataset's ``[calibration]`` applied by
+    ``ins_config``), plus ``nis_mean`` of the accepted GNSS position and velocity updates."""
     from v2xpos.ins.replay_engine import OutageSchedule as InsSchedule
     from v2xpos.ins.replay import replay as ins_replay
     sched = InsSchedule(schedule.length_s, schedule.every_s, schedule.first_s)
     bar = progress if isinstance(progress, Progress) else None
     if bar:
         bar.start(label)
-    res = ins_replay(ds, sched, progress=bool(progress) and bar is None, keep_series=False)
+    res = ins_replay(ds, sched, progress=bool(progress) and bar is None, keep_series=False, profile=profile)
     if bar:
         bar.done()
     out = dict(res.summary)
@@ -84,18 +86,20 @@ def with_calibration(ds: Dataset, table) -> Dataset:
 
 
 def calibrate_dataset(ds: Dataset, schedule: OutageSchedule, progress: bool = True,
-                      gn_iterations: int = 2) -> Calibration:
+                      gn_iterations: int = 2, profile: str = DEFAULT_PROFILE) -> Calibration:
     """The full pipeline of the module docstring. *before* is the vehicle as configured (declared
     values and the dataset's own ``[calibration]``, if any); *after* is the same replay with the
     table this calibration writes back (``ins_config``), i.e. exactly what ``v2xpos replay`` gives
-    on the ``--write-dataset`` descriptor."""
+    on the ``--write-dataset`` descriptor. Before, after and the online agreement run the
+    vehicle's filter in ``profile`` (``v2xpos.ins.profiles``: default the services' one); the fit
+    replays run the ``fit`` profile."""
     from .tuning import allan_at_stops
     from .writeback import calibration_table
     n_active = int(active_parameters(ds.platform).sum())
     bar = Progress(progress, total=6 + gn_iterations * (n_active + 4) + 3 + 2 * n_active + 8)
     try:
-        est = Estimator(ds, progress=bar)
-        before = metrics_replay(ds, schedule, bar, "before: the vehicle as declared")
+        est = Estimator(ds, progress=bar, profile=profile)
+        before = metrics_replay(ds, schedule, bar, "before: the vehicle as declared", profile)
         theta_c = est.coarse()
         theta = est.gauss_newton(theta_c, iterations=gn_iterations)
         f, prob, out_fit = est.refine(ds, theta, iterations=2)
@@ -118,7 +122,7 @@ def calibrate_dataset(ds: Dataset, schedule: OutageSchedule, progress: bool = Tr
         tuning = {**est.tuning, "allan": allan, "allan_cover": cover}
         table = calibration_table(f.theta, f.sd, f.significant, f.determined, est.prior_sd, ds.lever_arm_sd_m,
                                   source=source, imu_noise=noise, imu_allan=cover)
-        after = metrics_replay(with_calibration(ds, table), schedule, bar, "after: the calibrated vehicle")
+        after = metrics_replay(with_calibration(ds, table), schedule, bar, "after: the calibrated vehicle", profile)
         online = agreement(f, est.online(), est.online_t_end_s)
         base_fit = est._replay(ds, np.zeros(N_PARAMS), "declared model (report)")
     finally:
@@ -126,7 +130,8 @@ def calibrate_dataset(ds: Dataset, schedule: OutageSchedule, progress: bool = Tr
     return Calibration(dataset=ds.name, fit=f, problem=prob, theta_coarse=theta_c, fit_first=f1,
                        fit_second=f2, effects_significant=sig, before=before, after=after,
                        log_before=base_fit.log, log_after=out_fit.log, coarse_report=est.coarse_report,
-                       replays=est.replays + 2, table=table, tuning=tuning, source=source, online=online)
+                       replays=est.replays + 2, table=table, tuning=tuning, source=source, online=online,
+                       profile=profile)
 
 
 def agreement(f: Fit, online: dict, t_end_s: float) -> list[dict]:
@@ -173,6 +178,7 @@ METRIC_KEYS = ("outage_h_rms_m", "outage_h_max_m", "aided_h_rms_m", "nis_mean")
 
 def to_json(cal: Calibration) -> dict:
     return {"dataset": cal.dataset,
+            "profile": cal.profile,
             "effects": effects_json(cal.fit),
             "before": {k: cal.before[k] for k in METRIC_KEYS},
             "after": {k: cal.after[k] for k in METRIC_KEYS},

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from v2xpos.ins.profiles import DEFAULT_PROFILE
 from v2xpos.types import Dataset
 
 from . import identify
@@ -116,8 +117,10 @@ class Estimator:
     """Batch estimator bound to one recording; keeps the Jacobian so that recordings derived from
     the same drive (e.g. with injected effects) can be fitted with a couple of replays."""
 
-    def __init__(self, ds: Dataset, progress: bool | Progress = False, prior_sd: np.ndarray | None = None):
+    def __init__(self, ds: Dataset, progress: bool | Progress = False, prior_sd: np.ndarray | None = None,
+                 profile: str = DEFAULT_PROFILE):
         self.ds = ds
+        self.profile = profile          # the live filter's profile (``coarse``, ``online``)
         self.bar = progress if isinstance(progress, Progress) else NO_PROGRESS
         self.progress = bool(progress) and not isinstance(progress, Progress)   # per-replay bars
         self.prior_sd = default_prior_sd(ds) if prior_sd is None else prior_sd
@@ -159,7 +162,7 @@ class Estimator:
             self.coarse_report = {"from": "[calibration] table of the dataset"}
             self.check_velocity_lag(th)
             return th
-        cfg = config_for(self.ds, effects=("lever_arm", "imu_time_offset", "misalignment"))
+        cfg = config_for(self.ds, self.profile, effects=("lever_arm", "imu_time_offset", "misalignment"))
         self.bar.start("online effect states (starting point)")
         res = ins_replay(self.ds, InsSchedule(0.0, 0.0, 0.0), cfg=cfg, progress=self.progress, keep_series=False)
         self.bar.done()
@@ -189,9 +192,9 @@ class Estimator:
         # and a loose prior lets both wander (convoy_dev B: l_z +1.18 +- 0.18 m with the 0.5 m
         # prior, 2026-11-24); it starts from the declaration, as the live filter does
         lever_sd[2] = float(self.ds.lever_arm_sd_m)
-        cfg = config_for(self.ds, effect_initial_sd={"lever_arm": lever_sd,
-                                                     "imu_time_offset": float(p[P_TIME_OFFSET]),
-                                                     "misalignment": p[P_MISALIGN].copy()})
+        cfg = config_for(self.ds, self.profile, effect_initial_sd={"lever_arm": lever_sd,
+                                                                   "imu_time_offset": float(p[P_TIME_OFFSET]),
+                                                                   "misalignment": p[P_MISALIGN].copy()})
         self.bar.start("online effect states (agreement)")
         res = ins_replay(self.ds, InsSchedule(0.0, 0.0, 0.0), cfg=cfg, progress=self.progress, keep_series=False)
         self.bar.done()

@@ -12,8 +12,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
-import numpy as np
-
+from v2xpos.ins.profiles import dataset_config
 from v2xpos.ins.replay_engine import OutageSchedule, ReplayHook, outage_windows, run_replay
 from v2xpos.types import Dataset
 
@@ -45,7 +44,8 @@ def replay(ds: Dataset, schedule: OutageSchedule | None = None, config: dict | N
            exact_epochs: bool = False) -> ReplayOutcome:
     """Run the declared model over ``ds``; ``schedule=None`` uses every GNSS epoch.
 
-    config: InsConfig overrides (the dataset's platform, mounting and lever arm are the defaults).
+    config: InsConfig overrides of the vehicle's ``fit`` profile (``v2xpos.ins.profiles``: the
+    dataset's platform, mounting and lever arm, no effect states, no calibration table).
     exact_epochs: ``run_replay(exact_epochs=True)``: the state exactly at every GNSS epoch and the
     vehicle constraints mid-way between epochs, so that a shift of the IMU stamps changes the
     replay continuously: no update moves to another sample, and no constraint swaps order with a
@@ -53,14 +53,11 @@ def replay(ds: Dataset, schedule: OutageSchedule | None = None, config: dict | N
     Metrics: ``nis_mean`` (accepted GNSS position and velocity updates), ``outage_count``
     (windows without GNSS), ``wall_s``, ``counts`` (the filter's update counters).
     """
-    from v2xpos.ins import InsConfig, InsFilter
-    kw = dict(platform=ds.platform if ds.platform in ("car", "pedestrian") else "generic",
-              imu_to_body=np.asarray(ds.imu_to_body, float), lever_arm_m=np.asarray(ds.lever_arm_m, float),
-              lever_arm_sd_m=float(ds.lever_arm_sd_m), effects=())
-    kw.update(config or {})
+    from v2xpos.ins import InsFilter
+    kw = dict(config or {})
     if exact_epochs:
         kw["constraints_on_request"] = True
-    filt = InsFilter(InsConfig(**kw))
+    filt = InsFilter(dataset_config(ds, "fit", **kw))
     rec = ResidualRecorder(kinds=RECORDED_KINDS)
     wall0 = time.perf_counter()
     outages, _ = outage_windows(schedule, ds, need_imu=False)

@@ -15,6 +15,7 @@ from v2xpos.types import Dataset
 
 from .config import InsConfig
 from .filter import InsFilter
+from .profiles import DEFAULT_PROFILE
 from .replay_engine import OutageSchedule, ReplayHook, config_for, outage_windows, run_replay
 from .replay_metrics import ReplayMetrics
 
@@ -45,10 +46,12 @@ class SolutionHook(ReplayHook):
 
 def replay(dataset: Dataset, schedule: OutageSchedule | None = None, cfg: InsConfig | None = None,
            progress: bool = True, keep_series: bool = True, solution=None,
-           solution_hz: float | None = None) -> ReplayResult:
+           solution_hz: float | None = None, profile: str = DEFAULT_PROFILE) -> ReplayResult:
     """``v2xpos replay``: the filter over the whole dataset with the outage schedule (default
     ``OutageSchedule()``), scored by ``replay_metrics.ReplayMetrics`` (its docstring defines the
-    metrics).
+    metrics). The filter is ``cfg``, else the vehicle's configuration in ``profile``
+    (``profiles``: default the services' ``service`` profile; ``plain`` without its integrity
+    machinery).
 
     ``solution``: a ``v2xpos.ins.solution.SolutionWriter`` given one row per output epoch once the
     filter is initialised: by default every GNSS epoch (after its update; in an outage without
@@ -56,9 +59,10 @@ def replay(dataset: Dataset, schedule: OutageSchedule | None = None, cfg: InsCon
     1 / solution_hz s from the first GNSS epoch (after a GNSS update at the same instant) -- the IMU
     batches are then also split at those times, which moves the result by numerical noise
     (drive_0708 outage RMS 2.482 -> 2.480 m at 10 Hz)."""
+    cfg_given = cfg
     t_wall0 = time.perf_counter()
     t_cpu0 = time.process_time()
-    cfg = cfg or config_for(dataset)
+    cfg = cfg or config_for(dataset, profile)
     f = InsFilter(cfg)
     outages, n_scheduled = outage_windows(schedule or OutageSchedule(), dataset)
     metrics = ReplayMetrics(dataset, outages, keep_series)
@@ -74,4 +78,5 @@ def replay(dataset: Dataset, schedule: OutageSchedule | None = None, cfg: InsCon
     wall = time.perf_counter() - t_wall0
     cpu = time.process_time() - t_cpu0
     summary, series = metrics.summary(f, n_scheduled, wall, cpu)
+    summary["profile"] = profile if cfg_given is None else "custom"
     return ReplayResult(summary=summary, series=series, filter=f)

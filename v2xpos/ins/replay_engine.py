@@ -1,17 +1,20 @@
-"""The replay engine: a recorded dataset through ``InsFilter`` in time order, with GNSS outages.
+"""The replay engine: a recorded dataset through ``InsFilter`` with GNSS outages, on the driver.
 
-One event loop (``run_replay``) serves ``v2xpos replay`` (``replay.replay``, scored by
-``replay_metrics``) and the fit replays of ``v2xpos calibrate`` (``diagnose.runner``); what each
-wants to see it takes through ``ReplayHook`` callbacks:
+``run_replay`` is a thin layer over the one event loop (``driver.InsDriver``, whose docstring
+gives the events, their times of validity and their order): it pushes the recording's IMU
+samples, GNSS epochs (not used inside the outages), wheel speeds, the outage ends and output
+times its hooks read, and calibrate's scheduled constraints, then runs the driver. It serves
+``v2xpos replay`` (``replay.replay``, scored by ``replay_metrics``) and the fit replays of
+``v2xpos calibrate`` (``diagnose.runner``); what each wants to see it takes through
+``ReplayHook`` callbacks:
 
 * per epoch: ``on_gnss_epoch`` (the state before the GNSS update, which is skipped inside an
   outage), ``after_gnss_epoch``, ``on_outage_end`` and ``on_output`` (extra output times);
-* per measurement update: ``on_update(result, filter)`` (the filter's ``on_update``).
+* per measurement update: ``on_update(result, filter)`` (the filter's ``on_update``);
+* per IMU sample: ``on_state(filter, nav)`` (only when a hook asks for it).
 
-Events, in time order; at the same time: wheel speed, outage end, GNSS epoch, output, then a
-vehicle-constraint time. Before each event the IMU samples up to it are integrated: up to
-``t - imu_time_offset`` (the filter's current IMU stamp offset), and for a GNSS epoch also minus
-the filter's GNSS latency.
+The filter configuration is a named profile of the vehicle (``config_for``, ``profiles``): by
+default the services' ``service`` profile.
 
 Outage schedule (seconds from the first GNSS epoch): outage i covers
 ``[first + i every, first + i every + length)``; GNSS is not used inside. With ``need_imu`` only
@@ -26,11 +29,12 @@ from typing import Sequence
 
 import numpy as np
 
-from v2xpos.types import Dataset, FixStatus
+from v2xpos.types import Dataset
 
 from .config import InsConfig
+from .driver import CONSTRAINT, OUTAGE_END, OUTPUT, DriverHook, InsDriver, push_dataset
 from .filter import InsFilter
-from .updates import UpdateResult
+from .profiles import DEFAULT_PROFILE, dataset_config
 
 
 @dataclass
@@ -54,37 +58,18 @@ class OutageSchedule:
             k += 1
 
 
-class ReplayHook:
-    """What a replay shows its observers; every callback does nothing unless overridden.
-    ``f`` is the filter, ``t_s`` the event's GPS time [s], ``k`` the GNSS epoch's index in the
-    dataset, ``used`` whether the epoch's GNSS is used (outside the outages)."""
-
-    def on_gnss_epoch(self, f: InsFilter, t_s: float, k: int, used: bool) -> None:
-        """At a GNSS epoch, before its update."""
-
-    def after_gnss_epoch(self, f: InsFilter, t_s: float, k: int, used: bool) -> None:
-        """At a GNSS epoch, after its update (if used)."""
-
-    def on_outage_end(self, f: InsFilter, t_s: float, i: int) -> None:
-        """At the end of outage i."""
-
-    def on_output(self, f: InsFilter, t_s: float, used: bool) -> None:
-        """At an output time (``output_times`` of ``run_replay``)."""
-
-    def on_update(self, result: UpdateResult, f: InsFilter) -> None:
-        """After every measurement update (GNSS, vehicle constraints, odometer, static calibration)."""
+class ReplayHook(DriverHook):
+    """What a replay shows its observers: the driver's hooks (``driver.DriverHook``): per epoch
+    ``on_gnss_epoch`` (the state before the GNSS update, which is skipped inside an outage),
+    ``after_gnss_epoch``, ``on_outage_end``, ``on_output`` (extra output times), per update
+    ``on_update(result, filter)``, per IMU sample ``on_state`` (asking for it makes the replay emit
+    a state per sample)."""
 
 
-def config_for(dataset: Dataset, **overrides) -> InsConfig:
-    """InsConfig from what the dataset declares (platform, mounting, lever arm) and its
-    ``[calibration]`` table (``calibrated.ins_config``), plus overrides."""
-    from .calibrated import dataset_ins_config
-    kw = {}
-    if dataset.wheel is not None and dataset.platform == "car":
-        base = dataset_ins_config(dataset).effects
-        kw["effects"] = tuple(base) + ("odometer_scale",)
-    kw.update(overrides)
-    return dataset_ins_config(dataset, **kw)
+def config_for(dataset: Dataset, profile: str = DEFAULT_PROFILE, **overrides) -> InsConfig:
+    """The vehicle's filter configuration in a named profile (``profiles.dataset_config``: default
+    the services' ``service`` profile), plus overrides."""
+    return dataset_config(dataset, profile, **overrides)
 
 
 def outage_windows(schedule: OutageSchedule | None, dataset: Dataset,
@@ -134,27 +119,20 @@ def with_samples_at(t_s: np.ndarray, acc: np.ndarray, gyro: np.ndarray, t_new_s:
     return t[o], np.concatenate([acc, a_new])[o], np.concatenate([gyro, g_new])[o]
 
 
-# event kinds, numbered in their order at the same time
-EV_WHEEL, EV_OUTAGE_END, EV_GNSS, EV_OUTPUT, EV_CONSTRAINT = range(5)
-
-
-def _overrides(hook: ReplayHook, name: str) -> bool:
-    return getattr(type(hook), name) is not getattr(ReplayHook, name)
-
-
 def run_replay(f: InsFilter, dataset: Dataset, outages: Sequence[tuple[float, float]],
                hooks: Sequence[ReplayHook] = (), *, wheel: bool = True, outage_end_events: bool = True,
                output_times: np.ndarray | None = None, exact_epochs: bool = False,
-               progress: str | None = None) -> None:
-    """Run ``f`` over ``dataset`` (see the module docstring), calling ``hooks`` in their order.
+               progress: str | None = None) -> InsDriver:
+    """Run ``f`` over ``dataset`` through the driver (``driver.InsDriver``, whose docstring gives the
+    event order), calling ``hooks`` in their order; returns the driver (its ``counts``).
 
     wheel: use the odometer (a car with wheel speeds), at most at the constraint rate (odometer
     errors are correlated at higher rates). outage_end_events: stop at each outage end for
-    ``on_outage_end`` (the IMU batch is split there). exact_epochs: the filter state is brought
-    exactly to every GNSS epoch (an interpolated IMU sample is inserted there, so no extrapolation
-    over the gap to the last sample) and the vehicle constraints are applied mid-way between GNSS
-    epochs (``constraint_times``; needs ``cfg.constraints_on_request``): then a shift of the IMU
-    stamps changes the replay continuously. progress: a progress bar's label (None: no bar).
+    ``on_outage_end``. exact_epochs: the filter state is brought exactly to every GNSS epoch (an
+    interpolated IMU sample is inserted there, so no extrapolation over the gap to the last sample)
+    and the vehicle constraints are applied mid-way between GNSS epochs (``constraint_times``;
+    needs ``cfg.constraints_on_request``): then a shift of the IMU stamps changes the replay
+    continuously. progress: a progress bar's label (None: no bar).
     """
     if exact_epochs and not f.cfg.constraints_on_request:
         raise ValueError("run_replay(exact_epochs=True) needs InsConfig(constraints_on_request=True)")
@@ -167,70 +145,35 @@ def run_replay(f: InsFilter, dataset: Dataset, outages: Sequence[tuple[float, fl
     if exact_epochs and len(t_imu) > 1:
         t_constr = constraint_times(np.sort(t_gnss, kind="stable"), f.cfg.constraint_rate_hz)
         t_imu, acc, gyr = with_samples_at(t_imu, acc, gyr, np.concatenate([t_gnss, t_constr]))
-    use_wheel = wheel and dataset.wheel is not None and f.cfg.platform == "car"
-    ev = [(t_gnss, EV_GNSS), (np.array([b for _, b in outages], float) if outage_end_events else np.zeros(0),
-                              EV_OUTAGE_END),
-          (np.zeros(0) if output_times is None else np.asarray(output_times, float), EV_OUTPUT),
-          (np.asarray(dataset.wheel.t_s, float) if use_wheel else np.zeros(0), EV_WHEEL),
-          (t_constr, EV_CONSTRAINT)]
-    ev_t = np.concatenate([t for t, _ in ev])
-    ev_k = np.concatenate([np.full(len(t), k) for t, k in ev])
-    ev_i = np.concatenate([np.arange(len(t)) for t, _ in ev])
-    order = np.lexsort((ev_k, ev_t))
-    out_starts = np.array([a for a, _ in outages], float)
-    out_ends = np.array([b for _, b in outages], float)
-    update_hooks = [h for h in hooks if _overrides(h, "on_update")]
-    if update_hooks:
-        def on_update(res: UpdateResult, filt: InsFilter) -> None:
-            for h in update_hooks:
-                h.on_update(res, filt)
-        f.on_update = on_update
-    vel, vel_sd = gn.vel_ned_mps, gn.vel_sd_ned_mps
-    n_imu = len(t_imu)
     bar = None
     if progress:
         from tqdm import tqdm
-        bar = tqdm(total=n_imu, unit="imu", desc=progress, file=sys.stderr, mininterval=0.5, leave=False)
-    wheel_next_t = -np.inf
-    wheel_period_s = 1.0 / f.cfg.constraint_rate_hz
-    i_imu = 0
-    for e in order:
-        t_ev, kind, idx = float(ev_t[e]), int(ev_k[e]), int(ev_i[e])
-        j = int(np.searchsorted(t_imu, t_ev - f.fx.imu_time_offset_s - f.fx.gnss_latency_s * (kind == EV_GNSS),
-                                side="right"))
-        if j > i_imu:
-            f.process_imu_batch(t_imu[i_imu:j], acc[i_imu:j], gyr[i_imu:j])
-            if bar is not None:
-                bar.update(j - i_imu)
-            i_imu = j
-        if kind == EV_CONSTRAINT:
-            f.apply_vehicle_constraints()
-            continue
-        if kind == EV_WHEEL:
-            if t_ev >= wheel_next_t:
-                f.update_wheel_speed(t_ev, float(dataset.wheel.speed_mps[idx]))
-                wheel_next_t = t_ev + wheel_period_s
-            continue
-        k_out = int(np.searchsorted(out_starts, t_ev, side="right")) - 1
-        used = not (k_out >= 0 and t_ev < out_ends[k_out])
-        if kind == EV_OUTAGE_END:
-            for h in hooks:
-                h.on_outage_end(f, t_ev, idx)
-            continue
-        if kind == EV_OUTPUT:
-            for h in hooks:
-                h.on_output(f, t_ev, used)
-            continue
-        for h in hooks:
-            h.on_gnss_epoch(f, t_ev, idx, used)
-        if used:
-            f.update_gnss(t_ev, gn.lla[idx], gn.sd_ned_m[idx], FixStatus(int(gn.fix[idx])),
-                          None if vel is None else vel[idx], None if vel_sd is None else vel_sd[idx])
-        for h in hooks:
-            h.after_gnss_epoch(f, t_ev, idx, used)
-    if i_imu < n_imu:
-        f.process_imu_batch(t_imu[i_imu:], acc[i_imu:], gyr[i_imu:])
-        if bar is not None:
-            bar.update(n_imu - i_imu)
+        bar = tqdm(total=len(t_imu), unit="imu", desc=progress, file=sys.stderr, mininterval=0.5, leave=False)
+    drv = InsDriver(f, complete=True, hooks=hooks, imu_progress=None if bar is None else bar.update)
+    out_starts = np.array([a for a, _ in outages], float)
+    out_ends = np.array([b for _, b in outages], float)
+
+    def used_at(t: float) -> bool:
+        k = int(np.searchsorted(out_starts, t, side="right")) - 1
+        return not (k >= 0 and t < out_ends[k])
+
+    push_dataset(drv, dataset, imu=(t_imu, acc, gyr), wheel=wheel, gnss_used=used_at)
+    if outage_end_events and hooks:
+        for i, b in enumerate(out_ends):
+            drv.push_mark(OUTAGE_END, float(b), _call_hooks(hooks, "on_outage_end", float(b), i))
+    if output_times is not None and hooks:
+        for t in np.asarray(output_times, float):
+            drv.push_mark(OUTPUT, float(t), _call_hooks(hooks, "on_output", float(t), used_at(float(t))))
+    for t in t_constr:
+        drv.push_mark(CONSTRAINT, float(t), InsFilter.apply_vehicle_constraints)
+    drv.run()
     if bar is not None:
         bar.close()
+    return drv
+
+
+def _call_hooks(hooks: Sequence[ReplayHook], name: str, t: float, arg) -> "callable":
+    def call(f: InsFilter) -> None:
+        for h in hooks:
+            getattr(h, name)(f, t, arg)
+    return call

@@ -80,6 +80,7 @@ def fuse_unit(imu: ImuData, C_body_imu: np.ndarray, t_fix_s: np.ndarray, r_ned_m
     before each fix: {'t_s', 'r_ned_m' (N,3), 'C_nb' (N,3,3)} (body = C_body_imu @ imu axes).
     gyro/accel noise densities: the filter's white-noise model (None: the InsConfig default)."""
     from v2xpos.ins import InsConfig, InsFilter
+    from v2xpos.ins.driver import InsDriver
 
     cfg = InsConfig(platform="generic", imu_to_body=C_body_imu,
                     lever_arm_m=np.zeros(3) if lever_arm_m is None else lever_arm_m,
@@ -92,21 +93,35 @@ def fuse_unit(imu: ImuData, C_body_imu: np.ndarray, t_fix_s: np.ndarray, r_ned_m
     v = _velocity_from_positions(t_fix_s, r_ned_m)
     t0 = float(t_fix_s[0])
     lla_fix = geo.ned_to_lla(r_ned_m, origin_lla)
-    filt.initialize(t0, lla_fix[0], v[0], euler_from_dcm(C_nb0), pos_sd_m=fix_sd_m,
-                    att_sd_rad=np.radians([2.0, 2.0, 5.0]))
-    ts, rs, Cs = [], [], []
-    start = np.searchsorted(imu.t_s, t0, side="right")
+    sampler = _before_each_fix(origin_lla)
+    drv = InsDriver(filt, complete=True, hooks=[sampler])
+    drv.push_imu_block(imu.t_s, imu.acc_mps2, imu.gyro_rps)
+    drv.initialize(t0, lla_fix[0], v[0], euler_from_dcm(C_nb0), pos_sd_m=fix_sd_m,
+                   att_sd_rad=np.radians([2.0, 2.0, 5.0]))
     for k in range(1, len(t_fix_s)):
-        stop = np.searchsorted(imu.t_s, t_fix_s[k], side="right")
-        if stop > start:
-            filt.process_imu_batch(imu.t_s[start:stop], imu.acc_mps2[start:stop], imu.gyro_rps[start:stop])
-            start = stop
-        ns = filt.nav_state()
-        ts.append(float(t_fix_s[k]))
-        rs.append(geo.lla_to_ned(ns.lla[None, :], origin_lla)[0])
-        Cs.append(dcm_from_euler(*ns.rpy_rad))
-        filt.update_gnss(float(t_fix_s[k]), lla_fix[k], np.full(3, fix_sd_m), FixStatus.FIXED)
-    return {"t_s": np.array(ts), "r_ned_m": np.array(rs), "C_nb": np.array(Cs)}
+        drv.push_gnss(float(t_fix_s[k]), lla_fix[k], np.full(3, fix_sd_m), FixStatus.FIXED)
+    drv.run()
+    return {"t_s": np.array(sampler.t_s), "r_ned_m": np.array(sampler.r_ned_m), "C_nb": np.array(sampler.C_nb)}
+
+
+def _before_each_fix(origin_lla: np.ndarray):
+    """A driver hook keeping the fused state just before each fix's update: its time, position in
+    the local NED frame about ``origin_lla`` and C_nb."""
+    from v2xpos.ins.driver import DriverHook
+
+    class BeforeEachFix(DriverHook):
+        def __init__(self) -> None:
+            self.t_s: list = []
+            self.r_ned_m: list = []
+            self.C_nb: list = []
+
+        def on_gnss_epoch(self, f, t_s: float, k: int, used: bool) -> None:
+            ns = f.nav_state()
+            self.t_s.append(float(t_s))
+            self.r_ned_m.append(geo.lla_to_ned(ns.lla[None, :], origin_lla)[0])
+            self.C_nb.append(dcm_from_euler(*ns.rpy_rad))
+
+    return BeforeEachFix()
 
 
 def percentiles(x: np.ndarray) -> dict:

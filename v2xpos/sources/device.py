@@ -11,12 +11,13 @@ Config (the ``[source]`` table; paths relative to the config file)::
     imu_to_body = [[-1, 0, 0], [0, 1, 0], [0, 0, -1]]   # v_body = imu_to_body @ v_imu (rotation)
     lever_arm_m = [0.0, 0.0, -0.3]         # antenna - IMU in body axes (x fwd, y right, z down) [m]
     lever_arm_sd_m = 0.02
-    reorder_window_s = 0.1                 # see "Time order" below
+    reorder_window_s = 0.5                 # how far back a late GNSS epoch is put in its place ("Time order")
     clock = { max_offset_s = 0.02, latency_floor_s = 0.025 }   # v2xpos.sources.gnss_clock
     [source.calibration]                    # optional, the [calibration] table of v2xpos.datasets.calibration
 
-The filter configuration is ``v2xpos.ins.calibrated.ins_config`` of the declared platform, mounting
-and lever arm and the calibration table (the same function ``v2xpos replay`` uses).
+The filter configuration is the services' profile of the declared platform, mounting and lever
+arm and the calibration table (``v2xpos.ins.profiles.vehicle_config``, the function ``v2xpos
+replay`` and the ``recording`` source use).
 
 Each stream table is ``v2xpos.devices.stream`` (``format``, ``port``/``baud`` or ``tcp``,
 ``record``...). Unknown keys are rejected naming the table and the key.
@@ -27,14 +28,19 @@ wait in a queue until the service calls ``advance(t)``. IMU counters are mapped 
 the online lower-envelope model of their arrival stamps (``v2xpos.devices.clock_model``), as the
 recorded reader maps a TIMETAG'd csv; receiver time statements go to the ``HostGnssClock``.
 
-Time order. The filter needs its inputs in time order, and they arrive out of order: an IMU line
-within ~10 ms of its sample, a NAV-PVT 20-80 ms after its epoch. ``advance(t)`` processes IMU
-samples up to ``max(latest GNSS epoch time, t - reorder_window_s)`` and inserts each GNSS epoch
-between the IMU samples exactly where ``v2xpos replay`` inserts it (after the samples stamped
-<= t_gnss - imu_time_offset - gnss_latency). The states therefore lag real time by about the
-window; a GNSS epoch that arrives later than the window is applied at once (the filter propagates
-it with its velocity over the gap) and counted as ``gnss_late``. States are returned one per IMU
-sample once the filter is aligned, with strictly increasing times.
+Time order. The records go to the one driver of the filter (``v2xpos.ins.driver.InsDriver``) as
+they arrive -- each IMU sample mapped to GPS time, each GNSS epoch, each usable heading -- and the
+driver processes them at once, in the order of their times of validity (the same rule as
+``v2xpos replay``: a GNSS epoch after the IMU samples stamped <= t_gnss - imu_time_offset -
+gnss_latency). A state is returned for each IMU sample as soon as it arrives, so a state leaves
+within one service tick of its IMU line. A GNSS epoch reaches the host 20-80 ms after its time,
+after the IMU samples beyond it were processed: the driver puts it in its place (it restores its
+snapshot of the filter from before the epoch and processes the samples since again,
+``reorder_window_s`` back at most, counted ``gnss_reordered``); the states already returned stay
+as they were, the next ones include it. An epoch older than the window, or not newer than the
+previous one, is counted (``gnss_rejected_late``, ``gnss_out_of_order``) and not used. A GNSS
+epoch still waiting for IMU samples one second after its time is applied at the filter's state
+(``gnss_without_imu``). States come with strictly increasing times.
 
 Dual-antenna heading. NAV-RELPOSNED / HDT headings are decoded and reported in ``status()``. With
 ``heading_baseline_m = [x, y, z]`` (the vector from the primary to the secondary antenna in body
@@ -64,8 +70,8 @@ from v2xpos.types import FixStatus, NavState
 SOURCE_KEYS = ("gnss", "imu", "platform", "imu_to_body", "lever_arm_m", "lever_arm_sd_m", "reorder_window_s",
                "clock", "calibration", "imu_clock_min_span_s", "heading_baseline_m")
 PLATFORMS = ("car", "pedestrian", "generic")
-GNSS_WITHOUT_IMU_S = 1.0
-"""A GNSS epoch still waiting for IMU samples this long after its time is applied anyway."""
+LATENCY_HISTORY = 1000
+"""Advances whose input-to-state time ``status()["latency"]`` summarises."""
 
 
 def _matrix(value, shape: tuple, where: str) -> np.ndarray:
@@ -79,37 +85,36 @@ def _matrix(value, shape: tuple, where: str) -> np.ndarray:
 
 
 class DeviceSource(VehicleSource):
-    """Live streams through ``v2xpos.ins.InsFilter`` (see module docstring)."""
+    """Live streams through ``v2xpos.ins.InsFilter`` on the driver (see module docstring)."""
 
     name = "device"
 
     def __init__(self, gnss: DeviceStream, imu: DeviceStream | None, ins_config, clock: HostGnssClock,
-                 reorder_window_s: float = 0.1, imu_clock_min_span_s: float = 5.0, calibration=None,
+                 reorder_window_s: float | None = None, imu_clock_min_span_s: float = 5.0, calibration=None,
                  heading_baseline_m: np.ndarray | None = None):
         from v2xpos.ins import InsFilter
+        from v2xpos.ins.driver import REORDER_WINDOW_S, InsDriver
+        if reorder_window_s is None:
+            reorder_window_s = REORDER_WINDOW_S
         self.gnss_stream = gnss
         self.imu_stream = imu
         self.imu_source_name = imu.name if imu is not None else gnss.name
         self.cfg = ins_config
         self.kind = "pedestrian" if ins_config.platform == "pedestrian" else "vehicle"
         self.filter = InsFilter(ins_config)
+        self.driver = InsDriver(self.filter, reorder_window_s=float(reorder_window_s), emit_states=True)
         self.clock = clock
         self.reorder_window_s = float(reorder_window_s)
         self.imu_clock = OnlineLowerEnvelope(min_span_s=imu_clock_min_span_s)
         self.calibration = calibration
         self.inbox: deque = deque()
-        self.pending_imu: deque[ImuRecord] = deque()
-        self.pending_gnss: list[GnssEpoch] = []
-        self.gnss_watermark_s = -math.inf
-        self.last_imu_t_s = -math.inf
-        self.last_out_t_s = -math.inf
         self.last_gnss: GnssEpoch | None = None
         self.last_heading: HeadingObs | None = None
         self.heading_baseline_m = None if heading_baseline_m is None else np.asarray(heading_baseline_m, float)
-        self.pending_headings: list[HeadingObs] = []
-        self.counts = {"imu_samples": 0, "gnss_epochs": 0, "gnss_used": 0, "gnss_late": 0, "gnss_without_imu": 0,
-                       "gnss_out_of_order": 0, "imu_non_monotonic": 0, "states": 0, "states_non_monotonic": 0,
-                       "headings": 0, "headings_used": 0, "headings_unusable": 0, "ignored_imu_records": 0}
+        self.counts = {"imu_samples": 0, "gnss_epochs": 0, "headings": 0, "headings_unusable": 0,
+                       "ignored_imu_records": 0, "imu_clock_rejected": 0}
+        self._last_input_arrival_s = math.nan
+        self.input_to_state_s: deque = deque(maxlen=LATENCY_HISTORY)
         self._closed = False
         self._started = False
 
@@ -132,38 +137,30 @@ class DeviceSource(VehicleSource):
         return self.clock
 
     def warm_up(self) -> None:
-        """Compile the filter's jitted kernels (or load their cache) on a throw-away filter with
-        synthetic samples at rest, before real time starts."""
-        from v2xpos.ins import InsFilter
-        f = InsFilter(self.cfg)
-        lla = np.array([math.radians(45.0), math.radians(7.0), 300.0])
-        f.initialize(0.0, lla, np.zeros(3), np.zeros(3))
-        g_imu = self.cfg.imu_to_body.T @ np.array([0.0, 0.0, -9.80665])
-        for k in range(1, 31):
-            f.process_imu(k * 0.01, g_imu, np.zeros(3))
-        f.update_gnss(0.3, lla, np.full(3, 0.02), FixStatus.FIXED, vel_ned_mps=np.zeros(3),
-                      vel_sd_ned_mps=np.full(3, 0.05))
-        f.nav_state()
+        """Compile the filter's jitted kernels (or load their cache) before real time starts."""
+        from v2xpos.ins.driver import warm_up
+        warm_up(self.cfg)
 
-    # ------------------------------------------------------------------ records -> filter
+    # ------------------------------------------------------------------ records -> driver
     def _drain(self) -> None:
-        inbox = self.inbox
+        inbox, drv = self.inbox, self.driver
         while inbox:
             stream_name, rec = inbox.popleft()
             if isinstance(rec, ImuRecord):
                 if stream_name != self.imu_source_name:
                     self.counts["ignored_imu_records"] += 1
                     continue
-                if self.imu_clock.add(rec.counter_s, rec.arrival_s):
-                    self.pending_imu.append(rec)
+                if not self.imu_clock.add(rec.counter_s, rec.arrival_s):
+                    self.counts["imu_clock_rejected"] += 1
+                    continue
+                self.counts["imu_samples"] += 1
+                self._last_input_arrival_s = rec.arrival_s
+                drv.push_imu(self.imu_clock.to_gps(rec.counter_s), rec.acc_mps2, rec.gyro_rps)
             elif isinstance(rec, GnssEpoch):
                 self.counts["gnss_epochs"] += 1
                 self.last_gnss = rec
-                if rec.t_s <= self.gnss_watermark_s:
-                    self.counts["gnss_out_of_order"] += 1
-                    continue
-                self.gnss_watermark_s = rec.t_s
-                self.pending_gnss.append(rec)
+                self._last_input_arrival_s = rec.arrival_s
+                drv.push_gnss(rec.t_s, rec.lla, rec.sd_ned_m, rec.fix, rec.vel_ned_mps, rec.vel_sd_ned_mps)
             elif isinstance(rec, ReceiverTime):
                 self.clock.observe(rec.t_s, rec.arrival_s, rec.gps_minus_utc_s, rec.message)
             elif isinstance(rec, HeadingObs):
@@ -174,68 +171,33 @@ class DeviceSource(VehicleSource):
                 if not (math.isfinite(rec.t_s) and math.isfinite(rec.heading_sd_rad) and rec.heading_sd_rad > 0):
                     self.counts["headings_unusable"] += 1
                     continue
-                self.pending_headings.append(rec)
-
-    def _apply_gnss(self, g: GnssEpoch) -> None:
-        self.filter.update_gnss(g.t_s, g.lla, g.sd_ned_m, g.fix, vel_ned_mps=g.vel_ned_mps,
-                                vel_sd_ned_mps=g.vel_sd_ned_mps)
-        self.counts["gnss_used"] += 1
-        self._apply_headings(g.t_s)
-
-    def _apply_headings(self, t_upto_s: float) -> None:
-        """Headings stamped up to the epoch just applied, in time order (a moving-base receiver
-        reports NAV-RELPOSNED for the same epoch as its NAV-PVT)."""
-        ph = self.pending_headings
-        if not ph:
-            return
-        ph.sort(key=lambda h: h.t_s)
-        while ph and ph[0].t_s <= t_upto_s:
-            h = ph.pop(0)
-            r = self.filter.update_heading(h.t_s, h.heading_rad, h.heading_sd_rad, self.heading_baseline_m)
-            if r.accepted:
-                self.counts["headings_used"] += 1
-
-    def _gnss_threshold(self, g: GnssEpoch) -> float:
-        """IMU stamps up to this go into the filter before the epoch (as ``v2xpos replay`` does)."""
-        fx = self.filter.fx
-        return g.t_s - fx.imu_time_offset_s - fx.gnss_latency_s
+                drv.push_heading(rec.t_s, rec.heading_rad, rec.heading_sd_rad, self.heading_baseline_m)
 
     def advance(self, t_gps_s: float) -> list[NavState]:
         self._drain()
-        out: list[NavState] = []
-        horizon = min(t_gps_s, max(self.gnss_watermark_s, t_gps_s - self.reorder_window_s))
-        pg = self.pending_gnss
-        # epochs that arrived after the IMU beyond them was processed: apply now (late)
-        while pg and self._gnss_threshold(pg[0]) < self.last_imu_t_s:
-            self.counts["gnss_late"] += 1
-            self._apply_gnss(pg.pop(0))
-        f = self.filter
-        while self.pending_imu:
-            rec = self.pending_imu[0]
-            t_k = self.imu_clock.to_gps(rec.counter_s)
-            if t_k > horizon:
-                break
-            self.pending_imu.popleft()
-            while pg and self._gnss_threshold(pg[0]) < t_k:
-                self._apply_gnss(pg.pop(0))
-            if t_k <= self.last_imu_t_s:
-                self.counts["imu_non_monotonic"] += 1
-                continue
-            self.last_imu_t_s = t_k
-            f.process_imu(t_k, rec.acc_mps2, rec.gyro_rps)
-            self.counts["imu_samples"] += 1
-            if f.initialized:
-                nav = f.nav_state()
-                if nav.t_s <= self.last_out_t_s:   # the estimated IMU time offset moved the label back
-                    self.counts["states_non_monotonic"] += 1
-                    continue
-                self.last_out_t_s = nav.t_s
-                out.append(nav)
-        while pg and pg[0].t_s <= t_gps_s - GNSS_WITHOUT_IMU_S and not self.pending_imu:
-            self.counts["gnss_without_imu"] += 1
-            self._apply_gnss(pg.pop(0))
-        self.counts["states"] += len(out)
+        out = self.driver.run(now_s=t_gps_s)
+        if out and math.isfinite(self._last_input_arrival_s):
+            self.input_to_state_s.append(t_gps_s - self._last_input_arrival_s)
         return out
+
+    def latency(self) -> dict:
+        """Time from the arrival of the last input (host GPS time) to the ``advance`` call that
+        returned the states it produced [ms]: median and 95th percentile over the last
+        ``LATENCY_HISTORY`` advances that returned states."""
+        x = np.asarray(self.input_to_state_s, float) * 1e3
+        if not len(x):
+            return {"input_to_state_ms_p50": None, "input_to_state_ms_p95": None, "n": 0}
+        return {"input_to_state_ms_p50": float(np.median(x)), "input_to_state_ms_p95": float(np.percentile(x, 95)),
+                "n": int(len(x))}
+
+    def _counts(self) -> dict:
+        d = self.driver.status()
+        c, applied, fc = d["counts"], d["applied"], self.filter.counts
+        return {**self.counts, "gnss_used": applied["gnss"], "gnss_reordered": c["reordered"],
+                "gnss_rejected_late": c["rejected_late"], "gnss_out_of_order": c["rejected_out_of_order"],
+                "gnss_without_imu": c["applied_without_imu"], "imu_non_monotonic": c["imu_out_of_order"],
+                "states": c["states"], "states_non_monotonic": c["states_non_monotonic"],
+                "headings_used": fc.get("heading", 0) + fc.get("heading_sets", 0)}
 
     # ------------------------------------------------------------------ receiver
     def write_corrections(self, data: bytes) -> int:
@@ -244,10 +206,10 @@ class DeviceSource(VehicleSource):
 
     def status(self) -> dict:
         f = self.filter
-        out = {"source": self.name, "counts": dict(self.counts), "filter_counts": dict(f.counts),
-               "initialized": bool(f.initialized), "pending": {"imu": len(self.pending_imu),
-                                                               "gnss": len(self.pending_gnss), "inbox": len(self.inbox)},
-               "reorder_window_s": self.reorder_window_s, "imu_clock": self.imu_clock.status(),
+        out = {"source": self.name, "counts": self._counts(), "filter_counts": dict(f.counts),
+               "initialized": bool(f.initialized), "pending": {**self.driver.pending(), "inbox": len(self.inbox)},
+               "reorder_window_s": self.reorder_window_s, "latency": self.latency(),
+               "imu_clock": self.imu_clock.status(),
                "streams": {"gnss": self.gnss_stream.stats()}}
         if self.imu_stream is not None:
             out["streams"]["imu"] = self.imu_stream.stats()
@@ -297,9 +259,10 @@ def check_table(table: dict, where: str) -> dict:
         raise SourceError(f"{where}.imu_to_body: not a rotation matrix (orthonormal, determinant +1)")
     lever = _matrix(table.get("lever_arm_m", [0.0, 0.0, 0.0]), (3,), f"{where}.lever_arm_m")
     lever_sd = table.get("lever_arm_sd_m", 0.1)
-    window = table.get("reorder_window_s", 0.1)
+    window = table.get("reorder_window_s")
     span = table.get("imu_clock_min_span_s", 5.0)
-    for key, v in (("lever_arm_sd_m", lever_sd), ("reorder_window_s", window), ("imu_clock_min_span_s", span)):
+    for key, v in (("lever_arm_sd_m", lever_sd), ("reorder_window_s", 0.0 if window is None else window),
+                   ("imu_clock_min_span_s", span)):
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
             raise SourceError(f"{where}.{key}: expected a number >= 0, got {v!r}")
     heading_baseline = None
@@ -319,17 +282,17 @@ def check_table(table: dict, where: str) -> dict:
     except ValueError as exc:
         raise SourceError(str(exc)) from None
     return {"platform": platform, "imu_to_body": imu_to_body, "lever": lever, "lever_sd": float(lever_sd),
-            "window": float(window), "span": float(span), "calibration": calibration, "clock": clock,
+            "window": None if window is None else float(window), "span": float(span), "calibration": calibration, "clock": clock,
             "heading_baseline": heading_baseline}
 
 
 def from_config(table: dict, where: str, ctx: SourceContext) -> DeviceSource:
     """The ``device`` source from its ``[source]`` table (``type`` already removed); the ports are
     opened and their reader threads started. SourceError naming ``where`` and the key."""
-    from v2xpos.ins.calibrated import ins_config
+    from v2xpos.ins.profiles import vehicle_config
     v = check_table(table, where)
     clock, calibration, window, span = v["clock"], v["calibration"], v["window"], v["span"]
-    cfg = ins_config(v["platform"], v["imu_to_body"], v["lever"], v["lever_sd"], calibration, integrity=True)
+    cfg = vehicle_config(v["platform"], v["imu_to_body"], v["lever"], v["lever_sd"], calibration)
 
     holder: dict = {}
 
@@ -350,7 +313,7 @@ def from_config(table: dict, where: str, ctx: SourceContext) -> DeviceSource:
                 raise ValueError(f"{where}.imu.format: an IMU stream is \"csv_g_dps_ms\" or \"ubx\" (ESF)")
     except ValueError as exc:
         raise SourceError(str(exc)) from None
-    src = DeviceSource(gnss, imu, cfg, clock, reorder_window_s=float(window), imu_clock_min_span_s=float(span),
+    src = DeviceSource(gnss, imu, cfg, clock, reorder_window_s=window, imu_clock_min_span_s=float(span),
                        calibration=calibration, heading_baseline_m=v["heading_baseline"])
     holder["source"] = src
     src.start()

@@ -10,21 +10,21 @@
     wait_timeout_s = 120
     outline_m = [3.8, 1.0, 0.9]   # optional: front, rear, half width of the body outline [m]
 
-The IMU and GNSS samples go through the navigation filter (``v2xpos.ins.InsFilter``) exactly as
-in ``v2xpos replay`` without outages: every IMU sample with time of validity <= t is processed,
-each GNSS epoch when the IMU reaches its time, and one NavState is returned per IMU sample once
-the filter is initialised. Times are the recording's own GPS times (the IMU stamps from its
-TIMETAG clock model, the GNSS tags), corrected by the filter's IMU time-offset estimate; nothing
-is shifted onto another epoch.
+The recording goes through the navigation filter (``v2xpos.ins.InsFilter``) on the one driver
+(``v2xpos.ins.driver.InsDriver``) exactly as in ``v2xpos replay`` without outages -- the same
+events (IMU samples, GNSS epochs, wheel speeds), the same order, the same filter profile (the
+services' one, ``v2xpos.ins.profiles``) -- so the states are identical: ``advance(t)`` processes
+every event whose time of validity is <= t and returns one NavState per IMU sample once the filter
+is initialised, stamped with the time it is valid for (the IMU stamp from the recording's clock
+model plus the filter's IMU time-offset estimate). Times are the recording's own GPS times;
+nothing is shifted onto another epoch.
 """
 from __future__ import annotations
 
-import math
 import sys
 from pathlib import Path
 
-
-from v2xpos.types import FixStatus, NavState
+from v2xpos.types import NavState
 
 from .base import SessionClock, SourceContext, SourceError, VehicleSource
 from .clock import ReplayClock
@@ -82,11 +82,11 @@ def from_config(table: dict, where: str, ctx: SourceContext) -> "RecordingSource
 
 def ins_config_for(ds) -> "object":
     """The filter configuration of a recording: its declared mounting and lever arm, the platform's
-    vehicle constraints (car: NHC/ZUPT; pedestrian, generic: none) and its ``[calibration]`` table
-    when it has one (``v2xpos.ins.calibrated.dataset_ins_config``: the same function ``v2xpos
-    replay`` and the device source use, so a calibrated vehicle is the same filter everywhere)."""
-    from v2xpos.ins.calibrated import dataset_ins_config
-    return dataset_ins_config(ds, integrity=True)
+    vehicle constraints, its ``[calibration]`` table and its wheel speeds, in the services'
+    profile (``v2xpos.ins.profiles.dataset_config``: the same function ``v2xpos replay`` and the
+    device source use, so a vehicle is the same filter everywhere)."""
+    from v2xpos.ins.profiles import dataset_config
+    return dataset_config(ds)
 
 
 class RecordingSource(VehicleSource):
@@ -98,6 +98,7 @@ class RecordingSource(VehicleSource):
                  wait_timeout_s: float = 120.0, outline_m: list | None = None):
         from v2xpos.datasets.loader import load_dataset
         from v2xpos.ins import InsFilter
+        from v2xpos.ins.driver import InsDriver, push_dataset
         from v2xpos.wire import Geometry
         self.path = Path(path)
         self.ds = load_dataset(path)
@@ -115,11 +116,8 @@ class RecordingSource(VehicleSource):
         else:
             self.geometry = Geometry.box(3.8, 1.0, 0.9)
         self.filter = InsFilter(ins_config_for(self.ds))
-        self.i_imu = 0
-        self.i_gnss = 0
-        self.last_t_s = -math.inf
-        self.non_monotonic = 0
-        self.gnss_updates = 0
+        self.driver = InsDriver(self.filter, complete=True, emit_states=True)
+        push_dataset(self.driver, self.ds)
 
     @property
     def t_begin_gps_s(self) -> float:
@@ -135,37 +133,21 @@ class RecordingSource(VehicleSource):
                            vehicle_id=ctx.vehicle_id, wait_for=self.wait_for, wait_timeout_s=self.wait_timeout_s,
                            say=lambda m: print(f"{ctx.role} {ctx.vehicle_id}: {m}", file=sys.stderr, flush=True))
 
+    def warm_up(self) -> None:
+        """Compile the filter's kernels (or load their cache) before the session's time runs."""
+        from v2xpos.ins.driver import warm_up
+        warm_up(self.filter.cfg)
+
     def advance(self, t_gps_s: float) -> list[NavState]:
-        imu, gnss, f = self.ds.imu, self.ds.gnss, self.filter
-        out: list[NavState] = []
-        n = len(imu.t_s)
-        while self.i_imu < n and imu.t_s[self.i_imu] <= t_gps_s:
-            k = self.i_imu
-            t_k = float(imu.t_s[k])
-            while self.i_gnss < len(gnss.t_s) and gnss.t_s[self.i_gnss] <= t_k:
-                j = self.i_gnss
-                vel = None if gnss.vel_ned_mps is None else gnss.vel_ned_mps[j]
-                vsd = None if gnss.vel_sd_ned_mps is None else gnss.vel_sd_ned_mps[j]
-                f.update_gnss(float(gnss.t_s[j]), gnss.lla[j], gnss.sd_ned_m[j], FixStatus(int(gnss.fix[j])),
-                              vel_ned_mps=vel, vel_sd_ned_mps=vsd)
-                self.i_gnss += 1
-                self.gnss_updates += 1
-            f.process_imu(t_k, imu.acc_mps2[k], imu.gyro_rps[k])
-            self.i_imu = k + 1
-            if f.initialized:
-                nav = f.nav_state()
-                if nav.t_s <= self.last_t_s:      # the estimated IMU time offset moved the label back
-                    self.non_monotonic += 1
-                    continue
-                self.last_t_s = nav.t_s
-                out.append(nav)
-        return out
+        return self.driver.run(until_s=t_gps_s)
 
     def finished(self, t_gps_s: float) -> bool:
-        return self.i_imu >= len(self.ds.imu.t_s)
+        return self.driver.done()
 
     def status(self) -> dict:
+        d = self.driver.status()
         return {"source": self.name, "dataset": str(self.path), "name": self.ds.name,
-                "span_gps_s": [self.t_begin_gps_s, self.t_end_gps_s], "imu_done": self.i_imu,
-                "imu_samples": len(self.ds.imu), "gnss_updates": self.gnss_updates,
-                "non_monotonic": self.non_monotonic, "malformed_lines": self.ds.malformed_lines}
+                "span_gps_s": [self.t_begin_gps_s, self.t_end_gps_s],
+                "imu_done": len(self.ds.imu) - d["pending"]["imu"], "imu_samples": len(self.ds.imu),
+                "gnss_updates": d["applied"]["gnss"], "non_monotonic": d["counts"]["states_non_monotonic"],
+                "driver": d["counts"], "malformed_lines": self.ds.malformed_lines}

@@ -1,0 +1,61 @@
+"""One filter configuration per vehicle, and the few named profiles a path may choose instead.
+
+A vehicle's filter is configured from what it declares (platform, mounting, lever arm and its
+sd), its ``[calibration]`` table (``calibrated.ins_config``) and whether it has wheel speeds. On
+top of that, a profile, chosen by name:
+
+* ``service`` (the default everywhere): the filter the services run -- ``ins_config(...,
+  integrity=True)``: the IMU white noise measured online unless the calibration carries it, the
+  gyro-scale state, reopening on a failed consistency test, the fault-tolerant solution
+  (docs/integrity.md). ``v2xpos replay`` and ``v2xpos calibrate`` report it by default, the
+  ``recording`` and ``device`` sources run it.
+* ``plain``: the same vehicle without the integrity machinery (``integrity=False``: the
+  configured IMU noise, no reopening, no fault-tolerant solution, no gyro-scale state) -- what
+  ``v2xpos replay`` ran before there was one profile (``replay --profile plain``).
+* ``fit``: the declared model exactly, without effect states and without the calibration table
+  (``effects=()``): calibrate's fit replays (``diagnose.runner``), whose effects are applied to
+  the samples by ``diagnose.inject`` instead.
+
+With wheel speeds on a car (``service``, ``plain``) the odometer scale is estimated too.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .calibrated import ins_config
+from .config import InsConfig
+
+PROFILES = ("service", "plain", "fit")
+DEFAULT_PROFILE = "service"
+
+
+def vehicle_config(platform: str, imu_to_body: np.ndarray, lever_arm_m: np.ndarray, lever_arm_sd_m: float,
+                   calibration: Any = None, wheel: bool = False, profile: str = DEFAULT_PROFILE,
+                   **overrides: Any) -> InsConfig:
+    """``InsConfig`` of a vehicle (declared values, calibration table, wheel speeds or not) in the
+    named ``profile`` (module docstring); ``overrides``: any other ``InsConfig`` field, applied last."""
+    if profile not in PROFILES:
+        from v2xpos.datasets.calibration import did_you_mean
+        raise ValueError(f"profile {profile!r} is not one of {list(PROFILES)}{did_you_mean(str(profile), PROFILES)}")
+    if profile == "fit":
+        return ins_config(platform, imu_to_body, lever_arm_m, lever_arm_sd_m, None, **{"effects": (), **overrides})
+    integrity = profile == "service"
+    if wheel and platform == "car" and "effects" not in overrides:
+        base = ins_config(platform, imu_to_body, lever_arm_m, lever_arm_sd_m, calibration, integrity=integrity).effects
+        if "odometer_scale" not in base:
+            overrides["effects"] = tuple(base) + ("odometer_scale",)
+    return ins_config(platform, imu_to_body, lever_arm_m, lever_arm_sd_m, calibration, integrity=integrity,
+                      **overrides)
+
+
+def dataset_config(dataset: Any, profile: str = DEFAULT_PROFILE, **overrides: Any) -> InsConfig:
+    """:func:`vehicle_config` of a loaded ``Dataset`` (its declarations, ``[calibration]`` and wheel
+    speeds); an override of a declared value (``platform``, ``imu_to_body``, ``lever_arm_m``,
+    ``lever_arm_sd_m``) replaces it."""
+    declared = {"platform": dataset.platform, "imu_to_body": dataset.imu_to_body,
+                "lever_arm_m": dataset.lever_arm_m, "lever_arm_sd_m": dataset.lever_arm_sd_m}
+    declared.update({k: overrides.pop(k) for k in list(declared) if k in overrides})
+    return vehicle_config(**declared, calibration=getattr(dataset, "calibration", None),
+                          wheel=getattr(dataset, "wheel", None) is not None, profile=profile, **overrides)
