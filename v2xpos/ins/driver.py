@@ -482,7 +482,8 @@ class InsDriver:
             place -= 1
         snap = None
         for s in reversed(self._snaps):
-            if s[0] <= place:
+            # the snapshot's state must be from before the event's place (the log may be cut there)
+            if s[0] <= place and s[3]["last_stamp"] <= thr and s[3]["last_key"] <= key:
                 snap = s
                 break
         if snap is None:
