@@ -10,6 +10,9 @@ Public interface::
     f.update_wheel_speed(t_s, speed_mps)
     f.initialized, f.nav_state()
 
+Sources and commands do not call these in their own loops: they push events into the one driver
+(``driver.InsDriver``), which orders them and calls the filter.
+
 Module map: ``config`` (``InsConfig``), ``mechanization`` (jitted strapdown), ``ekf`` (state
 layout, covariance propagation, gated Kalman update), ``noise`` (process noise, measured IMU
 noise), ``updates`` (measurement models: pure builders of H, d, R), ``motion`` (stop detection),
@@ -18,8 +21,10 @@ noise), ``updates`` (measurement models: pure builders of H, d, R), ``motion`` (
 ``imu_path`` (IMU input, chunk steps), ``filter`` (``InsFilter``, which runs the steps),
 ``outputs`` (``nav_state`` and other outputs),
 ``consistency`` / ``reported`` (own consistency test, covariance of what is reported),
-``replay_engine`` (dataset through the filter with hooks), ``replay`` / ``replay_metrics``
-(the ``v2xpos replay`` run and its figures), ``calibrated`` (config from a dataset's calibration).
+``driver`` (``InsDriver``: the one event loop that feeds the filter, offline and live),
+``profiles`` (one configuration per vehicle and the named profiles), ``replay_engine`` (dataset
+through the driver with hooks), ``replay`` / ``replay_metrics`` (the ``v2xpos replay`` run and its
+figures), ``calibrated`` (config from a dataset's calibration).
 """
 from .config import InsConfig
 from .ekf import ATT, BA, BASE_STATES, BG, EFFECT_SIZES, POS, VEL, StateLayout
