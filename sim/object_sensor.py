@@ -368,7 +368,7 @@ def truth_results_csv(truths: dict[str, TargetTruth], path: Path, rate_hz: float
             row[idx["rel_roll_deg"]], row[idx["rel_pitch_deg"]] = "0.0", "0.0"
             row[idx["rel_yaw_deg"]] = f"{yaw[k]:.4f}"
             for c in ("sd_x_m", "sd_y_m", "sd_z_m"):
-                row[idx[c]] = "0.0100"
+                row[idx[c]] = "0.0000"
             lines.append(",".join(row))
     path.write_text("\n".join(lines) + "\n")
 

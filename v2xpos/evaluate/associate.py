@@ -54,13 +54,15 @@ class Geometry:
     y: np.ndarray
     vx: np.ndarray
     vy: np.ndarray
+    sd_r: np.ndarray       # (K, N) the reference's 1-sigma along the line of sight [m] (0 when not given)
+    sd_perp: np.ndarray    # (K, N) across it [m]
     ok: np.ndarray         # (K, N)
 
 
 def geometry_at(ref: Reference, targets: list[str], cfg: SensorConfig, t_s: np.ndarray) -> Geometry:
     """Reported points of ``targets`` at times t_s (already shifted by the latency)."""
     K, N = len(targets), len(t_s)
-    out = {k: np.full((K, N), np.nan) for k in ("r", "az", "r_dot", "az_dot", "x", "y", "vx", "vy")}
+    out = {k: np.full((K, N), np.nan) for k in ("r", "az", "r_dot", "az_dot", "x", "y", "vx", "vy", "sd_r", "sd_perp")}
     ok = np.zeros((K, N), bool)
     for k, tid in enumerate(targets):
         tr = ref.tracks[tid]
@@ -80,6 +82,12 @@ def geometry_at(ref: Reference, targets: list[str], cfg: SensorConfig, t_s: np.n
         out["r_dot"][k, inside] = (q[:, 0] * qd[:, 0] + q[:, 1] * qd[:, 1]) / rs
         out["az_dot"][k, inside] = (q[:, 0] * qd[:, 1] - q[:, 1] * qd[:, 0]) / rs ** 2
         ok[k, inside] = rp["ok"] & (r > 0)
+        # the reference's sd (master body axes) along and across the line of sight
+        los = np.arctan2(q[:, 1], q[:, 0]) + cfg.mount_yaw_rad
+        sd = np.where(np.isfinite(rp["sd_m"]), rp["sd_m"], 0.0)
+        c, s = np.cos(los), np.sin(los)
+        out["sd_r"][k, inside] = np.hypot(c * sd[:, 0], s * sd[:, 1])
+        out["sd_perp"][k, inside] = np.hypot(s * sd[:, 0], c * sd[:, 1])
     return Geometry(ok=ok, **out)
 
 

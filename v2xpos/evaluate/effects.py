@@ -92,14 +92,28 @@ class Residuals:
     r_dot: np.ndarray
     az_dot: np.ndarray
     t_s: np.ndarray
+    sd_ref_r: np.ndarray
+    sd_ref_az: np.ndarray
 
 
 def residuals(objs: ObjectList, rows: np.ndarray, tgt: np.ndarray, g: Geometry, theta: np.ndarray) -> Residuals:
     """Residuals of the pairs (rows, tgt) with ``g`` evaluated at the rows' times minus theta[0]."""
     r_m = np.hypot(objs.x_m[rows], objs.y_m[rows])
     az_m = np.arctan2(objs.y_m[rows], objs.x_m[rows])
-    return Residuals(e_r=r_m - g.r[tgt, rows] - theta[1], e_az=wrap(az_m - g.az[tgt, rows] + theta[2]),
-                     r_dot=g.r_dot[tgt, rows], az_dot=g.az_dot[tgt, rows], t_s=objs.t_s[rows])
+    r_ref = g.r[tgt, rows]
+    return Residuals(e_r=r_m - r_ref - theta[1], e_az=wrap(az_m - g.az[tgt, rows] + theta[2]),
+                     r_dot=g.r_dot[tgt, rows], az_dot=g.az_dot[tgt, rows], t_s=objs.t_s[rows],
+                     sd_ref_r=g.sd_r[tgt, rows], sd_ref_az=g.sd_perp[tgt, rows] / r_ref)
+
+
+def reference_sd(res: Residuals) -> np.ndarray:
+    """Systematic sds of (tau, b_r, delta) from the reference's own uncertainty: the RMS of its
+    1-sigma along (range bias) and across (mounting yaw, as an angle) the line of sight over the
+    pairs. An RTK/INS relative position error is correlated over tens of seconds, so over a run it
+    acts as a bias that does not average out: counted as fully correlated (conservative; the
+    reference's timing error, well below a millisecond, is left out)."""
+    rms = lambda x: float(np.sqrt(np.mean(np.square(x[np.isfinite(x)])))) if np.isfinite(x).any() else 0.0  # noqa: E731
+    return np.array([0.0, rms(res.sd_ref_r), rms(res.sd_ref_az)])
 
 
 def problem(res: Residuals, theta: np.ndarray, sigma: tuple[float, float]) -> identify.LinearProblem:
@@ -140,7 +154,7 @@ class Effects:
 def estimate(res: Residuals, theta: np.ndarray, sigma: tuple[float, float], decide: bool) -> Effects:
     """One MAP step from theta (and, with ``decide``, the significance decision)."""
     prob = problem(res, theta, sigma)
-    f = identify.fit(prob)
+    f = identify.fit(prob, systematic_sd=reference_sd(res))
     if decide:
         f = identify.decide(prob, f)
     return Effects(theta=f.theta, sd=f.sd, significant=np.asarray(f.significant, bool)[:3] & decide,

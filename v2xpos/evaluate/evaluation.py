@@ -130,8 +130,10 @@ def evaluate(objs: ObjectList, ref: Reference, cfg: SensorConfig) -> Evaluation:
     covered_cycle = gc.ok.all(axis=0)                        # every target's reference present
     row_covered = covered_cycle[observed[objs.cycle]]
     associated_ids = set(objs.object_id[rows].tolist())
-    ids_in_cover = np.unique(objs.object_id[row_covered])
-    false_ids = [i for i in ids_in_cover.tolist() if i not in associated_ids]
+    # an id is judged where it first appears: births in covered cycles over the covered time
+    ids, first = np.unique(objs.object_id, return_index=True)
+    born_covered = ids[row_covered[first]]
+    false_ids = [i for i in born_covered.tolist() if i not in associated_ids]
     covered_min = float(covered_cycle.sum()) * period / 60.0
 
     switch_flag = np.zeros(len(rows), bool)
@@ -195,7 +197,7 @@ def evaluate(objs: ObjectList, ref: Reference, cfg: SensorConfig) -> Evaluation:
 def _shifted(res: fx.Residuals, theta: np.ndarray) -> fx.Residuals:
     """Residuals at theta (bias and yaw applied) from those at (tau, 0, 0)."""
     return fx.Residuals(e_r=res.e_r - theta[1], e_az=wrap(res.e_az + theta[2]), r_dot=res.r_dot,
-                        az_dot=res.az_dot, t_s=res.t_s)
+                        az_dot=res.az_dot, t_s=res.t_s, sd_ref_r=res.sd_ref_r, sd_ref_az=res.sd_ref_az)
 
 
 def _gaps(grid_t: np.ndarray, avail: np.ndarray, period: float, status_counts: dict) -> dict:

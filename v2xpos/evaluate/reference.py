@@ -194,7 +194,9 @@ def read_mcap_reference(path: Path) -> Reference:
             if msg.get("vehicle_id") and g.get("kind") in ("polygon", "points") and len(g.get("points_body_m", [])) >= 3:
                 outlines[str(msg["vehicle_id"])] = np.asarray(g["points_body_m"], float)
             continue
-        per.setdefault(str(d.get("target_id")), []).append(d)
+        if d.get("error") or not d.get("target_id"):
+            continue                                  # an output the recorder could not decode
+        per.setdefault(str(d["target_id"]), []).append(d)
     if not per:
         raise ReferenceFileError(f"{path}: no /v2xpos/out/relative message (a master's session MCAP?)"
                               + (f"; {errors[0]}" if errors else ""))
