@@ -148,6 +148,22 @@ def convoy_truth(folder: str | Path, reference_points: dict[str, np.ndarray]) ->
     return out
 
 
+def scenario_truth(sc, t_from_s: float, t_to_s: float, step_s: float = 0.02) -> dict[str, TargetTruth]:
+    """Every slave of a ``sim.scenarios`` scenario relative to its master, reporting its rear
+    bumper's centre (vehicles: the rear of their declared outline) or its centre (pedestrians)."""
+    from sim.evaluate import truth_relative
+    t = np.arange(t_from_s, t_to_s + step_s / 2, step_s)
+    yaw_m = sc.master.truth.sample(t)["rpy_rad"][:, 2]
+    out = {}
+    for a in sc.slaves:
+        rel = truth_relative(sc, a.actor_id, t)
+        pts = np.asarray(a.geometry.points_body_m, float)
+        rp = np.array([pts[:, 0].min(), 0.0, 0.0]) if a.kind == "vehicle" and len(pts) else np.zeros(3)
+        yaw = a.truth.sample(t)["rpy_rad"][:, 2] - yaw_m
+        out[a.actor_id] = TargetTruth(a.actor_id, t, rel["rel_pos_b_m"], yaw, rp)
+    return out
+
+
 def convoy_gps_week(folder: Path) -> int:
     """The GPS week of a convoy recording: its generator's, else from the leader's first GNSS epoch."""
     from v2xpos import timebase
