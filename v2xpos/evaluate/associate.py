@@ -174,7 +174,7 @@ def id_switches(objs: ObjectList, pairs: Pairs, k: int) -> tuple[int, np.ndarray
     (CLEAR MOT's identity switches, Bernardin & Stiefelhagen 2008, EURASIP JIVP), and the flag
     per pair of k (in row order)."""
     rows = pairs.row[pairs.target == k]
-    ids = objs.object_id[rows]
+    ids = objs.id_code[rows]
     flag = np.zeros(len(rows), bool)
     if len(rows) > 1:
         flag[1:] = ids[1:] != ids[:-1]

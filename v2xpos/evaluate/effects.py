@@ -34,7 +34,7 @@ PRIOR_SD = np.array([1.0, 10.0, 0.5])
 """Priors wide enough to be no information (1 s, 10 m, 29 deg): the estimates come from the data."""
 
 MAD_TO_SD = 1.4826
-COARSE_MAX_PAIRS = 20000
+COARSE_MAX_PAIRS = 6000
 """The coarse latency search uses at most this many candidate pairs (evenly spread in time)."""
 
 

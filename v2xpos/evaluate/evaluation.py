@@ -80,10 +80,14 @@ def evaluate(objs: ObjectList, ref: Reference, cfg: SensorConfig) -> Evaluation:
                              f"{targets} of {ref.path} while both exist: check [sensor] mount_m / mount_yaw_deg, "
                              f"[targets] and the clock")
     tau0, grid, cost = fx.coarse_latency(objs, cand.row, cand.target, ref, targets, cfg)
+    # only rows within the wide gate of some target can ever be associated: the passes work on them
+    all_objs = objs
+    near = np.unique(cand.row)
+    objs = all_objs.subset(near)
 
     # 2. passes of association and effects
     g = geometry_at(ref, targets, cfg, objs.t_s - tau0)
-    res0 = fx.residuals(objs, cand.row, cand.target, g, np.zeros(3))
+    res0 = fx.residuals(objs, np.searchsorted(near, cand.row), cand.target, g, np.zeros(3))
     ok0 = np.isfinite(res0.e_r) & np.isfinite(res0.e_az)
     theta = np.array([tau0, float(np.median(res0.e_r[ok0])), -float(np.median(res0.e_az[ok0]))])
     sigma = None
@@ -118,7 +122,9 @@ def evaluate(objs: ObjectList, ref: Reference, cfg: SensorConfig) -> Evaluation:
          "lateral_error_m": y_m - ge.y[tk, rows],
          "range_rate_error_mps": rr_m - ge.r_dot[tk, rows]}
 
-    # 4. cycles, view, detection, false objects
+    # 4. cycles, view, detection, false objects (over every row again)
+    assoc_rows = near[rows]
+    objs, sub = all_objs, objs
     grid_t, period, observed = cycle_grid(objs.cycle_t_s)
     if not math.isfinite(period):
         period = 0.0
@@ -126,14 +132,17 @@ def evaluate(objs: ObjectList, ref: Reference, cfg: SensorConfig) -> Evaluation:
     az_true = gc.az + yaw_sig
     in_view = gc.ok & (np.abs(wrap(az_true)) <= cfg.field_of_view_rad / 2.0) & (gc.r <= cfg.max_range_m)
     detected = np.zeros((K, len(grid_t)), bool)
-    detected[tk, observed[objs.cycle[rows]]] = True
+    detected[tk, observed[objs.cycle[assoc_rows]]] = True
     covered_cycle = gc.ok.all(axis=0)                        # every target's reference present
     row_covered = covered_cycle[observed[objs.cycle]]
-    associated_ids = set(objs.object_id[rows].tolist())
     # an id is judged where it first appears: births in covered cycles over the covered time
-    ids, first = np.unique(objs.object_id, return_index=True)
-    born_covered = ids[row_covered[first]]
-    false_ids = [i for i in born_covered.tolist() if i not in associated_ids]
+    n_ids = int(objs.id_code.max()) + 1
+    first = np.full(n_ids, len(objs))
+    np.minimum.at(first, objs.id_code, np.arange(len(objs)))
+    associated = np.zeros(n_ids, bool)
+    associated[objs.id_code[assoc_rows]] = True
+    false_codes = np.flatnonzero(row_covered[first] & ~associated)
+    false_ids = objs.object_id[first[false_codes]].tolist()
     covered_min = float(covered_cycle.sum()) * period / 60.0
 
     switch_flag = np.zeros(len(rows), bool)
@@ -141,7 +150,7 @@ def evaluate(objs: ObjectList, ref: Reference, cfg: SensorConfig) -> Evaluation:
     for k, tid in enumerate(targets):
         tr = ref.tracks[tid]
         mk = tk == k
-        n_sw, flag = id_switches(objs, pairs, k)
+        n_sw, flag = id_switches(sub, pairs, k)
         switch_flag[np.flatnonzero(mk)] = flag
         avail = gc.ok[k]
         view = in_view[k]
@@ -155,14 +164,13 @@ def evaluate(objs: ObjectList, ref: Reference, cfg: SensorConfig) -> Evaluation:
             "cycles_detected": int((detected[k] & view).sum()),
             "detection_rate": float((detected[k] & view).sum() / view.sum()) if view.any() else None,
             "associations": int(mk.sum()),
-            "object_ids": int(len(np.unique(objs.object_id[rows[mk]]))),
+            "object_ids": int(len(np.unique(objs.id_code[assoc_rows[mk]]))),
             "id_switches": n_sw,
             **{name: error_stats(v[mk]) for name, v in e.items()},
         }
     names = {0: ("latency_ms", 1e3), 1: ("range_bias_m", 1.0), 2: ("mount_yaw_deg", math.degrees(1.0))}
     fx_json = {name: est.entry(i, scale) for i, (name, scale) in names.items()}
     fx_json["latency_ms"]["compensated_ms"] = tau_comp * 1e3
-    n_ids = len(np.unique(objs.object_id))
     metrics = {
         "sensor": cfg.name,
         **fx_json,
@@ -180,13 +188,13 @@ def evaluate(objs: ObjectList, ref: Reference, cfg: SensorConfig) -> Evaluation:
                         "gate_chi2": GATE_CHI2},
         "declared": cfg.as_dict(),
     }
-    matches = {"t_gps_s": objs.t_s[rows], "cycle": objs.cycle[rows], "target": np.array(targets, dtype=object)[tk]
-               if K else np.zeros(0, object), "object_id": objs.object_id[rows], "x_m": x_m, "y_m": y_m,
+    matches = {"t_gps_s": sub.t_s[rows], "cycle": sub.cycle[rows], "target": np.array(targets, dtype=object)[tk]
+               if K else np.zeros(0, object), "object_id": sub.object_id[rows], "x_m": x_m, "y_m": y_m,
                "ref_x_m": ge.x[tk, rows], "ref_y_m": ge.y[tk, rows], "range_m": r_m, "ref_range_m": ge.r[tk, rows],
                "azimuth_deg": np.degrees(az_m), **e, "id_switch": switch_flag.astype(int), "gate_d2": pairs.d2}
-    unmatched = np.ones(len(objs), bool)
-    unmatched[rows] = False
-    false_rows = np.flatnonzero(unmatched & np.isin(objs.object_id, false_ids))
+    is_false = np.zeros(n_ids, bool)
+    is_false[false_codes] = True
+    false_rows = np.flatnonzero(is_false[objs.id_code])
     series = {"targets": targets, "grid_t": grid_t, "in_view": in_view, "detected": detected,
               "ref_x": gc.x, "ref_y": gc.y, "latency_grid_s": grid, "latency_cost": cost,
               "false_rows_xy": (objs.x_m[false_rows], objs.y_m[false_rows]),

@@ -59,9 +59,18 @@ class ObjectList:
     skipped: int = 0
     cycle: np.ndarray | None = None
     cycle_t_s: np.ndarray | None = None
+    id_code: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.t_s)
+
+    def subset(self, rows: np.ndarray) -> "ObjectList":
+        """The rows ``rows`` (their cycle indices and id codes kept, cycle_t_s shared)."""
+        take = {name: getattr(self, name)[rows] for name in ROW_FIELDS + ("cycle", "id_code")}
+        return ObjectList(path=self.path, fmt=self.fmt, skipped=self.skipped, cycle_t_s=self.cycle_t_s, **take)
+
+
+ROW_FIELDS = ("t_s", "object_id", "x_m", "y_m", "vx_mps", "vy_mps", "z_m", "existence", "cls")
 
 
 def _finish(path: Path, fmt: str, cols: dict, skipped: int) -> ObjectList:
@@ -84,10 +93,11 @@ def _finish(path: Path, fmt: str, cols: dict, skipped: int) -> ObjectList:
         raise ObjectListError(f"{path}: no row with a finite time and position")
     if bad.any():
         keep = ~bad
-        for name in ("t_s", "object_id", "x_m", "y_m", "vx_mps", "vy_mps", "z_m", "existence", "cls"):
+        for name in ROW_FIELDS:
             setattr(objs, name, getattr(objs, name)[keep])
         objs.skipped += int(bad.sum())
     objs.cycle, objs.cycle_t_s = split_cycles(objs.t_s)
+    objs.id_code = np.unique(objs.object_id, return_inverse=True)[1].reshape(-1)
     return objs
 
 
@@ -118,6 +128,31 @@ def cycle_grid(cycle_t_s: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
 
 
 def read_csv_objects(path: Path) -> ObjectList:
+    """csv object list: numpy's C reader for a plain file (numbers, ids without quotes or empty
+    fields), else the csv module (quotes, empty fields, short rows)."""
+    with open(path, newline="") as f:
+        header = [h.strip() for h in f.readline().split(",")]
+    if all(c in header for c in CSV_COLUMNS):
+        wanted = [c for c in (*CSV_COLUMNS, "z_m", "existence") if c in header]
+        try:
+            num = np.loadtxt(path, delimiter=",", skiprows=1, usecols=[header.index(c) for c in wanted if c != "object_id"],
+                             dtype=float, ndmin=2, comments=None)
+            ids = np.loadtxt(path, delimiter=",", skiprows=1, usecols=header.index("object_id"), dtype=str,
+                             ndmin=1, comments=None)
+            cls = (np.loadtxt(path, delimiter=",", skiprows=1, usecols=header.index("class"), dtype=str, ndmin=1,
+                              comments=None) if "class" in header else None)
+        except ValueError:
+            return _read_csv_objects_slow(path)
+        names = [c for c in wanted if c != "object_id"]
+        cols = {("t_s" if c == "t_gps_s" else c): num[:, j] for j, c in enumerate(names)}
+        cols["object_id"] = np.char.strip(ids)
+        if cls is not None:
+            cols["class"] = cls
+        return _finish(path, "csv", cols, 0)
+    return _read_csv_objects_slow(path)
+
+
+def _read_csv_objects_slow(path: Path) -> ObjectList:
     with open(path, newline="") as f:
         reader = csv.reader(f)
         try:

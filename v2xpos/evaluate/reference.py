@@ -148,18 +148,20 @@ def read_results_csv_reference(path: Path) -> Reference:
         missing = [c for c in REQUIRED if c not in header]
         if missing:
             raise ReferenceFileError(f"{path}: not a results.csv: missing column(s) {missing}")
-        rows = [r for r in reader if len(r) >= len(REQUIRED)]
+        width = len(header)
+        rows = [r if len(r) == width else (r + [""] * width)[:width] for r in reader if len(r) >= len(REQUIRED)]
     col = {name: j for j, name in enumerate(header)}
+    columns = list(zip(*rows)) if rows else [()] * len(header)
 
     def num(name: str) -> np.ndarray:
         if name not in col:
             return np.full(len(rows), np.nan)
-        j = col[name]
-        return np.array([r[j] if j < len(r) and r[j] else "nan" for r in rows]).astype(float)
+        a = np.array(columns[col[name]], dtype=str)
+        a[np.char.str_len(a) == 0] = "nan"
+        return a.astype(float)
 
     def text(name: str) -> np.ndarray:
-        j = col[name]
-        return np.array([r[j].strip() if j < len(r) else "" for r in rows], dtype=str)
+        return np.char.strip(np.array(columns[col[name]], dtype=str))
 
     try:
         t = num("t_gps_s")
