@@ -198,7 +198,7 @@ def evaluate(objs: ObjectList, ref: Reference, cfg: SensorConfig) -> Evaluation:
     series = {"targets": targets, "grid_t": grid_t, "in_view": in_view, "detected": detected,
               "ref_x": gc.x, "ref_y": gc.y, "latency_grid_s": grid, "latency_cost": cost,
               "false_rows_xy": (objs.x_m[false_rows], objs.y_m[false_rows]),
-              "t0": float(objs.t_s[0])}
+              "t0": float(objs.t_s[0]), "fov_rad": cfg.field_of_view_rad, "max_range_m": cfg.max_range_m}
     return Evaluation(metrics=metrics, matches=matches, series=series)
 
 

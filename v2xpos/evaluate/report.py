@@ -172,18 +172,24 @@ def make_plots(ev: Evaluation, out: Path) -> list[tuple[str, str]]:
 
     fig, ax = plt.subplots(figsize=(7, 7))
     for k, tid in enumerate(targets):
-        ax.plot(s["ref_y"][k], s["ref_x"][k], "-", lw=0.6, color=f"C{k}", label=f"{tid} reference")
+        view = s["in_view"][k]
+        ax.plot(np.where(view, s["ref_y"][k], np.nan), np.where(view, s["ref_x"][k], np.nan), "-", lw=0.6,
+                color=f"C{k}", label=f"{tid} reference (in view)")
         sel = m["target"] == tid
         ax.plot(m["y_m"][sel], m["x_m"][sel], ".", ms=1.5, color=f"C{k}", alpha=0.4)
     fr = s.get("false_rows_xy")
     if fr is not None and len(fr[0]):
         ax.plot(fr[1], fr[0], "x", ms=3, color="tab:red", label="false objects")
-    ax.plot([0], [0], "k^", ms=8, label="sensor")
+    half, rng = s["fov_rad"] / 2.0, s["max_range_m"]
+    arc = np.linspace(-half, half, 50)
+    ax.plot(np.concatenate([[0], rng * np.sin(arc), [0]]), np.concatenate([[0], rng * np.cos(arc), [0]]), "k:", lw=0.7,
+            label="declared field of view")
+    ax.plot([0], [0], "k^", ms=5, label="sensor")
     ax.set_xlabel("y (right) [m], sensor frame")
     ax.set_ylabel("x (boresight) [m], sensor frame")
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, markerscale=3)
+    ax.legend(fontsize=8)
     save(fig, "birds_eye.png", "Bird's-eye view of the run in the sensor frame (declared mount)")
 
     fig, ax = plt.subplots(figsize=(7, 3.5))
@@ -233,8 +239,15 @@ def html_report(m: dict, figures: list[tuple[str, str]], directory: Path) -> str
         if t["reference_gaps"]["seconds"] > 0.2 * max(t["span_s"], 1e-9):
             warnings.append(f"Target {e(tid)}: the reference is absent for {t['reference_gaps']['seconds']:.1f} s "
                             f"(not VALID); those cycles are not scored.")
+        if t["cycles_in_view"] and t["cycles_in_view"] < 200:
+            warnings.append(f"Target {e(tid)}: only {t['cycles_in_view']} cycles in view: its detection rate is known "
+                            f"to about +-{1.0 / math.sqrt(t['cycles_in_view']):.2f}.")
         if t["detection_rate"] is None:
             warnings.append(f"Target {e(tid)} was never in the declared field of view with a reference.")
+    if m["reference"]["covered_min"] < 5.0:
+        warnings.append(f"False objects counted over {m['reference']['covered_min']:.2f} min only: the rate is known to "
+                        f"about +-{math.sqrt(max(m['false_objects'], 1)) / max(m['reference']['covered_min'], 1e-9):.1f}"
+                        f" per minute (Poisson).")
     figs = "".join(f"<figure><img src='data:image/png;base64,{base64.b64encode((directory / n).read_bytes()).decode()}' "
                    f"alt='{e(c)}'><figcaption>{e(c)}</figcaption></figure>" for n, c in figures)
     decl = m.get("declared", {})
@@ -244,13 +257,14 @@ def html_report(m: dict, figures: list[tuple[str, str]], directory: Path) -> str
 <html lang="en"><head><meta charset="utf-8"><title>Sensor evaluation: {e(m['sensor'])}</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:1em auto;font-size:13px}}table{{border-collapse:collapse;margin:.5em 0}}
 td,th{{border:1px solid #bbb;padding:2px 6px;text-align:right}}th{{background:#f3f3f3}}code{{font-size:11px}}
-.sig{{color:#a00;font-weight:bold}}.nsig{{color:#070}}figure{{display:inline-block;margin:4px;width:48%}}img{{width:100%}}
+.sig{{color:#a00;font-weight:bold}}.nsig{{color:#070}}figure{{display:inline-block;vertical-align:top;margin:4px;width:48%}}img{{width:100%}}
 .warn{{background:#fff4e0;padding:4px 8px;border-left:4px solid #e90}}</style></head><body>
 <h1>Sensor evaluation: {e(m['sensor'])}</h1>
 <p>Sensor under test against the v2xpos reference ({e(m['reference']['kind'])}{', smoothed' if m['reference_smoothed'] else ''}).
 Errors are sensor minus reference in the sensor frame with the declared mount, after the latency below is compensated
 (when significant). Written {e(str(prov.get('written_utc')))} by {e(str(sw.get('name')))} {e(str(sw.get('version')))}
-(git {e(str(sw.get('git_revision'))[:12])}{' dirty' if sw.get('git_dirty') else ''}); method: docs/evaluate.md.</p>
+(git {e(str(sw.get('git_revision'))[:12])}{' dirty' if sw.get('git_dirty') else ''}); method: docs/evaluate.md.
+Command: <code>{e(' '.join(prov.get('argv') or []))}</code></p>
 <h2>Inputs</h2><table><tr><th>role</th><th>path</th><th>SHA-256</th></tr>{inputs}</table>
 <p>Declared: mount {decl.get('mount_m')} m, boresight yaw {_fmt(decl.get('mount_yaw_deg'), '.2f')} deg, field of view
 {_fmt(decl.get('field_of_view_deg'), '.1f')} deg, range {_fmt(decl.get('max_range_m'), '.1f')} m, clock {e(str(decl.get('clock')))};
