@@ -152,19 +152,25 @@ def read_csv_objects(path: Path) -> ObjectList:
     return _read_csv_objects_slow(path)
 
 
-def _read_csv_objects_slow(path: Path) -> ObjectList:
+def read_csv_table(path: Path, required: tuple[str, ...], error: type[ValueError]) -> tuple[list[str], list[list[str]]]:
+    """Header and non-empty rows of a csv file; ``error`` naming the file and the missing columns
+    (with a "did you mean" for a misspelt one) when a required column is not in the header."""
     with open(path, newline="") as f:
         reader = csv.reader(f)
         try:
             header = [h.strip() for h in next(reader)]
         except StopIteration:
-            raise ObjectListError(f"{path}: empty file") from None
-        missing = [c for c in CSV_COLUMNS if c not in header]
+            raise error(f"{path}: empty file") from None
+        missing = [c for c in required if c not in header]
         if missing:
             from v2xpos.datasets.calibration import did_you_mean
             hint = "".join(did_you_mean(m, header).replace(" (did you mean", f" ({m!r}: did you mean") for m in missing)
-            raise ObjectListError(f"{path}: missing column(s) {missing}{hint}; header {header}")
-        rows = [r for r in reader if r and any(x.strip() for x in r)]
+            raise error(f"{path}: missing column(s) {missing}{hint}; header {header}")
+        return header, [r for r in reader if r and any(x.strip() for x in r)]
+
+
+def _read_csv_objects_slow(path: Path) -> ObjectList:
+    header, rows = read_csv_table(path, CSV_COLUMNS, ObjectListError)
     idx = {name: header.index(name) for name in (*CSV_COLUMNS, "z_m", "existence", "class") if name in header}
     width = max(idx.values()) + 1
     short = sum(1 for r in rows if len(r) < width)

@@ -23,7 +23,6 @@ q = Rz(mount_yaw)^T (P - mount_m), dq/dt = Rz(mount_yaw)^T dP/dt.
 """
 from __future__ import annotations
 
-import csv
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,6 +32,7 @@ import numpy as np
 from v2xpos.rotation import dcm_from_euler_batch
 
 from .config import SensorConfig, TargetDecl
+from .objects import read_csv_table
 
 MAX_GAP_S = 0.25
 """Longest time between two VALID rows the interpolation bridges: 2.5 rows of a 10 Hz reference,
@@ -139,45 +139,43 @@ def _track(target: str, t, pos, vel, rpy, sd, statuses: np.ndarray, outline=None
 
 def read_results_csv_reference(path: Path) -> Reference:
     """results.csv: columns by name (module docstring)."""
-    with open(path, newline="") as f:
-        reader = csv.reader(f)
-        try:
-            header = [h.strip() for h in next(reader)]
-        except StopIteration:
-            raise ReferenceFileError(f"{path}: empty file") from None
-        missing = [c for c in REQUIRED if c not in header]
-        if missing:
-            raise ReferenceFileError(f"{path}: not a results.csv: missing column(s) {missing}")
-        width = len(header)
-        rows = [r if len(r) == width else (r + [""] * width)[:width] for r in reader if len(r) >= len(REQUIRED)]
+    header, rows = read_csv_table(path, REQUIRED, ReferenceFileError)
     col = {name: j for j, name in enumerate(header)}
-    columns = list(zip(*rows)) if rows else [()] * len(header)
+    width = len(header)
+    j_target, j_status = col["target"], col["status"]
+    rows = [r for r in rows if len(r) > max(j_target, j_status)]
+    targets = np.array([r[j_target].strip() for r in rows], dtype=str)
+    status = np.array([r[j_status].strip() for r in rows], dtype=str)
+    valid_idx = np.flatnonzero(status == "VALID")
+    valid_rows = [rows[i] if len(rows[i]) == width else (rows[i] + [""] * width)[:width] for i in valid_idx]
 
     def num(name: str) -> np.ndarray:
+        """The VALID rows' values of a column (NaN where empty or absent)."""
         if name not in col:
-            return np.full(len(rows), np.nan)
-        a = np.array(columns[col[name]], dtype=str)
-        a[np.char.str_len(a) == 0] = "nan"
-        return a.astype(float)
+            return np.full(len(valid_rows), np.nan)
+        j = col[name]
+        try:
+            return np.array([float(r[j]) if r[j].strip() else math.nan for r in valid_rows], dtype=float)
+        except ValueError:
+            raise ReferenceFileError(f"{path}: column {name!r} holds text in a VALID row") from None
 
-    def text(name: str) -> np.ndarray:
-        return np.char.strip(np.array(columns[col[name]], dtype=str))
-
-    try:
-        t = num("t_gps_s")
-        pos = np.stack([num("x_m"), num("y_m"), num("z_m")], axis=1)
-        vel = np.stack([num("vx_mps"), num("vy_mps"), num("vz_mps")], axis=1)
-        rpy = np.radians(np.stack([num("rel_roll_deg"), num("rel_pitch_deg"), num("rel_yaw_deg")], axis=1))
-        sd = np.stack([num("sd_x_m"), num("sd_y_m"), num("sd_z_m")], axis=1)
-        smoothed_col = num("smoothed") if "smoothed" in col else None
-    except ValueError as exc:
-        raise ReferenceFileError(f"{path}: a numeric column holds text: {exc}") from None
-    targets, status = text("target"), text("status")
+    t = num("t_gps_s")
+    pos = np.stack([num("x_m"), num("y_m"), num("z_m")], axis=1)
+    vel = np.stack([num("vx_mps"), num("vy_mps"), num("vz_mps")], axis=1)
+    rpy = np.radians(np.stack([num("rel_roll_deg"), num("rel_pitch_deg"), num("rel_yaw_deg")], axis=1))
+    sd = np.stack([num("sd_x_m"), num("sd_y_m"), num("sd_z_m")], axis=1)
+    smoothed_col = num("smoothed") if "smoothed" in col else None
     tracks = {}
     for tid in sorted(set(targets.tolist())):
-        m = targets == tid
-        tracks[tid] = _track(tid, t[m], pos[m], vel[m], rpy[m], sd[m], status[m])
-    smoothed = bool(smoothed_col is not None and np.any(smoothed_col[status == "VALID"] == 1))
+        valid_of = targets[valid_idx] == tid
+        others = status[(targets == tid) & (status != "VALID")]
+        tr = _track(tid, t[valid_of], pos[valid_of], vel[valid_of], rpy[valid_of], sd[valid_of],
+                    np.full(int(valid_of.sum()), "VALID"))
+        names, counts = np.unique(others, return_counts=True)
+        tr.rows_total = int(valid_of.sum()) + len(others)
+        tr.status_counts = {str(k): int(c) for k, c in zip(names, counts)}
+        tracks[tid] = tr
+    smoothed = bool(smoothed_col is not None and np.any(smoothed_col == 1))
     return Reference(path, "results.csv", tracks, smoothed=smoothed, rows=len(rows))
 
 
