@@ -225,3 +225,27 @@ def test_a_gnss_epoch_without_imu_waits_then_goes_at_the_state_it_has(drive):
     assert drv.pending().get("gnss") == 1 and f.counts["gnss_pos_accepted"] == 0
     drv.run(now_s=t_g + 1.01)
     assert drv.counts["applied_without_imu"] == 1 and f.counts["gnss_pos_accepted"] == 1
+
+
+FEEDS = {"process_imu", "process_imu_batch", "update_gnss", "update_heading", "update_wheel_speed",
+         "apply_vehicle_constraints"}
+FILTER_MODULES = {"v2xpos/ins/filter.py", "v2xpos/ins/imu_path.py", "v2xpos/ins/initialization.py",
+                  "v2xpos/ins/driver.py"}
+
+
+def test_no_other_loop_feeds_a_filter():
+    """Only the driver calls the filter's input methods: no module of the library, the services,
+    the simulation or the benches has a loop of its own (read with ``ast``)."""
+    import ast
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[1]
+    found = []
+    for pkg in ("v2xpos", "master", "slave", "sim", "bench"):
+        for path in sorted((root / pkg).rglob("*.py")):
+            rel = path.relative_to(root).as_posix()
+            if rel in FILTER_MODULES:
+                continue
+            for node in ast.walk(ast.parse(path.read_text(), rel)):
+                if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr in FEEDS:
+                    found.append(f"{rel}:{node.lineno} {node.func.attr}")
+    assert found == []

@@ -111,8 +111,8 @@ class DeviceSource(VehicleSource):
         self.last_gnss: GnssEpoch | None = None
         self.last_heading: HeadingObs | None = None
         self.heading_baseline_m = None if heading_baseline_m is None else np.asarray(heading_baseline_m, float)
-        self.counts = {"imu_samples": 0, "gnss_epochs": 0, "headings": 0, "headings_unusable": 0,
-                       "ignored_imu_records": 0, "imu_clock_rejected": 0}
+        self._received = {"imu_samples": 0, "gnss_epochs": 0, "headings": 0, "headings_unusable": 0,
+                          "ignored_imu_records": 0, "imu_clock_rejected": 0}
         self._last_input_arrival_s = math.nan
         self.input_to_state_s: deque = deque(maxlen=LATENCY_HISTORY)
         self._closed = False
@@ -148,28 +148,28 @@ class DeviceSource(VehicleSource):
             stream_name, rec = inbox.popleft()
             if isinstance(rec, ImuRecord):
                 if stream_name != self.imu_source_name:
-                    self.counts["ignored_imu_records"] += 1
+                    self._received["ignored_imu_records"] += 1
                     continue
                 if not self.imu_clock.add(rec.counter_s, rec.arrival_s):
-                    self.counts["imu_clock_rejected"] += 1
+                    self._received["imu_clock_rejected"] += 1
                     continue
-                self.counts["imu_samples"] += 1
+                self._received["imu_samples"] += 1
                 self._last_input_arrival_s = rec.arrival_s
                 drv.push_imu(self.imu_clock.to_gps(rec.counter_s), rec.acc_mps2, rec.gyro_rps)
             elif isinstance(rec, GnssEpoch):
-                self.counts["gnss_epochs"] += 1
+                self._received["gnss_epochs"] += 1
                 self.last_gnss = rec
                 self._last_input_arrival_s = rec.arrival_s
                 drv.push_gnss(rec.t_s, rec.lla, rec.sd_ned_m, rec.fix, rec.vel_ned_mps, rec.vel_sd_ned_mps)
             elif isinstance(rec, ReceiverTime):
                 self.clock.observe(rec.t_s, rec.arrival_s, rec.gps_minus_utc_s, rec.message)
             elif isinstance(rec, HeadingObs):
-                self.counts["headings"] += 1
+                self._received["headings"] += 1
                 self.last_heading = rec
                 if self.heading_baseline_m is None:
                     continue
                 if not (math.isfinite(rec.t_s) and math.isfinite(rec.heading_sd_rad) and rec.heading_sd_rad > 0):
-                    self.counts["headings_unusable"] += 1
+                    self._received["headings_unusable"] += 1
                     continue
                 drv.push_heading(rec.t_s, rec.heading_rad, rec.heading_sd_rad, self.heading_baseline_m)
 
@@ -190,10 +190,12 @@ class DeviceSource(VehicleSource):
         return {"input_to_state_ms_p50": float(np.median(x)), "input_to_state_ms_p95": float(np.percentile(x, 95)),
                 "n": int(len(x))}
 
-    def _counts(self) -> dict:
+    @property
+    def counts(self) -> dict:
+        """What came in and what the driver did with it (``status()["counts"]``)."""
         d = self.driver.status()
         c, applied, fc = d["counts"], d["applied"], self.filter.counts
-        return {**self.counts, "gnss_used": applied["gnss"], "gnss_reordered": c["reordered"],
+        return {**self._received, "gnss_used": applied["gnss"], "gnss_reordered": c["reordered"],
                 "gnss_rejected_late": c["rejected_late"], "gnss_out_of_order": c["rejected_out_of_order"],
                 "gnss_without_imu": c["applied_without_imu"], "imu_non_monotonic": c["imu_out_of_order"],
                 "states": c["states"], "states_non_monotonic": c["states_non_monotonic"],
@@ -206,7 +208,7 @@ class DeviceSource(VehicleSource):
 
     def status(self) -> dict:
         f = self.filter
-        out = {"source": self.name, "counts": self._counts(), "filter_counts": dict(f.counts),
+        out = {"source": self.name, "counts": self.counts, "filter_counts": dict(f.counts),
                "initialized": bool(f.initialized), "pending": {**self.driver.pending(), "inbox": len(self.inbox)},
                "reorder_window_s": self.reorder_window_s, "latency": self.latency(),
                "imu_clock": self.imu_clock.status(),
