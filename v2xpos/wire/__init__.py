@@ -53,7 +53,7 @@ from .state import (GEOMETRY_KINDS, SCHEMA_VERSION, STATE_FLAG_ATTITUDE_UNDETERM
                     decode_state_body, encode_state, encode_state_body)
 from .relative import (KINEMATIC_STATUSES, RELATIVE_SCHEMA_VERSION, RELATIVE_SCHEMA_VERSIONS, FixSide,
                        RelativeResult, TargetStatus, decode_relative, decode_relative_body, encode_relative,
-                       encode_relative_body)
+                       encode_relative_body, reason_name, reason_text)
 from .imu_stream import (IMU_PAYLOAD_VERSION, MAX_IMU_ROWS, MAX_IMU_UNITS, ImuPayload, ImuPayloadError,
                          decode_imu_payload, encode_imu_payload)
 
@@ -67,4 +67,5 @@ __all__ = ["SCHEMA_VERSION", "RELATIVE_SCHEMA_VERSION", "RELATIVE_SCHEMA_VERSION
            "StateMessage", "RelativeResult", "Envelope", "pack_envelope", "encode_state_body", "encode_state",
            "encode_relative_body", "encode_relative", "unpack_envelope", "decode_state_body", "decode_state",
            "decode_relative_body", "decode_relative", "IMU_PAYLOAD_VERSION", "MAX_IMU_ROWS", "MAX_IMU_UNITS",
-           "ImuPayloadError", "ImuPayload", "encode_imu_payload", "decode_imu_payload"]
+           "ImuPayloadError", "ImuPayload", "encode_imu_payload", "decode_imu_payload",
+           "reason_name", "reason_text"]
