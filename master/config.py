@@ -44,6 +44,7 @@
     enabled = true
     host = "127.0.0.1"                # any unicast address or host name (not multicast/broadcast)
     port = 47001
+    status_hz = 10                    # heartbeat datagrams per second (0 = none): the master is alive
     [output.zenoh]
     enabled = true                    # republish RelativeResult on .../master/<id>/relative
 
@@ -112,6 +113,7 @@ class MasterConfig:
     udp_enabled: bool = False
     udp_host: str = "127.0.0.1"
     udp_port: int = 47001
+    udp_status_hz: float = 10.0
     zenoh_enabled: bool = True
     geojson: str | None = None
     scene_hz: float = 10.0
@@ -235,7 +237,7 @@ def output_from_table(out: dict, path: str) -> dict:
     zen_t = take(out, "zenoh", dict, {}, f"{path}: [output]")
     check_keys(can_t, {"enabled", "interface", "channel", "rate_hz", "status_hz", "bitrate", "fd", "data_bitrate",
                        "receive_own_messages", "slots"}, wc)
-    check_keys(udp_t, {"enabled", "host", "port"}, wu)
+    check_keys(udp_t, {"enabled", "host", "port", "status_hz"}, wu)
     check_keys(zen_t, {"enabled"}, wz)
     can_rate = take(can_t, "rate_hz", float, 25.0, wc)
     if not 0 <= can_rate <= 1000:
@@ -282,9 +284,13 @@ def output_from_table(out: dict, path: str) -> dict:
     port = take(udp_t, "port", int, 47001, wu)
     if not 0 < port < 65536:
         raise ConfigError(f"{wu}.port: {port} outside 1..65535")
+    udp_status_hz = take(udp_t, "status_hz", float, 10.0, wu)
+    if not 0 <= udp_status_hz <= 100:
+        raise ConfigError(f"{wu}.status_hz: {udp_status_hz} outside 0..100 (0 = no heartbeat)")
     return dict(can_enabled=take(can_t, "enabled", bool, False, wc), can_interface=interface, can_channel=channel,
                 can_rate_hz=can_rate, can_status_hz=status_hz, can_bitrate=bitrates["bitrate"], can_fd=fd,
                 can_data_bitrate=bitrates["data_bitrate"],
                 can_receive_own_messages=take(can_t, "receive_own_messages", bool, False, wc), can_slots=dict(slots),
                 udp_enabled=take(udp_t, "enabled", bool, False, wu), udp_host=host, udp_port=port,
+                udp_status_hz=udp_status_hz,
                 zenoh_enabled=take(zen_t, "enabled", bool, True, wz))
