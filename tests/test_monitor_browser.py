@@ -106,3 +106,66 @@ def test_page_shows_the_demo_targets(tmp_path):
         if status == "valid":
             assert math.isfinite(float(rng))
     assert (tmp_path / "monitor.png").stat().st_size > 10_000
+
+
+def test_killing_the_master_shows_on_the_page_within_a_second(tmp_path):
+    """Issue 29: after the master is killed (SIGKILL: no goodbye), the page says the master is gone
+    and lists and draws every row as STALE within 1 s; no row stays VALID."""
+    import signal
+
+    from sim.launcher import Fleet, FleetPlan, release_when_ready, write_configs
+    from sim.scenarios import build
+    from v2xpos.launch import free_tcp_port, free_udp_port
+    from v2xpos.link import LinkConfig
+    from v2xpos.monitor.attach import MasterMonitor
+    from v2xpos.monitor.web import WebServer
+
+    out = tmp_path.resolve()
+    sc = build("convoy", vehicles=2, duration_s=60.0, pedestrian=False, degradations=False, spikes=False)
+    plan = FleetPlan(out_dir=out, router_port=free_tcp_port(), udp_port=free_udp_port(), start_file=out / "start")
+    write_configs(sc, plan, 60.0)
+    fleet = Fleet(plan, sc.master_id, plan.start_file)
+    fleet.start()
+    mon = web = driver = None
+    try:
+        release_when_ready(plan.start_file, list(plan.configs), lead_s=1.5, fleet=fleet)
+        mon = MasterMonitor(LinkConfig(mode="client", connect=[f"tcp/127.0.0.1:{plan.router_port}"],
+                                       connect_timeout_ms=60000), "demo", sc.master_id).start()
+        web = WebServer(mon.snapshot).start()
+        driver = _browser(tempfile.mkdtemp(prefix="v2xpos-chromium-"))
+        driver.get(web.url)
+        read = ("return [document.getElementById('master').dataset.state, "
+                "Array.from(document.querySelectorAll('#rows tr')).map(tr => tr.dataset.status), "
+                "(window.v2xposRendered || []).map(d => d.status)]")
+        t_end = time.time() + 90.0
+        state = rows = drawn = None
+        while time.time() < t_end:
+            state, rows, drawn = driver.execute_script(read)
+            if rows and "valid" in rows and "valid" in drawn and state == "live":
+                break
+            time.sleep(0.2)
+        assert rows and "valid" in rows, (state, rows, fleet.log_tail(sc.master_id))
+        master = fleet.procs[sc.master_id]
+        master.send_signal(signal.SIGKILL)
+        t_kill = time.time()
+        shown = None
+        while time.time() < t_kill + 3.0:
+            state, rows, drawn = driver.execute_script(read)
+            if state == "gone" and rows and set(rows) == {"stale"} and set(drawn) <= {"stale"}:
+                shown = time.time() - t_kill
+                break
+            time.sleep(0.05)
+        text = driver.execute_script("return document.getElementById('master').textContent")
+        if os.environ.get("V2XPOS_SCREENSHOT_DIR"):
+            driver.save_screenshot(os.path.join(os.environ["V2XPOS_SCREENSHOT_DIR"], "monitor_master_killed.png"))
+        assert shown is not None, (state, rows, drawn, text)
+        assert shown <= 1.0, f"the page said the master was gone {shown:.2f} s after the kill"
+        assert "GONE" in text and "STALE" in text
+    finally:
+        if driver is not None:
+            driver.quit()
+        if web is not None:
+            web.close()
+        if mon is not None:
+            mon.close()
+        fleet.stop(grace_s=3.0)
