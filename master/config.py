@@ -52,7 +52,7 @@
     geojson = "scene.geojson"         # optional V2L lane lines / points / polygons
     rate_hz = 10                      # scene evaluations per second
 
-    [record]
+    [record]                          # paths relative to this file (as every path in it)
     results_csv = "out/results.csv"   # every result as a CSV row (master.results_csv.COLUMNS), streamed
     results_npz = "out/master_results.npz"   # per-result rows for the report (optional)
     summary_json = "out/master_summary.json"
@@ -81,8 +81,8 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from v2xpos.config import (ConfigError, SourceConfig, check_keys, corrections_from_table, link_from_table,
-                           load_toml, take)
+from v2xpos.config import (ConfigError, SourceConfig, check_keys, config_dir, corrections_from_table,
+                           link_from_table, load_toml, take)
 from v2xpos.link import LinkConfig
 
 
@@ -138,6 +138,9 @@ class MasterConfig:
     @classmethod
     def load(cls, path: str | Path) -> "MasterConfig":
         return cls.from_dict(load_toml(path), str(path))
+
+    PATH_FIELDS = ("results_npz", "results_csv", "summary_json", "mcap", "geojson", "trust_list")
+    """Fields that name files: relative ones resolve against the config file's directory."""
 
     @classmethod
     def from_dict(cls, d: dict, path: str = "<dict>") -> "MasterConfig":
@@ -209,7 +212,17 @@ class MasterConfig:
             max_age_s=take(sec, "max_age_s", float, 5.0, ws),
             future_tolerance_s=take(sec, "future_tolerance_s", float, 0.05, ws), replay_window=window,
             corrections=corrections_from_table(d, path), max_sigma_h_m=max_sigma_h, max_sigma_yaw_deg=max_sigma_yaw,
-            require_consistency=take(va, "require_consistency", bool, True, wv), path=path)
+            require_consistency=take(va, "require_consistency", bool, True, wv), path=path)._resolved()
+
+    def _resolved(self) -> "MasterConfig":
+        """Relative file paths made absolute against the config file's directory (``config_dir``), as
+        the file's comments say; a config built in memory resolves against the working directory."""
+        base = config_dir(self.path)
+        for name in self.PATH_FIELDS:
+            value = getattr(self, name)
+            if value:
+                setattr(self, name, str(base / Path(value).expanduser()))
+        return self
 
     def can_bus_kwargs(self) -> dict:
         """python-can ``Bus`` options of ``[output.can]`` (besides interface and channel)."""
