@@ -16,7 +16,8 @@
     [validity]                        # when a computed result is VALID (docs/integrity.md)
     max_sigma_h_m = 0.10              # predicted 1-sigma horizontal relative position above it: SIGMA_EXCEEDED
     max_sigma_yaw_deg = 1.0           # predicted 1-sigma relative yaw above it: SIGMA_EXCEEDED
-    require_consistency = true        # both filters consistent and verified (protection level within its limit), else INCONSISTENT
+    require_consistency = true        # both filters consistent (else INCONSISTENT) and verified (else UNVERIFIED)
+    max_clock_disagreement_ms = 50    # a target's clock this far from the master's: clock alarm (CLOCK_UNSYNCED)
 
     [link]                            # the master embeds the router by default
     mode = "router"
@@ -133,6 +134,7 @@ class MasterConfig:
     max_sigma_h_m: float = 0.10
     max_sigma_yaw_deg: float = 1.0
     require_consistency: bool = True
+    max_clock_disagreement_s: float = 0.05
     path: str = "<defaults>"
 
     @classmethod
@@ -148,7 +150,10 @@ class MasterConfig:
                        "validity"}, path)
         va = take(d, "validity", dict, {}, path)
         wv = f"{path}: [validity]"
-        check_keys(va, {"max_sigma_h_m", "max_sigma_yaw_deg", "require_consistency"}, wv)
+        check_keys(va, {"max_sigma_h_m", "max_sigma_yaw_deg", "require_consistency", "max_clock_disagreement_ms"}, wv)
+        max_clock_ms = take(va, "max_clock_disagreement_ms", float, 50.0, wv)
+        if not 0 < max_clock_ms <= 60000:
+            raise ConfigError(f"{wv}.max_clock_disagreement_ms: {max_clock_ms} outside (0, 60000]")
         max_sigma_h = take(va, "max_sigma_h_m", float, 0.10, wv)
         max_sigma_yaw = take(va, "max_sigma_yaw_deg", float, 1.0, wv)
         if not max_sigma_h > 0 or not max_sigma_yaw > 0:
@@ -212,7 +217,8 @@ class MasterConfig:
             max_age_s=take(sec, "max_age_s", float, 5.0, ws),
             future_tolerance_s=take(sec, "future_tolerance_s", float, 0.05, ws), replay_window=window,
             corrections=corrections_from_table(d, path), max_sigma_h_m=max_sigma_h, max_sigma_yaw_deg=max_sigma_yaw,
-            require_consistency=take(va, "require_consistency", bool, True, wv), path=path)._resolved()
+            require_consistency=take(va, "require_consistency", bool, True, wv),
+            max_clock_disagreement_s=max_clock_ms / 1e3, path=path)._resolved()
 
     def _resolved(self) -> "MasterConfig":
         """Relative file paths made absolute against the config file's directory (``config_dir``), as

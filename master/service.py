@@ -167,7 +167,8 @@ class MasterService:
                               measurement_point_m=cfg.measurement_point_m, known_vehicles=cfg.known_vehicles,
                               evaluate_uncompensated=cfg.evaluate_uncompensated,
                               record=cfg.results_npz is not None, max_sigma_h_m=cfg.max_sigma_h_m,
-                              max_sigma_yaw_deg=cfg.max_sigma_yaw_deg, require_consistency=cfg.require_consistency)
+                              max_sigma_yaw_deg=cfg.max_sigma_yaw_deg, require_consistency=cfg.require_consistency,
+                              max_clock_disagreement_s=cfg.max_clock_disagreement_s)
         if cfg.results_csv:
             from v2xpos.output.results_csv import ResultsCsvWriter
             self.sinks.append(ResultsCsvWriter(cfg.results_csv))

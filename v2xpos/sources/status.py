@@ -9,8 +9,9 @@ section 7) reads, in one place:
   time against the host clock, ``offset_s``, ``synchronised``) and ``gps_minus_wall_s``, the
   session GPS time minus the host's wall clock (on one bench, two services whose values differ
   run on different clocks);
-* ``streams``: per device stream whether its transport is connected, the records per second since
-  the last snapshot (``rate_hz``), the bytes per second and the malformed records;
+* ``streams``: per device stream whether its transport is connected, the messages (frames, or lines
+  of a text stream) per second since the last snapshot (``rate_hz``), the bytes per second and the
+  malformed records;
 * ``imu_clock``: the IMU counter's clock model (points, span, ``drift_ppm``);
 * ``corrections``: the age of the last RTCM message received or relayed;
 * ``filter``: the latest navigation state: time, its age against the session clock (``age_s``),
@@ -98,7 +99,10 @@ class VehicleStatus:
         out = {}
         for name, st in streams.items():
             tr = st.get("transport") or {}
-            records, nbytes = int(st.get("records", 0)), int(tr.get("bytes_in", 0))
+            framing = st.get("framing") or {}
+            frames = framing.get("frames")
+            records = int(sum(frames.values()) if isinstance(frames, dict) else framing.get("lines", st.get("records", 0)))
+            nbytes = int(tr.get("bytes_in", 0))
             prev = self._prev.get(name)
             rate = bps = None
             if prev is not None and t_wall > prev[0]:
@@ -106,7 +110,7 @@ class VehicleStatus:
                 bps = (nbytes - prev[2]) / (t_wall - prev[0])
             self._prev[name] = (t_wall, records, nbytes)
             out[name] = {"format": st.get("format"), "connected": tr.get("connected"), "rate_hz": rate,
-                         "bytes_per_s": bps, "records": records, "malformed": st.get("malformed", 0),
+                         "bytes_per_s": bps, "messages": records, "malformed": st.get("malformed", 0),
                          "disconnects": tr.get("disconnects", 0), "last_error": tr.get("last_error")}
         return out
 
