@@ -138,13 +138,7 @@ class MasterMonitor:
                 st.malformed += 1
                 continue
             st.on_relative(body, tid, t_wall)
-        while True:
-            try:
-                sample = self._status.try_recv()
-            except Exception:
-                break
-            if sample is None:
-                break
+        for sample in _drain(self._status):
             if self._auto:
                 key = str(sample.key_expr)
                 if self.master_id is None:
@@ -152,18 +146,12 @@ class MasterMonitor:
                     self._rel_key = relative_key(self.fleet, self.master_id)
                 elif key != status_key(self.fleet, self.master_id):
                     continue
-            try:
-                doc = json.loads(sample.payload.to_bytes())
-            except ValueError:
-                continue
-            if isinstance(doc, dict):
+            doc = _json_map(sample)
+            if doc is not None:
                 st.on_status(doc, t_wall)
         for sample in _drain(self._vehicles):
-            try:
-                doc = json.loads(sample.payload.to_bytes())
-            except ValueError:
-                continue
-            if isinstance(doc, dict):
+            doc = _json_map(sample)
+            if doc is not None:
                 st.on_vehicle_status(doc, t_wall)
         for sample in _drain(self._alive):
             parts = str(sample.key_expr).split("/")    # v2xpos/<fleet>/<role>/<id>/alive
@@ -207,6 +195,15 @@ class MasterMonitor:
             except Exception:   # an id that is not a valid key expression
                 continue
             self._geo_subs[tid] = (sub, t_wall)
+
+
+def _json_map(sample) -> dict | None:
+    """A sample's JSON object payload, or None when it is not one."""
+    try:
+        doc = json.loads(sample.payload.to_bytes())
+    except ValueError:
+        return None
+    return doc if isinstance(doc, dict) else None
 
 
 def _drain(sub) -> list:

@@ -159,25 +159,22 @@ def instruction(row: dict, master_state: str | None = None) -> str:
         bad = [f"{w} receiver {row.get('target_fix' if w == 'target' else 'master_fix') or 'not RTK'}"
                for bit, w in _SIDE_NAMES if (row.get("fix_side") or 0) & bit]
         return (", ".join(bad) or "receiver not RTK") + ": check the corrections and the sky view"
-    if status in ("timeout", "no_data"):
-        return "target silent: check the slave and the link"
-    if status == "future":
-        return "target time ahead: check both clocks"
-    if status == "clock_unsynced":
-        return "clock off GNSS time: check chrony and the PPS"
-    if status == "sigma_exceeded":
-        return "sigma above its limit: wait for RTK fixed"
+    if status in STATUS_INSTRUCTIONS:
+        return STATUS_INSTRUCTIONS[status]
     named = _named_reasons(row.get("reason_side") or 0, row.get("master_reason"), row.get("target_reason"))
     hints = [f"{w}: {reason_instruction(r)}" for w, r in named if r and reason_instruction(r)]
-    if hints:
-        return "; ".join(hints)
-    if status == "attitude_uncertain":
-        return "heading pending: drive off"
-    if status == "inconsistent":
-        return "a filter test failed: check the declared set-up"
-    if status == "unverified":
-        return "set-up not yet verified: drive a turn"
-    return ""
+    return "; ".join(hints) if hints else VEHICLE_STATUS_INSTRUCTIONS.get(status, "")
+
+
+STATUS_INSTRUCTIONS = {
+    "timeout": "target silent: check the slave and the link", "no_data": "target silent: check the slave and the link",
+    "future": "target time ahead: check both clocks", "clock_unsynced": "clock off GNSS time: check chrony and the PPS",
+    "sigma_exceeded": "sigma above its limit: wait for RTK fixed"}
+"""What to do about a status that is no vehicle filter's own."""
+VEHICLE_STATUS_INSTRUCTIONS = {
+    "attitude_uncertain": "heading pending: drive off", "inconsistent": "a filter test failed: check the declared set-up",
+    "unverified": "set-up not yet verified: drive a turn"}
+"""What to do about a vehicle's status when its filter gave no reason."""
 
 
 def grade_text(grade: dict | None) -> str:
