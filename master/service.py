@@ -271,7 +271,8 @@ class MasterService:
                   "t_rel_s": None if t_now is None else t_now - self.t_start_gps_s, "phase": self.phase,
                   "waiting_for": self._waiting_for(), "timeout_s": self.cfg.timeout_ms / 1e3,
                   "status_period_s": 1.0 / self.cfg.status_hz, "t_wall_s": time.time(),
-                  "vehicle": self.vehicle_status.snapshot(self.source, clock, self.nav),
+                  "vehicle": self.vehicle_status.snapshot(
+                      self.source, clock, self.nav, None if self.relay is None else {"corrections": self.relay.stats()}),
                   "clock": None if clock is None else clock.status(),
                   "time_synchronised": None if clock is None else clock.synchronised(),
                   "source_status": None if self.source is None else self.source.status(),

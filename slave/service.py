@@ -110,7 +110,7 @@ def run_slave(cfg: SlaveConfig, stop: _Stop | None = None, quiet: bool = False) 
         except TimeoutError as exc:
             raise ConfigError(f"{cfg.path}: [source]: {exc}") from None
         counters["phase"] = "run"
-        _loop(cfg, source, clock, link, signer, stop, counters, quiet)
+        _loop(cfg, source, clock, link, signer, stop, counters, quiet, sink)
         counters["phase"] = "done"
     except Stopped:
         counters["stopped_early"] = True
@@ -129,9 +129,9 @@ def run_slave(cfg: SlaveConfig, stop: _Stop | None = None, quiet: bool = False) 
 
 
 def _loop(cfg: SlaveConfig, source, clock, link: Link, signer, stop: _Stop, counters: dict,
-          quiet: bool = False) -> None:
+          quiet: bool = False, corrections=None) -> None:
     pub = link.publisher(state_key(cfg.fleet, cfg.vehicle_id))
-    live = _LiveStatus(cfg, link, quiet)
+    live = _LiveStatus(cfg, link, quiet, corrections)
     units = source.imu_units() if cfg.publish_imu else None
     imu_pub = link.publisher(imu_key(cfg.fleet, cfg.vehicle_id), express=False) if units else None
     imp = cfg.impairment
@@ -197,7 +197,7 @@ def _loop(cfg: SlaveConfig, source, clock, link: Link, signer, stop: _Stop, coun
 class _LiveStatus:
     """The slave's status at 1 Hz on zenoh and as a line every few seconds on stderr."""
 
-    def __init__(self, cfg: SlaveConfig, link: Link, quiet: bool):
+    def __init__(self, cfg: SlaveConfig, link: Link, quiet: bool, corrections=None):
         from v2xpos.sources.status import STATUS_LINE_PERIOD_S, STATUS_PERIOD_S, VehicleStatus
         self.builder = VehicleStatus("slave", cfg.vehicle_id, cfg.fleet)
         self.pub = link.publisher(vehicle_status_key(cfg.fleet, cfg.vehicle_id), express=False)
@@ -206,13 +206,17 @@ class _LiveStatus:
         self.period_s, self.line_period_s = STATUS_PERIOD_S, STATUS_LINE_PERIOD_S
         self.next_pub = self.next_line = 0.0
         self.nav = None
+        self.corrections = corrections       # the CorrectionSink writing RTCM into the receiver, if any
 
     def tick(self, t_wall_s: float, source, clock, counters: dict) -> None:
         if t_wall_s < self.next_pub:
             return
         from v2xpos.sources.status import status_line
         self.next_pub = t_wall_s + self.period_s
-        doc = self.builder.snapshot(source, clock, self.nav, {"sent": counters["sent"]}, t_wall_s)
+        extra = {"sent": counters["sent"]}
+        if self.corrections is not None:
+            extra["corrections"] = self.corrections.stats()
+        doc = self.builder.snapshot(source, clock, self.nav, extra, t_wall_s)
         self.pub.put(json.dumps(doc).encode())
         if not self.quiet and t_wall_s >= self.next_line:
             self.next_line = t_wall_s + self.line_period_s

@@ -169,3 +169,49 @@ def test_killing_the_master_shows_on_the_page_within_a_second(tmp_path):
         if mon is not None:
             mon.close()
         fleet.stop(grace_s=3.0)
+
+
+def test_auto_zoom_fits_the_cars_not_a_far_pedestrian(tmp_path):
+    """Issue 29 item 8: with two cars 12 and 30 m ahead and a pedestrian 500 m away, the view fits
+    the cars (it used to fit the pedestrian and pile the cars onto the master); the pedestrian is an
+    arrow on the edge, still listed and coloured by its status."""
+    from bench.fake_master import result
+    from v2xpos.monitor.state import MonitorState
+    from v2xpos.monitor.web import WebServer
+    from v2xpos.wire import TargetStatus, encode_relative_body
+
+    def snapshot():
+        st = MonitorState()
+        st.on_status({"master_id": "ego", "master_fix": 5, "phase": "run", "targets": {}}, time.time())
+        for i, x in ((1, 12.0), (2, 30.0), (3, 500.0)):
+            r = result(i, TargetStatus.VALID, 1, 1e9)
+            r.rel_pos_body_m[:] = (x, 2.0 * i, 0.0)
+            r.range_m = math.hypot(x, 2.0 * i)
+            if i == 3:
+                r.target_kind = "pedestrian"
+            st.on_relative(encode_relative_body(r), r.target_id, time.time())
+        return st.refresh(time.time())
+    web = WebServer(snapshot).start()
+    driver = _browser(tempfile.mkdtemp(prefix="v2xpos-chromium-"))
+    try:
+        driver.get(web.url)
+        drawn = None
+        t_end = time.time() + 20
+        while time.time() < t_end:
+            drawn = driver.execute_script("return window.v2xposRendered")
+            if drawn and len(drawn) == 3:
+                break
+            time.sleep(0.2)
+        half = driver.execute_script("return window.v2xposHalfRangeM")
+        size = driver.execute_script("const c = document.getElementById('view'); return [c.width, c.height]")
+        if os.environ.get("V2XPOS_SCREENSHOT_DIR"):
+            driver.save_screenshot(os.path.join(os.environ["V2XPOS_SCREENSHOT_DIR"], "monitor_zoom.png"))
+    finally:
+        driver.quit()
+        web.close()
+    by = {d["id"]: d for d in drawn}
+    assert half <= 60, half                                    # the cars, not the pedestrian, set the scale
+    assert by["t03"].get("edge") and not by["t01"].get("edge") and not by["t02"].get("edge")
+    centre_y = size[1] / 2
+    # the cars stand apart on screen (at a 500 m scale 12 and 30 m were a few pixels from the master)
+    assert centre_y - by["t01"]["py"] > 40 and by["t01"]["py"] - by["t02"]["py"] > 40, by
