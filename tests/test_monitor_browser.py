@@ -108,9 +108,10 @@ def test_page_shows_the_demo_targets(tmp_path):
     assert (tmp_path / "monitor.png").stat().st_size > 10_000
 
 
-def test_killing_the_master_shows_on_the_page_within_a_second(tmp_path):
-    """Issue 29: after the master is killed (SIGKILL: no goodbye), the page says the master is gone
-    and lists and draws every row as STALE within 1 s; no row stays VALID."""
+def test_killing_a_slave_then_the_master_shows_on_the_page_within_a_second(tmp_path):
+    """Issue 29: a killed slave (SIGKILL: no goodbye) is GONE in the vehicle panel and its row no
+    longer VALID within 1 s; after the master is killed the page says the master is gone and lists
+    and draws every row as STALE within 1 s; no row stays VALID."""
     import signal
 
     from sim.launcher import Fleet, FleetPlan, release_when_ready, write_configs
@@ -145,6 +146,24 @@ def test_killing_the_master_shows_on_the_page_within_a_second(tmp_path):
                 break
             time.sleep(0.2)
         assert rows and "valid" in rows, (state, rows, fleet.log_tail(sc.master_id))
+        slave_id = next(k for k in plan.configs if k != sc.master_id)
+        read_slave = ("return [Array.from(document.querySelectorAll('#rows tr')).filter(tr => tr.dataset.target === "
+                      f"'{slave_id}').map(tr => tr.dataset.status), Array.from(document.querySelectorAll("
+                      f"'#vehicles .veh')).filter(v => v.dataset.vehicle === '{slave_id}').map(v => v.dataset.state)]")
+        t_end = time.time() + 30
+        while time.time() < t_end and driver.execute_script(read_slave)[1] != ["live"]:
+            time.sleep(0.2)
+        assert driver.execute_script(read_slave)[1] == ["live"]
+        fleet.procs[slave_id].send_signal(signal.SIGKILL)
+        t_kill = time.time()
+        gone = None
+        while time.time() < t_kill + 3.0:
+            srows, sveh = driver.execute_script(read_slave)
+            if sveh == ["gone"] and srows and "valid" not in srows:
+                gone = time.time() - t_kill
+                break
+            time.sleep(0.05)
+        assert gone is not None and gone <= 1.0, (gone, driver.execute_script(read_slave))
         master = fleet.procs[sc.master_id]
         master.send_signal(signal.SIGKILL)
         t_kill = time.time()
@@ -161,6 +180,7 @@ def test_killing_the_master_shows_on_the_page_within_a_second(tmp_path):
         assert shown is not None, (state, rows, drawn, text)
         assert shown <= 1.0, f"the page said the master was gone {shown:.2f} s after the kill"
         assert "GONE" in text and "STALE" in text
+        print(f"page: killed slave shown gone after {gone:.2f} s, killed master after {shown:.2f} s")
     finally:
         if driver is not None:
             driver.quit()
