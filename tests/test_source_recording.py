@@ -126,8 +126,8 @@ def _source_and_replay_states(path, span_s: float, step_s: float = 0.01):
     same loaded recording (the services' profile, no outages) keeping every state."""
     from v2xpos.ins import InsFilter
     from v2xpos.ins.replay_engine import config_for, run_replay
-    src = make_source({"type": "recording", "dataset": str(path), "sync": "none"}, "[source]",
-                      SourceContext(vehicle_id="car"))
+    from v2xpos.sources.recording import RecordingSource
+    src = RecordingSource(path, sync="none")
     t0, states, k = src.t_begin_gps_s, [], 0
     while t0 + k * step_s < t0 + span_s:
         k += 1

@@ -33,9 +33,10 @@ DEFAULT_PROFILE = "service"
 
 def vehicle_config(platform: str, imu_to_body: np.ndarray, lever_arm_m: np.ndarray, lever_arm_sd_m: float,
                    calibration: Any = None, wheel: bool = False, profile: str = DEFAULT_PROFILE,
-                   **overrides: Any) -> InsConfig:
-    """``InsConfig`` of a vehicle (declared values, calibration table, wheel speeds or not) in the
-    named ``profile`` (module docstring); ``overrides``: any other ``InsConfig`` field, applied last."""
+                   verification: Any = None, **overrides: Any) -> InsConfig:
+    """``InsConfig`` of a vehicle (declared values, calibration table, wheel speeds or not, the
+    ``[verification]`` record of its set-up) in the named ``profile`` (module docstring);
+    ``overrides``: any other ``InsConfig`` field, applied last."""
     if profile not in PROFILES:
         from v2xpos.datasets.calibration import did_you_mean
         raise ValueError(f"profile {profile!r} is not one of {list(PROFILES)}{did_you_mean(str(profile), PROFILES)}")
@@ -43,19 +44,21 @@ def vehicle_config(platform: str, imu_to_body: np.ndarray, lever_arm_m: np.ndarr
         return ins_config(platform, imu_to_body, lever_arm_m, lever_arm_sd_m, None, **{"effects": (), **overrides})
     integrity = profile == "service"
     if wheel and platform == "car" and "effects" not in overrides:
-        base = ins_config(platform, imu_to_body, lever_arm_m, lever_arm_sd_m, calibration, integrity=integrity).effects
+        base = ins_config(platform, imu_to_body, lever_arm_m, lever_arm_sd_m, calibration, integrity=integrity,
+                          verification=verification).effects
         if "odometer_scale" not in base:
             overrides["effects"] = tuple(base) + ("odometer_scale",)
     return ins_config(platform, imu_to_body, lever_arm_m, lever_arm_sd_m, calibration, integrity=integrity,
-                      **overrides)
+                      verification=verification, **overrides)
 
 
 def dataset_config(dataset: Any, profile: str = DEFAULT_PROFILE, **overrides: Any) -> InsConfig:
-    """:func:`vehicle_config` of a loaded ``Dataset`` (its declarations, ``[calibration]`` and wheel
-    speeds); an override of a declared value (``platform``, ``imu_to_body``, ``lever_arm_m``,
+    """:func:`vehicle_config` of a loaded ``Dataset`` (its declarations, ``[calibration]``, wheel
+    speeds and ``[verification]``); an override of a declared value (``platform``, ``imu_to_body``, ``lever_arm_m``,
     ``lever_arm_sd_m``) replaces it."""
     declared = {"platform": dataset.platform, "imu_to_body": dataset.imu_to_body,
                 "lever_arm_m": dataset.lever_arm_m, "lever_arm_sd_m": dataset.lever_arm_sd_m}
     declared.update({k: overrides.pop(k) for k in list(declared) if k in overrides})
     return vehicle_config(**declared, calibration=getattr(dataset, "calibration", None),
-                          wheel=getattr(dataset, "wheel", None) is not None, profile=profile, **overrides)
+                          wheel=getattr(dataset, "wheel", None) is not None, profile=profile,
+                          verification=getattr(dataset, "verification", None), **overrides)
