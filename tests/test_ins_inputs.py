@@ -160,8 +160,7 @@ def test_replay_survives_a_truncated_and_corrupted_pos_file(tmp_path):
     ds = load_dataset(tmp_path / "dataset.toml")
     assert ds.malformed_lines >= clean.malformed_lines + 2
     assert len(ds.gnss) == len(clean.gnss) - 1
-    # the plain profile, as in test_ins_replay's walk test (the services' profile is 1.15 m aided there)
-    res = replay(ds, OutageSchedule(15.0, 45.0, 40.0), progress=False, profile="plain")
+    res = replay(ds, OutageSchedule(15.0, 45.0, 40.0), progress=False)
     assert res.summary["malformed_lines"] == ds.malformed_lines
     assert res.summary["imu_samples"] == len(clean.imu) and res.summary["aided_h_rms_m"] < 1.0
 

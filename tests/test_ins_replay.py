@@ -55,11 +55,7 @@ def test_drive_0708_self_calibration_is_physical(drive_run):
 
 def test_walk_0827_pedestrian_with_float_section():
     ds = _dataset("walk_0827/dataset.toml")
-    # the plain profile: the filter core's target on this hand-held recording. The services'
-    # profile does worse here (aided 1.15 m, outage 18.7 m against 0.70 / 11.4 m): its consistency
-    # test fails on the walk, the lever arm is excluded once and reopened twice, and the IMU time
-    # offset wanders to +0.24 s before a forced fix takes it back (issue 27, integrity)
-    res = replay(ds, OutageSchedule(15.0, 45.0, 40.0), progress=False, profile="plain")
+    res = replay(ds, OutageSchedule(15.0, 45.0, 40.0), progress=False)
     s = res.summary
     assert res.filter.cfg.platform == "pedestrian" and s["counts"]["nhc"] == 0
     assert s["malformed_lines"] == ds.malformed_lines and s["imu_samples"] == len(ds.imu)

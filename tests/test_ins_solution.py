@@ -22,9 +22,9 @@ pytestmark = needs_shared(WALK)
 @pytest.fixture(scope="module")
 def solutions(tmp_path_factory):
     d = tmp_path_factory.mktemp("sol")
-    # the plain profile: with the services' profile the IMU time offset wanders to +0.24 s on this
-    # walk and a forced fix takes it back to -0.03 s, so one row's label is earlier than the one
-    # before (test_ins_replay's walk test; issue 27)
+    # the plain profile: with the services' profile the IMU time offset wanders to +0.24 s early in
+    # this walk and a forced fix (after 8 rejected ones) takes it back to -0.03 s, so one row's label
+    # is earlier than the one before
     common = [str(WALK), "--no-progress", "--outage-first", "30", "--outage-every", "40", "--outage-length", "10",
               "--profile", "plain"]
     assert main(["replay", *common, "--json", str(d / "plain.json")]) == 0
