@@ -178,7 +178,7 @@ METRIC_KEYS = ("outage_h_rms_m", "outage_h_max_m", "aided_h_rms_m", "nis_mean")
 
 def to_json(cal: Calibration) -> dict:
     return {"dataset": cal.dataset,
-            "profile": cal.profile,
+            "profile": getattr(cal, "profile", DEFAULT_PROFILE),
             "effects": effects_json(cal.fit),
             "before": {k: cal.before[k] for k in METRIC_KEYS},
             "after": {k: cal.after[k] for k in METRIC_KEYS},
