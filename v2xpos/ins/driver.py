@@ -543,11 +543,14 @@ class InsDriver:
 _SHARED = ("cfg", "on_update", "stage_s", "residuals")
 """Filter attributes a snapshot shares instead of copying: the configuration and the hook (never
 changed by a run), the stage timings (wall time spent, kept), and the residual log (append-only:
-a restore cuts it back to its length at the snapshot)."""
+a restore cuts it back to its length at the snapshot). An object a caller attaches to the filter
+that must not be copied either (e.g. a recorder of its steps, told by ``DriverHook.on_reorder``)
+is named in the filter's ``snapshot_shared`` attribute."""
 
 
 def _shared(f: InsFilter, d: dict) -> dict:
-    memo = {id(d[k]): d[k] for k in _SHARED if k in d}
+    names = _SHARED + tuple(getattr(f, "snapshot_shared", ()))
+    memo = {id(d[k]): d[k] for k in names if k in d}
     memo[id(f)] = f
     return memo
 
