@@ -96,20 +96,22 @@ class InsSimSource:
 
     def __init__(self, sc: Scenario, actor: Actor, platform: str | None = None, effects: tuple = (),
                  cov_every: int = 10):
-        from v2xpos.ins import InsConfig, InsFilter
+        from v2xpos.ins import InsFilter
         from v2xpos.ins.driver import InsDriver
+        from v2xpos.ins.profiles import vehicle_config
         self.name = "ins"
         self.actor = actor
         self.sensors = _SimSensors(sc, actor)
         plat = platform or ("pedestrian" if actor.kind == "pedestrian" else "car")
-        self.filter = InsFilter(InsConfig(platform=plat, imu_to_body=np.eye(3),
-                                          lever_arm_m=np.asarray(actor.lever_arm_m, float),
-                                          effects=tuple(effects), cov_every=cov_every,
-                                          # a simulated vehicle is exactly as declared: nothing for
-                                          # turning to verify and a failed test is a false alarm, lifted
-                                          # when it passes again (docs/integrity.md)
-                                          verify_turn_deg=0.0, consistency_reverify=True,
-                                          **filter_noise(actor.imu_grade)))
+        # the simulated vehicle as declared (identity mounting, its lever arm) in the plain profile,
+        # with the filter noise of its IMU's datasheet (``filter_noise``) and the effect states asked for
+        self.filter = InsFilter(vehicle_config(plat, np.eye(3), np.asarray(actor.lever_arm_m, float), 0.1,
+                                               profile="plain", effects=tuple(effects), cov_every=cov_every,
+                                               # a simulated vehicle is exactly as declared: nothing for
+                                               # turning to verify and a failed test is a false alarm,
+                                               # lifted when it passes again (docs/integrity.md)
+                                               verify_turn_deg=0.0, consistency_reverify=True,
+                                               **filter_noise(actor.imu_grade)))
         self.driver = InsDriver(self.filter, emit_states=True)
         self._init_rng = np.random.default_rng(actor.seed + 7)
         self.initialized = False
