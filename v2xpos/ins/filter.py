@@ -127,7 +127,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self.counts = {"gnss_pos_accepted": 0, "gnss_pos_rejected": 0, "gnss_vel_accepted": 0,
                        "gnss_vel_rejected": 0, "nhc": 0, "nhc_rejected": 0, "zupt": 0, "zaru": 0,
                        "odometer": 0, "odometer_rejected": 0, "gnss_forced": 0, "position_resets": 0, "static_calibrations": 0,
-                       "stops_not_level": 0,
+                       "stops_not_level": 0, "static_calibration_resets": 0,
                        "malformed_inputs": 0}
         self.residuals: list[UpdateResult] = []
         self.stage_s = {"strapdown": 0.0, "covariance": 0.0, "kalman_updates": 0.0}
@@ -469,18 +469,28 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self.counts["zaru"] += 1
 
     def _update_static_calibration(self, est: StaticBiasEstimate) -> None:
-        """A stop's gyro-bias estimate as a measurement of the gyro bias states (gated; R its
-        covariance); ``est.applied`` says whether it was taken. One estimate of each bias, each
-        sample counted once: the ZARU, which measures the same rate means, is held while the
-        estimate's window averages (``_update_zupt``), so those samples reach the states only
-        through this update. The accelerometer estimate is not applied: over the same samples the
-        ZUPT already measured the specific force (a velocity that stays zero), which is the same
-        information about tilt and bias; it is the check that the two agree
-        (``static_calibration``, ``accel_nis``). An estimate published late (its stop shown level
-        only at a later stop, ``est.late``) is not applied: the ZARU had those samples.
-        docs/ins.md, "Seed 001 stop calibration"."""
+        """A stop's gyro-bias estimate as the measurement of the gyro bias states for its window's
+        samples (R its covariance); ``est.applied`` says it was used. One estimate of each bias and
+        each sample counted once: the ZARU, which measures the same rate means, is held while the
+        window averages (``_update_zupt``), and an estimate published late (its stop shown level
+        only at a later stop, ``est.late``) is not applied, the ZARU having had those samples. The
+        accelerometer estimate is not applied: over the same samples the ZUPT measured the
+        specific force (a velocity that stays zero), the same information about tilt and bias; it
+        is the check that the two agree (``static_calibration``: ``accel_nis``). An update that
+        fails the gate means the bias states are refuted by a direct measurement of them (a bias
+        step the bias model does not allow, e.g. after a temperature change): they are reset to the
+        estimate, their covariance to its covariance and uncorrelated with the rest (counted in
+        ``static_calibration_resets``). docs/ins.md, "Seed 001 stop calibration"."""
         m = updates.stop_gyro_bias(self.layout, self.corr[COR_BG:COR_BG + 3], est.gyro_bias_rps, est.gyro_cov)
-        est.applied = self._update("static_calibration", self.t_s, *m).accepted
+        est.applied = True
+        if self._update("static_calibration", self.t_s, *m).accepted:
+            return
+        self.corr[COR_BG:COR_BG + 3] = est.gyro_bias_rps
+        self.P[BG:BG + 3, :] = 0.0
+        self.P[:, BG:BG + 3] = 0.0
+        self.P[BG:BG + 3, BG:BG + 3] = est.gyro_cov
+        self.counts["static_calibration_resets"] += 1
+        self._restart_separation()
 
     def update_heading(self, t_s: float, heading_rad: float, sd_rad: float,
                        baseline_vehicle_m: np.ndarray) -> UpdateResult:

@@ -123,9 +123,10 @@ class ImuPath:
         if self.initialized:
             self._smooth_acceleration(float(t[-1]))
         speed = math.sqrt(float(self.nav[3:6] @ self.nav[3:6])) if self.initialized else 0.0
-        ests = self._feed_stop_calibration(t, f, w, speed)
+        ests, made = self._feed_stop_calibration(t, f, w, speed)
+        self.counts["static_calibrations"] += len(ests)
         if not self.initialized:
-            self._feed_alignment(t, f, w, ests)
+            self._feed_alignment(t, f, w, made)
             return
         if np.abs(self.nav[NAV_LAT]) > DIVERGED_LATITUDE_RAD or not np.all(np.isfinite(self.nav)):
             self.initialized = False
@@ -133,8 +134,7 @@ class ImuPath:
         self._flush_covariance()
         self._feed_consistency_motion(speed)
         for est in ests:
-            self.counts["static_calibrations"] += 1
-            if self.cfg.apply_static_calibration and not est.late:
+            if self.cfg.apply_static_calibration and not (est.late or est.applied):
                 self._update_static_calibration(est)
         if (not self.cfg.constraints_on_request
                 and self.t_stamp_s - self._last_constraint_t >= 1.0 / self.cfg.constraint_rate_hz - TIME_TOLERANCE_S):
@@ -200,16 +200,21 @@ class ImuPath:
         self._dv_corrections_mps = np.zeros(3)
 
     def _feed_stop_calibration(self, t: np.ndarray, f: np.ndarray, w: np.ndarray,
-                               speed_mps: float) -> list[StaticBiasEstimate]:
+                               speed_mps: float) -> tuple[list[StaticBiasEstimate], StaticBiasEstimate | None]:
         """The stop calibrator (``static_calibration``) with the chunk: the vehicle is moving unless
-        the stop detector says static and the speed is below ``calibration_moving_speed_mps``; at a
-        stop the calibrator is given the normal gravity at the position and, when a window needs
-        it, the filter's attitude, mounting and bias states (``_stop_prior``)."""
-        moving = not self.static or (self.initialized and speed_mps > self.cfg.calibration_moving_speed_mps)
+        the stop detector's tests that need no gyro bias pass (a large bias must not keep the
+        calibration that finds it from running) and the speed is below
+        ``calibration_moving_speed_mps``; at a stop the calibrator is given the normal gravity at
+        the position and, when a window needs it, the filter's attitude, mounting and bias states
+        (``_stop_prior``). Returns the estimates published in this chunk and the one made in it."""
+        still = self.static or self.stops.is_static(self.t_s, self.corr[COR_BG:COR_BG + 3],
+                                                    self.nav[3:6] if self.initialized else None, rate_test=False)
+        moving = not still or (self.initialized and speed_mps > self.cfg.calibration_moving_speed_mps)
         g = geo.normal_gravity_mps2(self.nav[NAV_LAT], self.nav[NAV_H]) if self.initialized and not moving else None
+        made = self.calibrator.made
         ests = self.calibrator.feed(t, f, w, moving=moving, gravity_mps2=g, prior=self._stop_prior)
         self.counts["stops_not_level"] = self.calibrator.stops_not_level
-        return ests
+        return ests, (self.calibrator.latest if self.calibrator.made != made else None)
 
     def _stop_prior(self) -> StopPrior:
         """What the filter knows for the stop calibrator: attitude, estimated mounting
@@ -232,17 +237,17 @@ class ImuPath:
                          self.corr[COR_BA:COR_BA + 3].copy(), cov, self.C_nb.copy(),
                          geo.earth_rate_ned_rps(self.nav[NAV_LAT]), self.heading_known)
 
-    def _feed_alignment(self, t: np.ndarray, f: np.ndarray, w: np.ndarray, ests: list[StaticBiasEstimate]) -> None:
+    def _feed_alignment(self, t: np.ndarray, f: np.ndarray, w: np.ndarray, est: StaticBiasEstimate | None) -> None:
         """Before alignment: the coarse aligner gets the bias-compensated chunk, and a stop's
-        bias estimate goes straight into the compensation (the filter's start takes its
-        covariance as the bias prior: ``Initialization._start``)."""
+        estimate goes straight into the compensation, whatever its level verdict: nothing else
+        knows the biases yet, and the stop detector's rate test, hence the filter's static start,
+        needs the gyro bias. The filter's start takes its covariance as the bias prior
+        (``Initialization._start``); its publication waits for the verdict like any other."""
         self.aligner.feed(t, f - self.corr[COR_BA:COR_BA + 3], w - self.corr[COR_BG:COR_BG + 3], self.static)
-        for est in ests:
-            self.counts["static_calibrations"] += 1
-            if self.cfg.apply_static_calibration and not est.late:
-                self.corr[COR_BG:COR_BG + 3] = est.gyro_bias_rps
-                self.corr[COR_BA:COR_BA + 3] = est.accel_bias_mps2
-                est.applied = True
+        if est is not None and self.cfg.apply_static_calibration:
+            self.corr[COR_BG:COR_BG + 3] = est.gyro_bias_rps
+            self.corr[COR_BA:COR_BA + 3] = est.accel_bias_mps2
+            est.applied = True
 
     def _feed_consistency_motion(self, speed_mps: float) -> None:
         """Tell the consistency test (``consistency``) how far the vehicle turned since the last chunk."""

@@ -125,7 +125,7 @@ class Initialization:
         d[ATT:ATT + 3] = att_sd ** 2
         d[BG:BG + 3] = c.gyro_bias_init_sd_rps ** 2
         d[BA:BA + 3] = c.accel_bias_init_sd_mps2 ** 2
-        est = self.calibrator.estimates[-1] if self.calibrator.estimates and c.apply_static_calibration else None
+        est = self.calibrator.latest if c.apply_static_calibration else None
         if est is not None:
             self.corr[COR_BG:COR_BG + 3] = est.gyro_bias_rps
             self.corr[COR_BA:COR_BA + 3] = est.accel_bias_mps2

@@ -354,6 +354,8 @@ class StaticCalibrator:
     _prior: StopPrior | None = None
     _tilt: StopTilt | None = None
     _t_level_end: float = -math.inf
+    made: int = 0                                    # estimates made, published or not
+    latest: StaticBiasEstimate | None = None         # the last one made
 
     @property
     def stops_not_level(self) -> int:
@@ -453,6 +455,8 @@ class StaticCalibrator:
             return []
         f, w = np.concatenate(self._f), np.concatenate(self._w)
         est = bias_estimate(c, f, w, self._g, self._prior, self._t0, t_end_s, self._tilt)
+        self.made += 1
+        self.latest = est
         if est.tilt.level:
             self._t_level_end = t_end_s
             self.estimates.append(est)
