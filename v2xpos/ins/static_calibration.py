@@ -437,6 +437,15 @@ class StaticCalibrator:
             return out
         return []
 
+    def finish(self) -> list[StaticBiasEstimate]:
+        """The data ended: an open window 2 is closed as if the stop ended there (nothing to trim)."""
+        if self._phase != 1 or not self._t:
+            return []
+        t_last = float(self._t[-1][-1])
+        out = self._finish(t_last)
+        self._reset(2, t_last)
+        return out
+
     def _end_stop(self) -> list[StaticBiasEstimate]:
         """The stop ended (a non-static frame or the caller's cue): window 2 without its last
         ``end_trim_s``, which may hold the first motion."""
