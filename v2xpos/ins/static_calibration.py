@@ -4,35 +4,39 @@ Frames: b is the filter's body frame (IMU axes turned by the *declared* mounting
 z down), v the vehicle frame, ``R_vb = R(m)`` (Z-Y-X Euler angles m = roll, pitch, yaw) the
 estimated mounting (the filter's ``misalignment`` effect), NED the local level frame, ``C_nb``
 b -> NED. Every estimate is in b axes, the axes of the filter's bias states and of the compensation
-of the raw samples (``InsFilter.corr``): an IMU-axes bias b_imu is ``imu_to_body @ b_imu`` there.
+of the raw samples (``InsFilter.corr``): a bias b_imu in IMU axes is ``imu_to_body @ b_imu`` there.
 Errors are estimate minus truth, as in the filter.
 
-**Stop.** Every frame of a window must be static: ``|w| < gyro_norm_max_rps`` and
-``| |f| - g | < accel_norm_dev_max_mps2``; a caller's veto (``moving``: the filter's speed)
-restarts the window. Window 1 (``window1_s``) is judged for level; window 2 (the next
-``window2_s``) gives the estimate. A stop yields at most one estimate; the calibrator re-arms after
-a non-static frame.
+**Stop.** Every frame must be static, ``|w| < gyro_norm_max_rps`` and ``| |f| - g | <
+accel_norm_dev_max_mps2``, and the caller must not say ``moving`` (the filter: its stop detector's
+tests that need no gyro bias, and its speed). Window 1 (``window1_s``) is judged for level; window 2
+follows and lasts while the stop does (at least ``window2_s``, at most ``window2_max_s``; ended by
+motion, it loses its last ``end_trim_s``, which may hold the first motion). One estimate per stop;
+the calibrator re-arms after a non-static frame; ``finish`` closes an open window at the end of the
+data.
 
 **Level** is a property of the vehicle on the road, not of the IMU: a stop on a grade (a hill start:
 the brakes hold the car against gravity, the body settles on its suspension) is no calibration
-stop. The vehicle's down direction in its own axes is ``u_v = R_vb u_b`` with ``u_b`` the IMU's own
-gravity direction over the stop, ``u_b = -(mean f - b_a) / |mean f - b_a|`` (b_a the filter's
+stop. The vehicle's down direction in its own axes is ``u_v = R_vb u_b``, with ``u_b`` the IMU's own
+gravity direction over the stop, ``-(mean f - b_a) / |mean f - b_a|`` (b_a the filter's
 accelerometer bias state); roll ``atan2(u_y, u_z)``, pitch ``-asin(u_x)`` (Groves 2013 eqs.
-5.101-5.102). Its uncertainty: the bias error db turns ``u_b`` by ``rho = -[u_b x] db / g``, the
-mounting error dm enters through ``R(m - dm)``; the covariance of (db, dm), their correlation
-included, is the filter's, and the Jacobian of (roll, pitch) in (rho, dm) is taken by central
-differences. The stop is level when the probability under these Gaussian errors that |roll| <
-``level_roll_max_rad`` and |pitch| < ``level_pitch_max_rad`` (the two taken as independent,
-``prod_i [Phi((lim_i - x_i)/s_i) - Phi((-lim_i - x_i)/s_i)]``) is at least ``level_probability_min``.
-A tilt estimated beyond a limit is never level (the probability is then below one half), and
-neither is one too uncertain to say: with the mounting at its 10-degree prior the probability is at
-most 0.16 for a stop that is level. The mounting is constant and the stop's mean specific force is
-kept, so a stop not shown level is judged again at each later stop for ``level_pending_max_s``
-(with the filter's better mounting and bias then; the accelerometer bias drift over that time,
-<= 5e-3 m/s^2 in the default model, is 0.03 deg), and its estimate is published when it is shown
-level. On a car the roll mounting is nearly unobservable (the vehicle constraints see a velocity
-along the vehicle's x axis, which a roll leaves unchanged), so its sd stays at a few degrees: only
-stops whose roll estimate is well inside the limit pass.
+5.101-5.102). Their covariance: the bias error db turns ``u_b`` by ``rho = -[u_b x] db / g``, the
+mounting error dm enters through ``R(m - dm)``; (db, dm) and their correlation are the filter's
+covariance, and the Jacobian of (roll, pitch) in (rho, dm) is taken by central differences. The
+stop is level when the probability under these Gaussian errors that |pitch| <
+``level_pitch_max_rad`` (``Phi((lim - x)/s) - Phi((-lim - x)/s)``), times the same for the roll
+when the roll's sd is below ``level_roll_max_rad``, is at least ``level_probability_min``. So a
+tilt estimated beyond a limit is never level (its probability is below one half), nor is a stop
+whose grade is too uncertain to tell: with the mounting at its 10-degree prior the probability is
+at most 0.16. The roll enters only when it is known: a car's roll mounting is not observable from
+its motion (the vehicle constraints see a velocity along the vehicle's x axis, which a roll leaves
+unchanged; the sd stays near its prior on a generated drive), so without a declared or calibrated
+mounting the crossfall cannot be judged, and the verdict is the grade's; the roll and its sd are
+still stated. The mounting is constant and each stop's mean specific force is kept, so a stop not
+shown level is judged again at every later stop for ``level_pending_max_s`` with the filter's
+mounting and bias of then (the accelerometer bias drift over that time, <= 5e-3 m/s^2 in the
+default model, turns u_b by 0.03 deg), and its estimate is published when the stop is shown level
+(``late``).
 
 **Estimate** over window 2: the means of w and f, their standard errors by batch means over
 ``sem_blocks`` blocks (correlated engine vibration stays honest; Flegal & Jones 2010, Ann. Stat.
@@ -43,30 +47,32 @@ window 2's samples), ``u_b = C_bn e_D``:
     b_g = mean w - C_bn w_ie^n,          b_a = mean f + g u_b.
 
 **The accelerometer bias is separable from tilt only to the accuracy of that attitude**: an
-attitude error phi moves the estimate by ``-C_bn [g^n x] phi``, g per radian of tilt, i.e. 9.8
-mm/s^2 per mrad (0.17 m/s^2 per degree) on the horizontal axes; the estimate's covariance adds
-``g^2 [u_b x] S_rho [u_b x]^T`` (``rho = -C_bn phi``) to the sampling part. A GNSS-aided filter
-that has driven with turns knows its tilt to a few mrad (a few cm/s^2); one that has only stood
-still knows it to the accelerometer bias prior over g, i.e. not at all. Without an attitude (before
-alignment) only the component along gravity is measured, ``u_b . b_a = u_b . b_a0 + g -
-|mean f - b_a0|`` to first order; the horizontal components keep the caller's prior (mean b_a0 and
-covariance). The Earth rate (<= 7.3e-5 rad/s) is removed with the attitude; with the heading open,
-only its vertical part (the horizontal part, of known size and unknown direction, is noise of
-variance |w_h|^2 / 2 per horizontal axis); without a position it stays in, with variance |w_ie|^2
-per axis. Gravity is normal gravity at the position: anomalies and deflections of the vertical
-(a few 1e-3 m/s^2) are what ``accel_bias_sd_floor_mps2`` allows for; ``gyro_bias_sd_floor_rps``
-floors the gyro sd (a stopped car still rocks on its suspension and under its occupants).
+attitude error phi moves the estimate by ``-C_bn [g^n x] phi``, g per radian of tilt, i.e.
+9.8 mm/s^2 per mrad (0.17 m/s^2 per degree) on the horizontal axes, and the estimate's covariance
+adds ``A P_phi A^T`` (``A = -C_bn [g^n x]``) to the sampling part. A GNSS-aided filter that has
+driven with turns knows its tilt to a few mrad (a few cm/s^2); one that has only stood still knows
+it to its accelerometer bias prior over g, i.e. the estimate then says nothing new horizontally.
+Without an attitude (before alignment) only the component along gravity is measured,
+``u_b . b_a = u_b . b_a0 + g - |mean f - b_a0|`` to first order; the horizontal components keep
+the caller's prior (mean b_a0 and covariance). The Earth rate (<= 7.3e-5 rad/s) is removed with the
+attitude; with the heading open only its vertical part (the horizontal part, of known size and
+unknown direction, is noise of variance |w_h|^2 / 2 per horizontal axis); without a position it
+stays in, with variance |w_ie|^2 per axis. Floors on the sampling sds: a standing car still moves on
+its suspension and under its occupants, its attitude over a window changing by about
+``settling_angle_rad`` (drive_0708's parking stop: 1 mrad in 2 s), which a rate mean over T reads
+as a bias of that / T and a specific-force mean as g times it; normal gravity is wrong by the
+gravity anomaly and the deflection of the vertical (``gravity_anomaly_mps2``).
 
 **Check against the filter** (with an attitude): the estimate minus the filter's bias states at the
-start of window 2 and the covariance of that difference: gyro ``R_g + P_bg``; accelerometer
-``R_a + J P J^T`` with ``J = [-C_bn [g^n x], -I]`` over (phi, b_a), which keeps the correlation of
-tilt and bias the filter's levelling built. ``*_nis`` are the normalised squared differences
-(chi-square, 3 degrees of freedom, when both are right). How the filter uses an estimate (one
-estimate of each bias, no sample counted twice): ``InsFilter._update_static_calibration`` and
-docs/ins.md.
+start of window 2 and the covariance of that difference, gyro ``R_g + P_bg``, accelerometer
+``R_a + J P J^T`` with ``J = [A, -I]`` over (phi, b_a), which keeps the correlation of tilt and
+bias the filter's levelling built; ``*_nis`` are the normalised squared differences (chi-square,
+3 degrees of freedom, when both are right). How the filter uses an estimate (one estimate of each
+bias, no sample counted twice): ``InsFilter._update_static_calibration`` and docs/ins.md.
 
 ``estimates`` keeps every published estimate (the IMU-grading work reads the bias stability between
-stops), ``not_level`` the verdicts of the stops not (yet) shown level.
+stops), ``not_level`` the verdicts of the stops not (yet) shown level, ``latest`` the last estimate
+made, published or not (the filter's start uses it).
 """
 from __future__ import annotations
 
@@ -96,7 +102,7 @@ class StaticCalibrationConfig:
     accel_norm_dev_max_mps2: float = 0.8     # per frame
     level_roll_max_rad: float = math.radians(2.0)    # the vehicle's roll and pitch at a level stop
     level_pitch_max_rad: float = math.radians(2.0)   # (a 5 % grade is 2.9 deg)
-    level_probability_min: float = 0.5       # P(both within the limits) under the tilt's uncertainty
+    level_probability_min: float = 0.5       # P(within the limits) under the tilt's uncertainty
     level_pending_max_s: float = 600.0       # a stop not shown level is judged again at later stops this long
     window1_s: float = 1.0
     window2_s: float = 1.0                   # least length of window 2 ...
@@ -159,7 +165,9 @@ class StaticBiasEstimate:
     (sems floored, attitude and Earth-rate terms added; module docstring), the number of frames,
     whether the filter's attitude removed gravity (``attitude``) and the level verdict. With an
     attitude, ``filter_*`` are the filter's bias states at the start of window 2 and
-    ``*_difference_sd_*`` the sds of estimate minus state. ``applied``: whether the filter took it."""
+    ``*_difference_sd_*`` the sds of estimate minus state. ``late``: published at a later stop that
+    showed this one level; ``applied``: the filter used it (``InsFilter._update_static_calibration``,
+    before alignment ``ImuPath._feed_alignment``)."""
     t_start_s: float
     t_end_s: float
     gyro_bias_rps: np.ndarray
