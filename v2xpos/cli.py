@@ -51,6 +51,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "monitor": ("bench.monitor", "monitor CPU and status-change delay at N targets x rate"),
     "corpus": ("bench.corpus", "broken inputs through replay/calibrate/grade/config loading: tracebacks, silent exits"),
     "calibration": ("bench.calibration", "Monte-Carlo coverage of calibrate's estimates and sds (simulated drives)"),
+    "real-pair": ("bench.real_pair", "a real recording and itself delayed as two vehicles, scored against the RTK"),
 }
 
 
