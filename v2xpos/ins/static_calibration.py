@@ -337,11 +337,12 @@ def compare_with_filter(est: StaticBiasEstimate, p: StopPrior, accel_noise_cov: 
 
 @dataclass
 class _PendingStop:
-    """A stop whose estimate is made but whose level is not yet shown: its estimate, the mean
-    specific force and the gravity of its windows."""
-    est: StaticBiasEstimate
+    """A stop whose level is not yet shown: its verdict, the mean specific force and the gravity
+    of its windows, and its estimate (None while window 2 runs or if it was too short)."""
+    tilt: StopTilt
     mean_f_b: np.ndarray
     gravity_mps2: float
+    est: StaticBiasEstimate | None = None
 
 
 @dataclass
@@ -435,6 +436,7 @@ class StaticCalibrator:
             tilt = judge_level(c, self._sum_f1 / self._n1, g, p, self._t0, t_end, t_end)
             if not tilt.level:
                 self.not_level.append(tilt)
+                self._pending.append(_PendingStop(tilt, self._sum_f1 / self._n1, g))
             n1, sum_f1 = self._n1, self._sum_f1.copy()
             self._reset(1, t_end)
             self._prior, self._tilt, self._g, self._n1, self._sum_f1 = p, tilt, g, n1, sum_f1
@@ -478,29 +480,32 @@ class StaticCalibrator:
             self._t_level_end = t_end_s
             self.estimates.append(est)
             return [est]
-        mean_f = (f.sum(0) + self._sum_f1) / (len(f) + self._n1)
-        self._pending.append(_PendingStop(est, mean_f, self._g))
+        pending = next(x for x in self._pending if x.tilt is est.tilt)
+        pending.est, pending.mean_f_b = est, (f.sum(0) + self._sum_f1) / (len(f) + self._n1)
         return []
 
     def _revisit(self, p: StopPrior, t_s: float) -> list[StaticBiasEstimate]:
-        """Judge the pending stops again with what the filter knows now; publish those shown level
-        (``est.late``), drop those older than ``level_pending_max_s`` (their verdict stays in
-        ``not_level``)."""
+        """Judge the pending stops again with what the filter knows now: those shown level leave
+        ``not_level`` and their estimates are published (``late``); those older than
+        ``level_pending_max_s`` are judged no more (their verdict stays in ``not_level``)."""
         c = self.cfg
         out, keep = [], []
         for s in self._pending:
-            if t_s - s.est.t_end_s > c.level_pending_max_s:
+            if t_s - s.tilt.t_end_s > c.level_pending_max_s:
                 continue
-            old = s.est.tilt
-            tilt = judge_level(c, s.mean_f_b, s.gravity_mps2, p, old.t_start_s, old.t_end_s, t_s)
-            i = next(k for k, x in enumerate(self.not_level) if x is old)
+            tilt = judge_level(c, s.mean_f_b, s.gravity_mps2, p, s.tilt.t_start_s, s.tilt.t_end_s, t_s)
+            i = next(k for k, x in enumerate(self.not_level) if x is s.tilt)
             if tilt.level:
                 del self.not_level[i]
-                s.est.tilt, s.est.late = tilt, True
-                self.estimates.append(s.est)
-                out.append(s.est)
+                if s.est is not None:
+                    s.est.tilt, s.est.late = tilt, True
+                    self.estimates.append(s.est)
+                    out.append(s.est)
             else:
-                self.not_level[i] = s.est.tilt = tilt
+                self.not_level[i] = tilt
+                if s.est is not None:
+                    s.est.tilt = tilt
+                s.tilt = tilt
                 keep.append(s)
         self._pending = keep
         return out
