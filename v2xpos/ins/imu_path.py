@@ -202,13 +202,17 @@ class ImuPath:
     def _feed_stop_calibration(self, t: np.ndarray, f: np.ndarray, w: np.ndarray,
                                speed_mps: float) -> tuple[list[StaticBiasEstimate], StaticBiasEstimate | None]:
         """The stop calibrator (``static_calibration``) with the chunk: the vehicle is moving unless
-        the stop detector's tests that need no gyro bias pass (a large bias must not keep the
-        calibration that finds it from running) and the speed is below
-        ``calibration_moving_speed_mps``; at a stop the calibrator is given the normal gravity at
-        the position and, when a window needs it, the filter's attitude, mounting and bias states
-        (``_stop_prior``). Returns the estimates published in this chunk and the one made in it."""
-        still = self.static or self.stops.is_static(self.t_s, self.corr[COR_BG:COR_BG + 3],
-                                                    self.nav[3:6] if self.initialized else None, rate_test=False)
+        the stop detector says static and the speed is below ``calibration_moving_speed_mps``. The
+        detector's rate test (mean rate less the gyro bias state) is left out while that state's sd
+        exceeds the test's limit: it cannot then tell a bias from a turn, and a large bias must not
+        keep the calibration that finds it from running. At a stop the calibrator is given the
+        normal gravity at the position and, when a window needs it, the filter's attitude,
+        mounting and bias states (``_stop_prior``). Returns the estimates published in this chunk
+        and the one made in it."""
+        bias_known = (self.initialized
+                      and float(np.max(np.diag(self.P)[BG:BG + 3])) < self.cfg.static_gyro_mean_max_rps ** 2)
+        still = self.static if bias_known else self.stops.is_static(
+            self.t_s, self.corr[COR_BG:COR_BG + 3], self.nav[3:6] if self.initialized else None, rate_test=False)
         moving = not still or (self.initialized and speed_mps > self.cfg.calibration_moving_speed_mps)
         g = geo.normal_gravity_mps2(self.nav[NAV_LAT], self.nav[NAV_H]) if self.initialized and not moving else None
         made = self.calibrator.made

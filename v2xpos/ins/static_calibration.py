@@ -237,16 +237,20 @@ def tilt_covariance(down_b: np.ndarray, mounting_rpy_rad: np.ndarray, cov_rho_mi
 
 
 def level_probability(tilt_rad: np.ndarray, tilt_sd_rad: np.ndarray, max_rad: np.ndarray) -> float:
-    """P(|x_i| < max_i) for the pitch (grade) and, if its sd is below its limit, the roll
-    (crossfall), x_i ~ N(tilt_i, sd_i^2) independent (sd 0: certain); a roll known worse than its
-    limit cannot be judged and is left out (module docstring)."""
-    p = 1.0
-    for i in (1, 0):
-        x, s, lim = float(tilt_rad[i]), float(tilt_sd_rad[i]), float(max_rad[i])
-        if i == 0 and s >= lim:
-            continue
-        p *= float(norm.cdf((lim - x) / s) - norm.cdf((-lim - x) / s)) if s > 0 else float(abs(x) < lim)
+    """P(|pitch| < max) times, if the roll's sd is below its limit, P(|roll| < max), each tilt
+    x ~ N(estimate, sd^2) (sd 0: certain); a roll known worse than its limit cannot be judged and
+    is left out (module docstring). Arrays are (roll, pitch)."""
+    def inside(x: float, s: float, lim: float) -> float:
+        return float(norm.cdf((lim - x) / s) - norm.cdf((-lim - x) / s)) if s > 0 else float(abs(x) < lim)
+    p = inside(float(tilt_rad[1]), float(tilt_sd_rad[1]), float(max_rad[1]))
+    if tilt_sd_rad[0] < max_rad[0]:
+        p *= inside(float(tilt_rad[0]), float(tilt_sd_rad[0]), float(max_rad[0]))
     return p
+
+
+def gravity_tilt_jacobian(C_nb: np.ndarray, gravity_mps2: float) -> np.ndarray:
+    """A = -C_bn [g^n x]: how an attitude error phi (NED) moves ``mean f + g C_bn e_D``."""
+    return -C_nb.T @ skew(np.array([0.0, 0.0, gravity_mps2]))
 
 
 def batch_sem(x: np.ndarray, blocks: int) -> np.ndarray:
@@ -304,7 +308,7 @@ def bias_estimate(cfg: StaticCalibrationConfig, f: np.ndarray, w: np.ndarray, gr
         earth_b = p.C_nb.T @ p.earth_rate_ned_rps
     if p.C_nb is not None:
         ba = mf + g * u
-        A = -p.C_nb.T @ skew(np.array([0.0, 0.0, g]))
+        A = gravity_tilt_jacobian(p.C_nb, g)
         accel_cov = r_a + A @ p.cov[PRIOR_ATT, PRIOR_ATT] @ A.T
     else:
         ba = p.accel_bias_mps2 + (g - float(np.linalg.norm(mf - p.accel_bias_mps2))) * u
@@ -323,7 +327,7 @@ def compare_with_filter(est: StaticBiasEstimate, p: StopPrior, accel_noise_cov: 
     d_g = est.gyro_bias_rps - p.gyro_bias_rps
     cov_g = est.gyro_cov + p.cov[PRIOR_BG, PRIOR_BG]
     J = np.zeros((3, 12))
-    J[:, PRIOR_ATT] = -p.C_nb.T @ skew(np.array([0.0, 0.0, g]))
+    J[:, PRIOR_ATT] = gravity_tilt_jacobian(p.C_nb, g)
     J[:, PRIOR_BA] = -np.eye(3)
     d_a = est.accel_bias_mps2 - p.accel_bias_mps2
     cov_a = accel_noise_cov + J @ p.cov @ J.T
