@@ -8,8 +8,8 @@ of the raw samples (``InsFilter.corr``): a bias b_imu in IMU axes is ``imu_to_bo
 Errors are estimate minus truth, as in the filter.
 
 **Stop.** Every frame must be static, ``|w| < gyro_norm_max_rps`` and ``| |f| - g | <
-accel_norm_dev_max_mps2``, and the caller must not say ``moving`` (the filter: its stop detector's
-tests that need no gyro bias, and its speed). Window 1 (``window1_s``) is judged for level; window 2
+accel_norm_dev_max_mps2``, and the caller must not say ``moving`` (the filter: its stop detector,
+without the rate test while the gyro bias is unknown, and its speed; ``ImuPath._feed_stop_calibration``). Window 1 (``window1_s``) is judged for level; window 2
 follows and lasts while the stop does (at least ``window2_s``, at most ``window2_max_s``; ended by
 motion, it loses its last ``end_trim_s``, which may hold the first motion). One estimate per stop;
 the calibrator re-arms after a non-static frame; ``finish`` closes an open window at the end of the
