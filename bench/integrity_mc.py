@@ -65,7 +65,8 @@ def brief(s: dict) -> dict:
     """The figures of one scored target that the table shows."""
     mv = s["moving"]
     bias = max(abs(mv["x_mean_m"] or 0.0), abs(mv["y_mean_m"] or 0.0)) if mv["n"] else None
-    return {"valid": s["valid_fraction"], "n_moving": mv["n"], "h_rms_m": mv["h_rms_m"], "bias_m": bias,
+    return {"valid": s["valid_fraction"], "valid_moving": s.get("moving_valid_fraction"),
+            "first_valid_s": s.get("time_to_first_valid_s"), "n_moving": mv["n"], "h_rms_m": mv["h_rms_m"], "bias_m": bias,
             "in3x": s.get("within_3sd_x"), "in3y": s.get("within_3sd_y"), "nrms_x": s.get("normalised_rms_x"),
             "nrms_y": s.get("normalised_rms_y"), "sig_ratio": s.get("median_sigma_h_over_h_rms"),
             "sigma_h_m": s.get("median_sigma_h_m"), "violations": s.get("violations", 0),
@@ -77,7 +78,8 @@ def _f(v, d: int = 3) -> str:
 
 
 def line(name: str, b: dict) -> str:
-    return (f"{name:34s} VALID {_f(100 * b['valid'], 1):>5s} %  hRMS {_f(b['h_rms_m'])}  bias {_f(b['bias_m'])}  "
+    return (f"{name:34s} VALID {_f(100 * b['valid'], 1):>5s} % (moving {_f(100 * b['valid_moving'], 1) if b['valid_moving'] is not None else '-':>5s} %, "
+            f"first after {_f(b['first_valid_s'], 1):>5s} s)  hRMS {_f(b['h_rms_m'])}  bias {_f(b['bias_m'])}  "
             f"in3sd {_f(b['in3x'])}/{_f(b['in3y'])}  nRMS {_f(b['nrms_x'], 2)}/{_f(b['nrms_y'], 2)}  "
             f"sig_h {_f(b['sigma_h_m'])} ({_f(b['sig_ratio'], 1)}x)  viol {b['violations']}")
 
@@ -111,12 +113,17 @@ def main(argv: list[str] | None = None) -> int:
     for preset, bs in by_preset.items():
         h = [b["h_rms_m"] for b in bs if b["h_rms_m"] is not None]
         ratios = [b["sig_ratio"] for b in bs if b["sig_ratio"]]
+        mvs = [b["valid_moving"] for b in bs if b["valid_moving"] is not None]
+        fv = [b["first_valid_s"] for b in bs if b["first_valid_s"] is not None]
         print(f"{preset}: cases {len(bs)}, h RMS median {_f(float(np.median(h)) if h else None)} max "
               f"{_f(max(h) if h else None)}, min in3sd {_f(min(min(b['in3x'] or 0, b['in3y'] or 0) for b in bs))}, "
               f"sigma ratio median {_f(float(np.median(ratios)) if ratios else None, 1)} "
               f"max {_f(max(ratios) if ratios else None, 1)}, "
               f"violations {sum(b['violations'] for b in bs)}, VALID median "
-              f"{_f(100 * float(np.median([b['valid'] for b in bs])), 1)} % min {_f(100 * min(b['valid'] for b in bs), 1)} %")
+              f"{_f(100 * float(np.median([b['valid'] for b in bs])), 1)} % min {_f(100 * min(b['valid'] for b in bs), 1)} %, "
+              f"VALID while moving median {_f(100 * float(np.median(mvs)) if mvs else None, 1)} % "
+              f"min {_f(100 * min(mvs) if mvs else None, 1)} %, first VALID after max "
+              f"{_f(max(fv) if fv else None, 1)} s")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
     return 0

@@ -32,7 +32,9 @@ from v2xpos.types import FixStatus
 from . import ekf, updates
 from .alignment import CoarseAligner, CourseTracker
 from .config import InsConfig
-from .consistency import ConsistencyMonitor, FaultTolerantSolution, widen_lever_arm
+from .consistency import ConsistencyMonitor
+from .effects import DEFAULT_INITIAL_SD
+from .integrity import FaultTolerantSolution
 from .ekf import ATT, BA, BG, EFFECT_SIZES, POS, VEL, StateLayout, kalman_update
 from .effects import EffectValues
 from .imu_path import ImuPath
@@ -88,7 +90,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
                                               detectable_m=c.verify_detectable_lever_arm_m)
         i_l = self.layout.at("lever_arm")
         self.separation = (FaultTolerantSolution(i_l, c.undeclared_lever_arm_sd_m, c.integrity_false_alarm_per_hour,
-                                                 c.integrity_missed_detection, consider=self.consider)
+                                                 self._setup_prior(), c.integrity_risk, consider=self.consider,
+                                                 widen=self._declared_effects())
                            if c.fault_tolerant_solution and i_l >= 0 and c.undeclared_lever_arm_sd_m > 0 else None)
         self._t_motion_s: float | None = None
         self.kidx = self.layout.kernel_index()
@@ -259,7 +262,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
                                           self.consider)
         if ok:
             if self.separation is not None:
-                self.separation.update(H, d, R, dx)
+                self.separation.update(H, d, R, dx, nis, S)
             self.P = P
             self._apply(dx)
         self.stage_s["kalman_updates"] += perf_counter() - t0
@@ -275,68 +278,61 @@ class InsFilter(ImuPath, Initialization, Outputs):
             self.on_update(res, self)
         return res
 
+    def _setup_prior(self) -> float:
+        """P(the declared set-up is wrong) before this drive's data (``integrity``): the rate of a
+        set-up changing since it was verified on an earlier drive, or of a blunder in one never
+        verified."""
+        return self.cfg.setup_change_prior if self.cfg.setup_verified else self.cfg.setup_fault_prior
+
+    def _declared_effects(self) -> tuple:
+        """(index, sd) of the effect states a calibration declared tighter than the platform's
+        default prior (``effects.DEFAULT_INITIAL_SD``): the set-up hypothesis widens them back
+        (the lever arm is widened by ``undeclared_lever_arm_sd_m`` on its own)."""
+        out = []
+        for name in self.layout.effects:
+            if name == "lever_arm" or name not in DEFAULT_INITIAL_SD:
+                continue
+            k = EFFECT_SIZES[name]
+            declared = np.broadcast_to(np.asarray(self.cfg.effect_initial_sd.get(name, 0.0), float), (k,))
+            default = np.broadcast_to(np.asarray(DEFAULT_INITIAL_SD[name], float), (k,))
+            i = self.layout.at(name)
+            out += [(i + m, float(default[m])) for m in range(k) if declared[m] < default[m]]
+        return tuple(out)
+
     def _on_inconsistency(self) -> None:
-        """The consistency test failed: the declared model does not explain the innovations. The
-        effect whose declared prior is the tightest and whose error only turning reveals -- the
-        horizontal antenna lever arm, declared to a few cm (an undeclared 0.5 m offset is a
-        constant body-frame bias the filter cannot see on a straight road, Groves 2013 sec. 14.2.7)
-        -- is what the evidence rejects. With the fault-tolerant solution running
-        (``consistency.FaultTolerantSolution``) the filter *excludes* the declaration (RAIM fault
-        detection and exclusion): it takes that solution's state and covariance, the estimate that
-        never relied on the declared lever arm and is consistent under the fault. Otherwise (or
-        after an exclusion) the lever arm's variance is reopened to ``undeclared_lever_arm_sd_m``^2
-        together with what a wrong lever arm does to the IMU point the filter reports
-        (``consistency.widen_lever_arm``: the position error -C_nb dl of a filter that tracks its
-        antenna), so the reported sigma grows at once and the turns that follow estimate it, and
-        the other effect states go back to their priors. The windows of the test restart (their
-        innovations came from the filter before the change)."""
-        i = self.layout.at("lever_arm")
-        sd = self.cfg.undeclared_lever_arm_sd_m
-        if not self.cfg.reopen_on_inconsistency or i < 0 or not sd > 0:
-            return
+        """The innovation tests failed: the filter's covariance does not describe its innovations.
+        No state is changed -- the reported sds are scaled by the windowed NIS ratio meanwhile
+        (``ConsistencyMonitor.variance_ratio``) and the result is INCONSISTENT until the evidence
+        has gone -- but a set-up verified on an earlier drive is verified no more: the set-up
+        hypothesis goes back to the prior of an unverified one (issue 27: a consistency alarm
+        re-opens the verification)."""
         sep = self.separation
-        if sep is not None and sep.active and not sep.excluded:
-            self._apply(sep.w)
-            self.P = sep.P.copy()
-            sep.exclude(self.P)
-            self.counts["lever_arm_excluded"] = self.counts.get("lever_arm_excluded", 0) + 1
-            self.consistency.clear_windows()
-            return
-        widened = False
-        if min(self.P[i, i], self.P[i + 1, i + 1]) < 0.25 * sd * sd:
-            self.P = widen_lever_arm(self.P, i, POS, VEL, self.C_nb, self.mem[MEM_W:MEM_W + 3], sd)
-            widened = True
-        reopen = []
-        if self.cfg.reopen_all_effects:
-            # the other effect states were estimated with the lever arm held at its declared value:
-            # what they absorbed of its signature (a velocity latency dt gives a x dt = v w dt
-            # sideways in a steady turn, as w x l does) is re-estimated jointly from their priors
-            for name in self.layout.effects:
-                if name == "lever_arm":
-                    continue
-                j, sd0 = self.layout.at(name), np.broadcast_to(self.cfg.effect_initial_sd.get(name, 0.0), (EFFECT_SIZES[name],))
-                reopen += [(j + m, float(sd0[m])) for m in range(EFFECT_SIZES[name])]
-        for k, s_k in reopen:
-            if s_k > 0 and self.P[k, k] < 0.25 * s_k * s_k:
-                self.P[k, :] = 0.0
-                self.P[:, k] = 0.0
-                self.P[k, k] = s_k * s_k
-                widened = True
-        if widened:
-            self.counts["lever_arm_reopened"] = self.counts.get("lever_arm_reopened", 0) + 1
-            self.consistency.clear_windows()
-            self._restart_separation()
+        if sep is not None and sep.prior < self.cfg.setup_fault_prior:
+            sep.set_prior(self.cfg.setup_fault_prior)
+            self.counts["verification_reopened"] = self.counts.get("verification_reopened", 0) + 1
+
+    def _exclude_declaration(self) -> None:
+        """The separation test found the declared set-up wrong (``integrity``: RAIM fault
+        exclusion): take the twin's state and covariance -- the estimate that never relied on the
+        declaration and is consistent under the fault -- and restart the innovation tests, whose
+        windows hold the innovations of the filter before the change."""
+        sep = self.separation
+        self._apply(sep.w)
+        self.P = sep.P.copy()
+        sep.exclude(self.P)
+        self.counts["lever_arm_excluded"] = self.counts.get("lever_arm_excluded", 0) + 1
+        self.consistency.clear_windows()
 
     def _restart_separation(self) -> None:
-        """(Re)start the fault-tolerant solution from the current covariance (heading set, filter
-        started, effects reopened): its evidence about the lever arm is gathered from here on."""
+        """(Re)start the twin from the current covariance (heading set, filter started): its
+        evidence about the set-up is gathered from here on."""
         if self.separation is not None:
             self.separation.start(self.P, self.C_nb, self.mem[MEM_W:MEM_W + 3])
-            self.consistency.set_protection(math.inf, self.cfg.protection_limit_m)
+            self.consistency.set_protection(math.inf, self.cfg.alert_limit_m)
 
     def _test_separation(self, t_s: float) -> None:
-        """Solution-separation test and protection level (``FaultTolerantSolution``), at most every
-        ``test_every_s``; a separation beyond its threshold is a failed consistency test."""
+        """Separation test and protection level (``integrity.FaultTolerantSolution``), at most every
+        ``test_every_s``; a separation beyond its threshold excludes the declared set-up."""
         sep = self.separation
         if sep is None or not sep.due(t_s):
             return
@@ -344,10 +340,9 @@ class InsFilter(ImuPath, Initialization, Outputs):
         J = reported_jacobian(self.layout, self.C_nb, self.fx.misalignment_rad, self.nav[3:6], a_n, w_nb_b)
         C_nv = self.C_nb @ self.misalignment_dcm().T
         alarm = sep.test(t_s, J[0:3], self.P, math.atan2(C_nv[1, 0], C_nv[0, 0]))
-        self.consistency.set_protection(sep.protection_m, self.cfg.protection_limit_m)
+        self.consistency.set_protection(sep.protection_m, self.cfg.alert_limit_m)
         if alarm and t_s >= self.consistency.t_settled_s:
-            self.consistency.fail(t_s)
-            self._on_inconsistency()
+            self._exclude_declaration()
 
     def _gap_s(self, t_meas_s: float) -> float:
         return t_meas_s - self.fx.gnss_latency_s - self.t_s

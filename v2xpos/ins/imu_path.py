@@ -117,9 +117,9 @@ class ImuPath:
             return
         self._last_w_b = (self.mem[MEM_W:MEM_W + 3].copy() if self.initialized
                           else w[-1] - self.corr[COR_BG:COR_BG + 3])
-        if self.noise_meter is not None:
-            self.noise_meter.feed(t, w, f)
         self._detect_stop(f, w)
+        if self.noise_meter is not None:
+            self.noise_meter.feed(t, w, f, static=self.static)
         if self.initialized:
             self._smooth_acceleration(float(t[-1]))
         speed = math.sqrt(float(self.nav[3:6] @ self.nav[3:6])) if self.initialized else 0.0
