@@ -474,8 +474,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
         is the check that the two agree (``static_calibration``: ``accel_nis``). An update that
         fails the gate means the bias states are refuted by a direct measurement of them (a bias
         step the bias model does not allow, e.g. after a temperature change): they are reset to the
-        estimate, their covariance to its covariance and uncorrelated with the rest (counted in
-        ``static_calibration_resets``). docs/ins.md, "Seed 001 stop calibration"."""
+        estimate, their covariance to its covariance and uncorrelated with the rest, in the
+        integrity twin too (counted in ``static_calibration_resets``). docs/ins.md, "Seed 001 stop calibration"."""
         m = updates.stop_gyro_bias(self.layout, self.corr[COR_BG:COR_BG + 3], est.gyro_bias_rps, est.gyro_cov)
         est.applied = True
         if self._update("static_calibration", self.t_s, *m).accepted:
@@ -485,7 +485,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self.P[:, BG:BG + 3] = 0.0
         self.P[BG:BG + 3, BG:BG + 3] = est.gyro_cov
         self.counts["static_calibration_resets"] += 1
-        self._restart_separation()
+        if self.separation is not None:
+            self.separation.reset_states(np.arange(BG, BG + 3), self.P)
 
     def update_heading(self, t_s: float, heading_rad: float, sd_rad: float,
                        baseline_vehicle_m: np.ndarray) -> UpdateResult:
