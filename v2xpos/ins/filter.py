@@ -130,6 +130,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self.counts = {"gnss_pos_accepted": 0, "gnss_pos_rejected": 0, "gnss_vel_accepted": 0,
                        "gnss_vel_rejected": 0, "nhc": 0, "nhc_rejected": 0, "zupt": 0, "zaru": 0,
                        "odometer": 0, "odometer_rejected": 0, "gnss_forced": 0, "position_resets": 0, "static_calibrations": 0,
+                       "stops_not_level": 0, "static_calibration_resets": 0,
                        "malformed_inputs": 0}
         self.residuals: list[UpdateResult] = []
         self.stage_s = {"strapdown": 0.0, "covariance": 0.0, "kalman_updates": 0.0}
@@ -450,21 +451,42 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self.counts["nhc" if r.accepted else "nhc_rejected"] += 1
 
     def _update_zupt(self) -> None:
-        """ZUPT, then ZARU with the stop window's mean rate (both ungated: a stop is certain)."""
+        """ZUPT, then ZARU with the stop window's mean rate (both ungated: a stop is certain); no
+        ZARU while its window reaches into a stop calibration's (``_update_static_calibration``)."""
         c = self.cfg
         self._update("zupt", self.t_s, *updates.zupt(self.layout, self.nav[3:6], c.zupt_sd_mps), gate=False)
         self.counts["zupt"] += 1
+        if c.apply_static_calibration and self.calibrator.averaging(self.t_stamp_s, c.static_window_s):
+            return
         m = updates.zaru(self.layout, self.C_nb, self.nav[NAV_LAT], self.stops.mean_rate_rps(),
                          self.corr[COR_BG:COR_BG + 3], c.zaru_sd_rps)
         self._update("zaru", self.t_s, *m, gate=False)
         self.counts["zaru"] += 1
 
     def _update_static_calibration(self, est: StaticBiasEstimate) -> None:
-        """A stop calibration's estimate applied online as a direct measurement of the bias states."""
-        m = updates.stop_biases(self.layout, self.C_nb, self.nav[NAV_LAT], self.corr[COR_BG:COR_BG + 3],
-                                self.corr[COR_BA:COR_BA + 3], est.gyro_bias_rps, est.gyro_sem_rps,
-                                est.accel_bias_mps2, self.cfg.static_calibration.level_fx_max_mps2)
-        self._update("static_calibration", self.t_s, *m)
+        """A stop's gyro-bias estimate as the measurement of the gyro bias states for its window's
+        samples (R its covariance); ``est.applied`` says it was used. One estimate of each bias and
+        each sample counted once: the ZARU, which measures the same rate means, is held while the
+        window averages (``_update_zupt``), and an estimate published late (its stop shown level
+        only at a later stop, ``est.late``) is not applied, the ZARU having had those samples. The
+        accelerometer estimate is not applied: over the same samples the ZUPT measured the
+        specific force (a velocity that stays zero), the same information about tilt and bias; it
+        is the check that the two agree (``static_calibration``: ``accel_nis``). An update that
+        fails the gate means the bias states are refuted by a direct measurement of them (a bias
+        step the bias model does not allow, e.g. after a temperature change): they are reset to the
+        estimate, their covariance to its covariance and uncorrelated with the rest, in the
+        integrity twin too (counted in ``static_calibration_resets``). docs/ins.md, "Seed 001 stop calibration"."""
+        m = updates.stop_gyro_bias(self.layout, self.corr[COR_BG:COR_BG + 3], est.gyro_bias_rps, est.gyro_cov)
+        est.applied = True
+        if self._update("static_calibration", self.t_s, *m).accepted:
+            return
+        self.corr[COR_BG:COR_BG + 3] = est.gyro_bias_rps
+        self.P[BG:BG + 3, :] = 0.0
+        self.P[:, BG:BG + 3] = 0.0
+        self.P[BG:BG + 3, BG:BG + 3] = est.gyro_cov
+        self.counts["static_calibration_resets"] += 1
+        if self.separation is not None:
+            self.separation.reset_states(np.arange(BG, BG + 3), self.P)
 
     def update_heading(self, t_s: float, heading_rad: float, sd_rad: float,
                        baseline_vehicle_m: np.ndarray) -> UpdateResult:
