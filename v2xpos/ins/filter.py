@@ -62,7 +62,9 @@ class InsFilter(ImuPath, Initialization, Outputs):
     acceleration of the measurement models and ``acc_strapdown_ned_mps2`` the strapdown's own (the
     IMU time offset's column); ``static`` the stop detector's (``stops``) verdict;
     ``initialized`` / ``heading_known`` the alignment's progress; ``counts`` / ``residuals``
-    what the updates did; ``on_update(result, filter)`` an optional hook after every update.
+    what the updates did; ``on_update(result, filter)`` an optional hook after every update;
+    ``recorder`` an optional ``smoother.StepRecorder`` told of every covariance propagation, every
+    correction fed back and every reset that rewrites P (what a backward smoothing pass needs).
     """
 
     def __init__(self, cfg: InsConfig | None = None):
@@ -131,6 +133,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self.residuals: list[UpdateResult] = []
         self.stage_s = {"strapdown": 0.0, "covariance": 0.0, "kalman_updates": 0.0}
         self.on_update = None
+        self.recorder = None
         self._last_w_b = np.zeros(3)
         self._last_sample_t: float | None = None
         self.acc_ned_mps2 = np.zeros(3)
@@ -197,6 +200,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
             t0 = perf_counter()
             Phi = ekf.transition_matrix(self.A)
             self.A[:] = 0.0
+            if self.recorder is not None:
+                self.recorder.propagate(self, Phi, max(dt, 0.0))
             if self.separation is not None:
                 self.separation.propagate(Phi, self.q_c, max(dt, 0.0))
             self.P = ekf.propagate_with_transition(self.P, Phi, self.q_c, max(dt, 0.0))
@@ -261,6 +266,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
                 self.separation.update(H, d, R, dx)
             self.P = P
             self._apply(dx)
+            if self.recorder is not None:
+                self.recorder.correct(dx)
         self.stage_s["kalman_updates"] += perf_counter() - t0
         res = UpdateResult(kind=kind, t_s=t_s, accepted=ok, nis=nis, innovation=-d,
                            innovation_sd=np.sqrt(np.abs(np.diag(S))), innovation_cov=S)
@@ -293,6 +300,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
         sd = self.cfg.undeclared_lever_arm_sd_m
         if not self.cfg.reopen_on_inconsistency or i < 0 or not sd > 0:
             return
+        self._smoothing_boundary()
         sep = self.separation
         if sep is not None and sep.active and not sep.excluded:
             self._apply(sep.w)
@@ -325,6 +333,12 @@ class InsFilter(ImuPath, Initialization, Outputs):
             self.counts["lever_arm_reopened"] = self.counts.get("lever_arm_reopened", 0) + 1
             self.consistency.clear_windows()
             self._restart_separation()
+
+    def _smoothing_boundary(self) -> None:
+        """Called before a reset rewrites P (start, position and heading resets, lever-arm
+        exclusion or reopening): the smoother's backward pass does not cross it."""
+        if self.recorder is not None:
+            self.recorder.boundary(self)
 
     def _restart_separation(self) -> None:
         """(Re)start the fault-tolerant solution from the current covariance (heading set, filter
