@@ -52,6 +52,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "corpus": ("bench.corpus", "broken inputs through replay/calibrate/grade/config loading: tracebacks, silent exits"),
     "calibration": ("bench.calibration", "Monte-Carlo coverage of calibrate's estimates and sds (simulated drives)"),
     "real-pair": ("bench.real_pair", "a real recording and itself delayed as two vehicles, scored against the RTK"),
+    "smoothing-memory": ("bench.smoothing_memory", "peak memory of replay --smooth on a generated hour (limit 1 GiB)"),
 }
 
 

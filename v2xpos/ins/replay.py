@@ -90,7 +90,8 @@ def replay(dataset: Dataset, schedule: OutageSchedule | None = None, cfg: InsCon
     cpu = time.process_time() - t_cpu0
     summary, series = metrics.summary(f, n_scheduled, wall, cpu)
     if smoothing is not None:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         summary.update(smoothing.finish(f))
-        summary["smoothing"].update(forward_s=wall, backward_s=time.perf_counter() - t0)
+        summary["smoothing"].update(forward_s=wall, forward_cpu_s=cpu, backward_s=time.perf_counter() - t0,
+                                    backward_cpu_s=time.process_time() - c0)
     return ReplayResult(summary=summary, series=series, filter=f)

@@ -30,7 +30,7 @@ from .filter import InsFilter
 from .replay_engine import ReplayHook
 from .replay_metrics import ReplayMetrics, interp_lla, predicted_antenna, rms
 from .smoother import StepRecorder, antenna_rows, ned_correction_lla, reported_rows
-from .solution import DEG, EFFECT_COLUMNS, _effect_names, row
+from .solution import DEG, EFFECT_COLUMNS, _effect_names, columns, row
 
 TAP_ROWS = 12
 """Rows of every tap: the antenna at the epoch (3), then position, velocity, vehicle attitude (9)."""
@@ -61,8 +61,10 @@ class SmoothingHook(ReplayHook):
         self.tap_index: list[int] = []
         self.err_fwd: list[np.ndarray] = []
         self.cov_fwd: list[np.ndarray] = []
-        self.rows: list[dict] = []
+        self.rows: list[np.ndarray] = []      # numeric columns of the forward rows (``_row_columns``)
+        self.fixes: list[str] = []
         self.effects: tuple = ()
+        self._row_columns: list[str] = []
 
     def _tap(self, f: InsFilter, t_s: float, kind: int) -> np.ndarray:
         H = antenna_rows(f, t_s)
@@ -91,8 +93,12 @@ class SmoothingHook(ReplayHook):
         if self.solution is None or not f.initialized:
             return
         self._tap(f, f.t_s, KIND_SOLUTION)
-        self.effects = f.layout.effects
-        self.rows.append(row(f, used))
+        r = row(f, used)
+        if not self._row_columns:
+            self.effects = f.layout.effects
+            self._row_columns = [c for c in columns(self.effects) if c != "fix"]
+        self.rows.append(np.array([r[c] for c in self._row_columns], float))
+        self.fixes.append(r["fix"])
 
     def after_gnss_epoch(self, f: InsFilter, t_s: float, k: int, used: bool) -> None:
         if not self.at_output_times:
@@ -134,7 +140,9 @@ class SmoothingHook(ReplayHook):
                             "precision": self.rec.codec.precision}
         if self.solution is not None:
             sol = np.flatnonzero(kind == KIND_SOLUTION)
-            for r, k in zip(self.rows, taps[sol]):
+            for values, fix, k in zip(self.rows, self.fixes, taps[sol]):
+                r = dict(zip(self._row_columns, values.tolist()), fix=fix)
+                r["gps_week"], r["gnss_used"] = int(r["gps_week"]), int(r["gnss_used"])
                 if sm.smoothed[k]:
                     r = smoothed_row(r, self.effects, f.layout, sm.dx[k], sm.sd[k], sm.y[k, 3:12], sm.cov[k, 3:12, 3:12])
                 r["smoothed"] = int(bool(sm.smoothed[k]))

@@ -50,7 +50,7 @@ pass returns ``e`` (the full error, for effect states and biases), ``J e`` and `
 Storage (``StepRecorder``, per node): ``P+`` (float32: the standard deviations in float64 and
 the Cholesky factor of the correlation matrix in float32, lower triangle -- the decoded matrix is
 positive semi-definite whatever the rounding; float64: the upper triangle), the rows of
-``Phi - I`` that the error dynamics can fill (``transition_rows``; the other rows of Phi are the
+``Phi - I`` that the error dynamics can fill (``transition_support``; the rest of Phi is the
 identity, checked at every node), ``q_c dt`` (float32) and the summed correction (float64).
 ``P-`` and ``G`` are recomputed in the backward pass. With 27 states that is about 3.9 kB a node
 (float32), at about 20 nodes per second 280 MB for an hour. Storage grows in fixed blocks
@@ -147,15 +147,22 @@ class CovarianceCodec:
         return R
 
 
-def transition_rows(layout) -> np.ndarray:
-    """Rows of the error-state transition that can differ from the identity: the 15 base states
-    (the strapdown's F, ``mechanization``) and the IMU time offset when the clock drift drives it
-    (``InsFilter._flush_covariance``); every effect is otherwise a random constant or random walk."""
-    rows = list(range(BASE_STATES))
+def transition_support(layout) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, columns) of the error-state transition that can differ from the identity. Rows: the
+    15 base states (the strapdown's F, ``mechanization``) and the IMU time offset when the clock
+    drift drives it (``InsFilter._flush_covariance``); every effect is otherwise a random constant
+    or random walk. Columns: the base states, the gyro and accelerometer scales (``kernel_index``)
+    and the clock drift."""
+    rows, cols = list(range(BASE_STATES)), list(range(BASE_STATES))
     i_dt, i_dr = layout.at("imu_time_offset"), layout.at("imu_clock_drift")
     if i_dt >= 0 and i_dr >= 0:
         rows.append(i_dt)
-    return np.asarray(rows, dtype=np.int64)
+        cols.append(i_dr)
+    for name in ("gyro_scale", "accel_scale"):
+        i = layout.at(name)
+        if i >= 0:
+            cols += [i, i + 1, i + 2]
+    return np.asarray(rows, dtype=np.int64), np.asarray(sorted(cols), dtype=np.int64)
 
 
 @dataclass
@@ -164,7 +171,8 @@ class SmoothedTaps:
     the tap lies outside a smoothed interval: before a segment's first or after its last node; the
     caller keeps its forward values there), the smoothed error ``dx[k]`` (estimate minus truth,
     relative to the nominal state the tap saw, n), its standard deviations ``sd[k]`` (n), ``y[k] =
-    J_k dx[k]`` (m) and ``cov[k] = J_k P^s J_k^T`` (m x m)."""
+    J_k dx[k]`` (m) and ``cov[k] = J_k P^s J_k^T`` (m x m). ``y`` in float64, the others in the
+    recorder's storage precision (an hour of taps at 10 Hz holds 36,000 x 200 numbers)."""
     smoothed: np.ndarray
     dx: np.ndarray
     sd: np.ndarray
@@ -195,8 +203,8 @@ def smoother_gain(P_plus: np.ndarray, Phi: np.ndarray, P_minus: np.ndarray) -> n
 class StepRecorder:
     """Records what the backward pass needs (module docstring) and runs it (``smooth``).
 
-    n: error states; rows: the rows of Phi that may differ from the identity (``transition_rows``;
-    None: all); tap_rows: m, the rows of every tap's J; precision: how P+ and Phi are stored
+    n: error states; support: the (rows, columns) of Phi that may differ from the identity
+    (``transition_support``; None: all; a Phi with more is stored whole); tap_rows: m, the rows of every tap's J; precision: how P+ and Phi are stored
     (``CovarianceCodec``; Phi rows and q_c dt in float32 unless "float64").
 
     The filter calls ``propagate`` / ``correct`` / ``boundary`` (``InsFilter.recorder``); the
@@ -204,18 +212,19 @@ class StepRecorder:
     The caller adds taps (``tap``) while the filter runs, calls ``finish`` at the end and then
     ``smooth``.
 
-    Per node two rows: ``lo`` (the storage precision) = [packed P+ | rows of Phi - I | q_c dt] and
+    Per node two rows: ``lo`` (the storage precision) = [packed P+ | block of Phi - I | q_c dt] and
     ``hi`` (float64) = [time | scale of P+ | summed correction]; per tap ``tap_lo`` (float32) = J
     and ``tap_hi`` (float64) = [time | node | corrections at the node so far]."""
 
-    def __init__(self, n: int, rows: np.ndarray | None = None, tap_rows: int = 9, precision: str = "float32"):
+    def __init__(self, n: int, support: tuple | None = None, tap_rows: int = 9, precision: str = "float32"):
         self.n, self.m = int(n), int(tap_rows)
         self.codec = c = CovarianceCodec(self.n, precision)
-        self.rows = np.arange(self.n) if rows is None else np.asarray(rows, dtype=np.int64)
-        self.static_rows = np.setdiff1d(np.arange(self.n), self.rows)
-        self._eye_rows = np.eye(self.n)[self.rows]
-        self._eye_static = np.eye(self.n)[self.static_rows]
-        n_phi = len(self.rows) * self.n
+        rows, cols = (np.arange(self.n), np.arange(self.n)) if support is None else support
+        self._block = np.ix_(np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64))
+        self._eye = np.eye(self.n)
+        self._eye_block = self._eye[self._block]
+        self._block_shape = self._eye_block.shape
+        n_phi = self._eye_block.size
         self._lo = (slice(0, c.width), slice(c.width, c.width + n_phi), slice(c.width + n_phi, c.width + n_phi + n))
         self._hi = (slice(1, 1 + c.scale_width), slice(1 + c.scale_width, 1 + c.scale_width + n))
         self.lo = _Blocks(c.width + n_phi + n, c.dtype)
@@ -235,7 +244,7 @@ class StepRecorder:
     @classmethod
     def for_filter(cls, f, tap_rows: int = 9, precision: str = "float32") -> "StepRecorder":
         """A recorder for ``InsFilter`` f (its state layout)."""
-        return cls(f.layout.n, transition_rows(f.layout), tap_rows, precision)
+        return cls(f.layout.n, transition_support(f.layout), tap_rows, precision)
 
     # ------------------------------------------------------------------ forward: the filter's calls
     def propagate(self, f, Phi: np.ndarray, dt_s: float) -> None:
@@ -284,9 +293,12 @@ class StepRecorder:
         i = self._cur
         lo = self.lo.row(i)
         self._store_P(i, P_plus, lo, self._cur_hi)
-        if len(self.static_rows) and not np.array_equal(np.take(Phi, self.static_rows, axis=0), self._eye_static):
+        block = Phi[self._block]
+        rest = Phi.copy()
+        rest[self._block] = self._eye_block
+        if not np.array_equal(rest, self._eye):
             self.phi_full[i] = Phi.copy()
-        lo[self._lo[1]] = (np.take(Phi, self.rows, axis=0) - self._eye_rows).ravel()
+        lo[self._lo[1]] = (block - self._eye_block).ravel()
         lo[self._lo[2]] = qdt
         self._new_node(t_to_s, None)
 
@@ -339,14 +351,15 @@ class StepRecorder:
             Phi = self.phi_full[i]
         else:
             Phi = np.eye(self.n)
-            Phi[self.rows] += lo[self._lo[1]].reshape(len(self.rows), self.n)
+            Phi[self._block] += lo[self._lo[1]].reshape(self._block_shape)
         return P, Phi, lo[self._lo[2]]
 
     def smooth(self) -> SmoothedTaps:
         """The backward pass over every segment (module docstring); the taps' smoothed values."""
         n, m, K = self.n, self.m, self.taps
-        out = SmoothedTaps(np.zeros(K, bool), np.zeros((K, n)), np.zeros((K, n)), np.zeros((K, m)),
-                           np.zeros((K, m, m)))
+        f4 = self.codec.dtype
+        out = SmoothedTaps(np.zeros(K, bool), np.zeros((K, n), f4), np.zeros((K, n), f4), np.zeros((K, m)),
+                           np.zeros((K, m, m), f4))
         tap_node = np.array([self.tap_hi.row(k)[1] for k in range(K)]).astype(np.int64)
         on = np.flatnonzero(tap_node >= 0)
         on_nodes = tap_node[on]

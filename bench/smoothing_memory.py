@@ -1,0 +1,106 @@
+"""``v2xpos bench smoothing-memory [--duration 3600] [--recording DATASET_TOML] [--keep DIR]``: peak
+memory of ``v2xpos replay --smooth --solution`` on a long recording (issue 32: a one-hour recording
+at 100 Hz within 1 GiB).
+
+Without ``--recording`` it generates one (``sim.recordings.generate_convoy``: preset ``clean``,
+``--duration`` seconds, IMU at 100 Hz, GNSS at 10 Hz, vehicle A). It then runs, each in its own
+child process so that nothing else shares the figure, the plain forward replay and the smoothed
+replay with the smoothed solution written to a CSV (every GNSS epoch), and prints each process's
+peak resident set size (``getrusage`` ``ru_maxrss`` of the child, read by itself at its end), the
+smoother's stored bytes, the times and the inside-outage figures.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+LIMIT_MIB = 1024.0
+
+
+def add_bench_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``v2xpos bench smoothing-memory``."""
+    parser.add_argument("--duration", type=float, default=3600.0, help="generated recording length [s] (default 3600)")
+    parser.add_argument("--seed", type=int, default=5, help="seed of the generated recording (default 5)")
+    parser.add_argument("--recording", help="use this dataset.toml instead of generating one")
+    parser.add_argument("--keep", help="keep the generated recording and the outputs in this directory")
+    parser.add_argument("--json", help="write the figures to this JSON file")
+
+
+def _child(argv: list[str]) -> int:
+    """In the child: run ``v2xpos replay`` with ``argv`` and print its peak RSS [KiB] as JSON."""
+    from v2xpos.cli import main
+    rc = main(argv)
+    print(json.dumps({"rc": rc, "maxrss_kib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss}))
+    return 0
+
+
+def _measure(argv: list[str]) -> dict:
+    proc = subprocess.run([sys.executable, "-m", "bench.smoothing_memory", "--child", *argv],
+                          capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
+    last = (proc.stdout.strip().splitlines() or ["{}"])[-1]
+    try:
+        out = json.loads(last)
+    except ValueError:
+        out = {}
+    if proc.returncode != 0 or out.get("rc") not in (0, 1):
+        raise RuntimeError(f"replay {' '.join(argv)} failed (exit {proc.returncode}):\n{proc.stderr[-2000:]}")
+    out["mib"] = out["maxrss_kib"] / 1024.0
+    return out
+
+
+def run_bench(args: argparse.Namespace) -> int:
+    work = Path(args.keep).resolve() if args.keep else Path(tempfile.mkdtemp(prefix="v2xpos-smoothing-memory-"))
+    work.mkdir(parents=True, exist_ok=True)
+    try:
+        if args.recording:
+            dataset = Path(args.recording)
+        else:
+            from sim.recordings import generate_convoy
+            print(f"generating a {args.duration:.0f} s recording (seed {args.seed}, clean) in {work / 'rec'}", flush=True)
+            generate_convoy(work / "rec", seed=args.seed, preset="clean", duration_s=args.duration)
+            dataset = work / "rec" / "A" / "dataset.toml"
+        common = ["replay", str(dataset), "--no-progress"]
+        fwd = _measure(common + ["--json", str(work / "forward.json")])
+        smo = _measure(common + ["--smooth", "--solution", str(work / "smoothed_solution.csv"),
+                                 "--json", str(work / "smoothed.json")])
+        f_sum = json.loads((work / "forward.json").read_text())
+        s_sum = json.loads((work / "smoothed.json").read_text())
+        sm = s_sum["smoothing"]
+        report = {"dataset": str(dataset), "imu_samples": s_sum["imu_samples"], "gnss_epochs": s_sum["gnss_epochs"],
+                  "forward_peak_mib": fwd["mib"], "smoothed_peak_mib": smo["mib"], "limit_mib": LIMIT_MIB,
+                  "stored_mib": sm["stored_mib"], "nodes": sm["nodes"], "forward_s": f_sum["wall_s"],
+                  "smoothed_forward_s": sm["forward_s"], "backward_s": sm["backward_s"],
+                  "inside_outage_h_rms_m": s_sum["inside_outage_h_rms_m"],
+                  "smoothed_inside_outage_h_rms_m": s_sum["smoothed_inside_outage_h_rms_m"],
+                  "smoothed_inside_outage_within_3sd": s_sum["smoothed_inside_outage_within_3sd"]}
+        print(f"{report['imu_samples']} IMU samples, {report['gnss_epochs']} GNSS epochs ({dataset})")
+        print(f"  forward replay:  peak RSS {fwd['mib']:.0f} MiB, {f_sum['wall_s']:.1f} s")
+        print(f"  smoothed replay (+ smoothed solution csv): peak RSS {smo['mib']:.0f} MiB "
+              f"[limit {LIMIT_MIB:.0f}], {sm['nodes']} nodes, {sm['stored_mib']:.0f} MiB stored, forward "
+              f"{sm['forward_s']:.1f} s + backward {sm['backward_s']:.1f} s")
+        print(f"  inside the outages: forward h RMS {report['inside_outage_h_rms_m']:.3f} m, smoothed "
+              f"{report['smoothed_inside_outage_h_rms_m']:.3f} m, within 3 sd "
+              f"{report['smoothed_inside_outage_within_3sd']:.3f}")
+        if args.json:
+            Path(args.json).write_text(json.dumps(report, indent=1))
+        return 0 if smo["mib"] <= LIMIT_MIB else 1
+    except (OSError, ValueError, RuntimeError) as exc:
+        print(f"v2xpos bench smoothing-memory: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        if not args.keep:
+            shutil.rmtree(work, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    if len(sys.argv) > 1 and sys.argv[1] == "--child":
+        sys.exit(_child(sys.argv[2:]))
+    p = argparse.ArgumentParser()
+    add_bench_arguments(p)
+    sys.exit(run_bench(p.parse_args()))
