@@ -170,18 +170,36 @@ def _watch_until_done(procs: ServiceProcesses, master: tuple, mcfg: dict, port: 
             watch.close()
 
 
-def run_in_process(out: Path, master: tuple, slaves: list[tuple], rate_hz: float = 100.0, log=sys.stderr) -> dict:
+def run_in_process(out: Path, master: tuple, slaves: list[tuple], rate_hz: float = 100.0, log=sys.stderr,
+                   smooth: bool = False) -> dict:
     """The same recordings through the same pipeline in one process, no link: every slave state is
-    evaluated against the master's state at the same session time (latency 0). Writes results.csv."""
-    from master.pipeline import MasterPipeline, PipelineConfig
+    evaluated against the master's state at the same session time (latency 0). Writes results.csv.
+    ``smooth``: from every vehicle's smoothed states instead (``master.smoothed_convoy``)."""
+    if smooth:
+        from master.smoothed_convoy import run_in_process_smoothed
+        return run_in_process_smoothed(out, master, slaves, rate_hz, log)
     from v2xpos.output.results_csv import ResultsCsvWriter
     from v2xpos.sources.recording import RecordingSource
-    from v2xpos.wire import StateMessage, encode_state, state_key
     out.mkdir(parents=True, exist_ok=True)
     msrc = RecordingSource(master[0], sync="none")
     ssrc = {s[1]: RecordingSource(s[0], sync="none") for s in slaves}
     sink = ResultsCsvWriter(out / "results.csv")
-    pipe = MasterPipeline(PipelineConfig(fleet="convoy", master_id=master[1], known_vehicles=tuple(ssrc)), [sink])
+    try:
+        return feed_pipeline(sink, master[1], msrc, ssrc, rate_hz, log)
+    finally:
+        sink.close()
+
+
+def feed_pipeline(sink, master_id: str, msrc, ssrc: dict, rate_hz: float = 100.0, log=sys.stderr,
+                  before_handle=None) -> dict:
+    """The in-process convoy's loop: session time in steps of 10 ms from the later start to the
+    master's end; at each step every source (``advance(t)`` -> new NavStates, ``t_begin_gps_s``,
+    ``t_end_gps_s``, ``geometry``, ``kind``) is advanced, and every slave state (at most ``rate_hz``
+    per slave) goes through the master pipeline against the master's latest state into ``sink``.
+    ``before_handle(master_state, slave_id, slave_state)``: called before each."""
+    from master.pipeline import MasterPipeline, PipelineConfig
+    from v2xpos.wire import StateMessage, encode_state, state_key
+    pipe = MasterPipeline(PipelineConfig(fleet="convoy", master_id=master_id, known_vehicles=tuple(ssrc)), [sink])
     t = max(msrc.t_begin_gps_s, min(s.t_begin_gps_s for s in ssrc.values()))
     t_end = msrc.t_end_gps_s
     step = 0.01
@@ -203,6 +221,8 @@ def run_in_process(out: Path, master: tuple, slaves: list[tuple], rate_hz: float
                 seq[sid] += 1
                 if nav is None:
                     continue
+                if before_handle is not None:
+                    before_handle(nav, sid, st)
                 msg = StateMessage.from_nav_state(st, "convoy", sid, seq[sid], geometry=src.geometry, kind=src.kind)
                 pipe.handle(encode_state(msg), state_key("convoy", sid), nav, float(nav.t_s), time.time())
         t += step
@@ -211,7 +231,6 @@ def run_in_process(out: Path, master: tuple, slaves: list[tuple], rate_hz: float
             t_print += STATUS_PERIOD_S
             print(f"convoy (in process): {100 * (t - msrc.t_begin_gps_s) / (t_end - msrc.t_begin_gps_s):5.1f} %",
                   file=log, flush=True)
-    sink.close()
     return {"processed": pipe.processed, "rejected": dict(pipe.rejected)}
 
 
@@ -223,6 +242,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--truth", help="truth_rel.csv of the recordings: score the results against it")
     parser.add_argument("--in-process", action="store_true",
                         help="run the recordings through the pipeline in one process (reference, no link)")
+    parser.add_argument("--smooth", action="store_true",
+                        help="with --in-process: relative results from every vehicle's smoothed states "
+                             "(results.csv with a trailing column smoothed; the forward ones in results_forward.csv)")
     parser.add_argument("--mcap", action="store_true", help="also record the session (DIR/session.mcap)")
 
 
@@ -245,15 +267,17 @@ def run(args: argparse.Namespace) -> int:
         print(f"convoy: master {master[1]} ({master[0]}), slaves {[s[1] for s in slaves]}, speed {args.speed}",
               file=sys.stderr, flush=True)
         t0 = time.time()
+        if args.smooth and not args.in_process:
+            raise ConvoyError("--smooth needs --in-process (the smoother runs after each whole recording)")
         if args.in_process:
-            facts = run_in_process(out, master, slaves)
+            facts = run_in_process(out, master, slaves, smooth=args.smooth)
         else:
             facts = run_processes(out, master, slaves, args.speed, mcap=args.mcap)
     except ConvoyError as exc:
         print(f"v2xpos convoy: {exc}", file=sys.stderr)
         return 2
     report = {"master": master[1], "slaves": [s[1] for s in slaves], "speed": args.speed,
-              "in_process": bool(args.in_process), "wall_s": time.time() - t0,
+              "in_process": bool(args.in_process), "smoothed": bool(args.smooth), "wall_s": time.time() - t0,
               "results_csv": str(out / "results.csv"), **facts}
     rc = 0
     codes = facts.get("exit_codes", {})

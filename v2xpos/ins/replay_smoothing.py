@@ -22,14 +22,13 @@ import math
 import numpy as np
 
 from v2xpos import geo
-from v2xpos.rotation import dcm_from_euler, euler_from_dcm, exp_so3
 from v2xpos.types import Dataset, FixStatus
 
 from .ekf import BA, BG
 from .filter import InsFilter
 from .replay_engine import ReplayHook
 from .replay_metrics import ReplayMetrics, interp_lla, predicted_antenna, rms
-from .smoother import StepRecorder, antenna_rows, ned_correction_lla, reported_rows
+from .smoother import StepRecorder, antenna_rows, corrected_reported, reported_rows
 from .solution import DEG, EFFECT_COLUMNS, _effect_names, columns, row
 
 TAP_ROWS = 12
@@ -158,12 +157,11 @@ def smoothed_row(r: dict, effects: tuple, layout, dx: np.ndarray, sd: np.ndarray
     and their sds from ``cov`` (= J P^s J^T); biases and effects by ``dx`` with the sds ``sd``
     (sqrt of diag P^s), attitude-error sds from the same (as ``solution.row``)."""
     r = dict(r)
-    lla = ned_correction_lla(np.radians([r["lat_deg"], r["lon_deg"], 0.0]) + np.array([0.0, 0.0, r["height_m"]]), y[0:3])
+    lla, v, rpy = corrected_reported(np.array([math.radians(r["lat_deg"]), math.radians(r["lon_deg"]), r["height_m"]]),
+                                     np.array([r["vn_mps"], r["ve_mps"], r["vd_mps"]]),
+                                     np.radians([r["roll_deg"], r["pitch_deg"], r["yaw_deg"]]), y)
     r["lat_deg"], r["lon_deg"], r["height_m"] = lla[0] * DEG, lla[1] * DEG, float(lla[2])
-    for c, k in zip(("vn_mps", "ve_mps", "vd_mps"), range(3)):
-        r[c] -= float(y[3 + k])
-    C_nv = dcm_from_euler(*np.radians([r["roll_deg"], r["pitch_deg"], r["yaw_deg"]]))
-    rpy = euler_from_dcm(exp_so3(y[6:9]) @ C_nv)
+    r["vn_mps"], r["ve_mps"], r["vd_mps"] = (float(x) for x in v)
     r["roll_deg"], r["pitch_deg"], r["yaw_deg"] = (float(a) * DEG for a in rpy)
     s = np.sqrt(np.maximum(np.diagonal(cov), 0.0))
     for names, k0 in ((("sd_north_m", "sd_east_m", "sd_down_m"), 0), (("sd_vn_mps", "sd_ve_mps", "sd_vd_mps"), 3)):

@@ -59,15 +59,17 @@ identity, checked at every node), ``q_c dt`` (float32) and the summed correction
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.linalg.lapack import dpotrf, dpotrs
 
-from v2xpos.rotation import skew
+from v2xpos import geo
+from v2xpos.rotation import dcm_from_euler, euler_from_dcm, exp_so3, skew
+from v2xpos.types import FixStatus, NavState
 
 from .ekf import ATT, BASE_STATES, POS, VEL, propagate_with_transition
-from .reported import reported_jacobian
+from .reported import correlations, reported_jacobian
 
 BLOCK_NODES = 4096
 """Nodes (and taps) per storage block."""
@@ -429,6 +431,29 @@ def antenna_rows(f, t_s: float) -> np.ndarray:
     if i >= 0:
         H[:, i] = -f.nav[3:6]
     return H
+
+
+def corrected_reported(lla: np.ndarray, v_ned_mps: np.ndarray, rpy_rad: np.ndarray,
+                       y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(lla, v, rpy) of a reported state corrected by its smoothed error ``y = J dx`` (the rows of
+    ``reported_rows``: position NED, velocity NED, vehicle attitude error NED), as the filter
+    corrects its own state (``InsFilter._apply``): position by curvilinear increments, velocity
+    minus its error, attitude ``C <- exp([phi x]) C`` (``C_est = (I - [phi x]) C``)."""
+    C = dcm_from_euler(*np.asarray(rpy_rad, float))
+    return (ned_correction_lla(lla, y[0:3]), np.asarray(v_ned_mps, float) - y[3:6],
+            euler_from_dcm(exp_so3(y[6:9]) @ C))
+
+
+def smoothed_nav_state(nav: NavState, y: np.ndarray, cov: np.ndarray, fix: FixStatus) -> NavState:
+    """``nav`` (``InsFilter.nav_state``) with position, velocity and attitude corrected by the
+    smoothed error ``y`` (``corrected_reported``), their sds and the position's correlations from
+    the smoothed covariance ``cov`` (= J P^s J^T, 9 x 9) and the given fix; the body rate and
+    acceleration, the time label and the filter's flags are the forward state's."""
+    lla, v, rpy = corrected_reported(nav.lla, nav.v_ned_mps, nav.rpy_rad, y)
+    cov = np.asarray(cov, float)
+    sd = np.sqrt(np.maximum(np.diagonal(cov), 0.0))
+    return replace(nav, lla=lla, v_ned_mps=v, rpy_rad=rpy, pos_sd_m=sd[0:3], vel_sd_mps=sd[3:6],
+                   att_sd_rad=sd[6:9], pos_corr=correlations(cov[0:3, 0:3]), fix=FixStatus(int(fix)))
 
 
 def ned_correction_lla(lla: np.ndarray, d_ned_m: np.ndarray) -> np.ndarray:

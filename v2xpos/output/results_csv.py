@@ -19,7 +19,9 @@ Columns, in this order (``COLUMNS``; later columns may be added after these, nev
 =================  ==========================================================================
 
 then ``sd_rel_yaw_deg``, ``range_sd_m``, ``vx_mps vy_mps vz_mps`` (relative velocity, master body
-frame), ``bearing_deg``, ``ttc_s``, ``fix_side``, ``degraded``, ``seq``, ``source_seq``.
+frame), ``bearing_deg``, ``ttc_s``, ``fix_side``, ``degraded``, ``seq``, ``source_seq``, and a
+writer's ``extra_columns`` (``v2xpos convoy --in-process --smooth``: ``smoothed``, 1 on a row
+formed from both vehicles' smoothed states).
 Kinematic columns are empty when the status carries no kinematics (TIMEOUT, NO_DATA, ...).
 """
 from __future__ import annotations
@@ -71,17 +73,20 @@ def result_row(res: RelativeResult) -> list[str]:
 class ResultsCsvWriter:
     """A master output sink (``write``/``flush``/``close``) appending rows to ``path``; the header is
     written on open, rows are flushed to the file at every pipeline flush so a stopped master
-    leaves a complete file."""
+    leaves a complete file. ``extra_columns`` follow ``COLUMNS``; each row takes their values from
+    ``extra`` (column -> value) as it is when the row is written."""
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, extra_columns: tuple[str, ...] = ()):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.extra_columns = tuple(extra_columns)
+        self.extra: dict = {c: "" for c in self.extra_columns}
         self._f = open(self.path, "w", newline="")
-        self._f.write(",".join(COLUMNS) + "\n")
+        self._f.write(",".join(COLUMNS + self.extra_columns) + "\n")
         self.rows = 0
 
     def write(self, res: RelativeResult) -> None:
-        self._f.write(",".join(result_row(res)) + "\n")
+        self._f.write(",".join(result_row(res) + [str(self.extra[c]) for c in self.extra_columns]) + "\n")
         self.rows += 1
 
     def write_scene(self, scene_result, t_gps_s: float, seq: int) -> None:
