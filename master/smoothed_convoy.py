@@ -4,7 +4,8 @@ Each recording runs through its service's filter (``v2xpos.sources.recording.Rec
 the states the in-process convoy evaluates) to its end with a ``v2xpos.ins.smoother.StepRecorder``
 attached and a tap at every state it produces (the rows of what ``nav_state`` reports). After the
 backward pass every state has a smoothed twin (``smoother.smoothed_nav_state``: position,
-velocity and attitude corrected, their sds the smoother's covariance) with the smoothed fix below;
+velocity and attitude corrected, their sds the smoother's covariance, the time label moved with the
+smoothed IMU time offset) with the smoothed fix below;
 states outside a smoothed interval (before the heading is set at a parked start, after the last
 covariance step of the recording) stay forward. Both sets of states then go through the same
 in-process loop (``convoy.feed_pipeline``): ``results.csv`` from the smoothed states with a trailing
@@ -13,6 +14,12 @@ column ``smoothed`` (1 when both the master's and the target's state are smoothe
 pipeline forms each result's status from these states as from live ones: fix gate, attitude,
 clock, the filter's own consistency and verification flags (the forward filter's: smoothing does
 not repair a model the data rejected), and the smoothed sigma against the validity limits.
+
+Time labels: a forward state is labelled with the filter's running estimate of the IMU time offset,
+which differs between two filters of the same drive by the tens of milliseconds it has still to
+converge (drive_0708 re-stamped 1.5 s later with a 15 s outage in B: up to 20 ms, the pipeline's
+FUTURE tolerance); the smoothed state carries the smoothed offset, estimated from the whole
+recording. Like the source, a stream leaves out a state whose label is not after the last one.
 
 Smoothed fix: the GNSS status behind a smoothed state. While GNSS is used it is the forward one
 (the last fix used); in a gap (the forward state is dead reckoning) the smoothed state is tied to
@@ -37,6 +44,8 @@ class StoredStates:
     def __init__(self, vehicle: "SmoothedVehicle", smoothed: bool):
         self.v, self.smoothed = vehicle, smoothed
         self.i = 0
+        self.last_t_s = -np.inf
+        self.non_monotonic = 0
         self.flag: dict[int, bool] = {}
         self.geometry, self.kind = vehicle.geometry, vehicle.kind
         self.t_begin_gps_s, self.t_end_gps_s = vehicle.t_begin_gps_s, vehicle.t_end_gps_s
@@ -47,6 +56,10 @@ class StoredStates:
         out = []
         for k in range(self.i, j):
             st = v.state(k) if self.smoothed else v.forward[k]
+            if st.t_s <= self.last_t_s:
+                self.non_monotonic += 1
+                continue
+            self.last_t_s = st.t_s
             self.flag[id(st)] = self.smoothed and bool(v.is_smoothed[k])
             out.append(st)
         self.i = max(self.i, j)
@@ -67,10 +80,14 @@ class SmoothedVehicle:
         self.geometry, self.kind = src.geometry, src.kind
         self.t_begin_gps_s, self.t_end_gps_s = src.t_begin_gps_s, src.t_end_gps_s
         self.forward: list[NavState] = []
-        release, last_fix, last_gnss = [], [], []
+        release, last_fix, last_gnss, timing = [], [], [], []
+        i_dt = f.layout.at("imu_time_offset")
         for t_k in np.asarray(src.ds.imu.t_s, float):
             for st in src.advance(float(t_k)):
-                rec.tap(f.t_stamp_s, reported_rows(f))
+                J = reported_rows(f)
+                rec.tap(f.t_stamp_s, J)
+                if i_dt >= 0:
+                    timing.append(J[:, i_dt])
                 self.forward.append(st)
                 release.append(t_k)
                 last_fix.append(int(f.last_fix))
@@ -79,16 +96,22 @@ class SmoothedVehicle:
         sm = rec.smooth()
         self.release_s = np.asarray(release, float)
         self.is_smoothed, self.y, self.cov = sm.smoothed, sm.y, sm.cov
+        self.timing = np.asarray(timing, float) if i_dt >= 0 else None
+        self.dt_error_s = sm.dx[:, i_dt].astype(float) if i_dt >= 0 else None
         self.fix = smoothed_fix(np.array([int(s.fix) for s in self.forward], int), np.asarray(last_fix, int),
                                 np.asarray(last_gnss, float))
         self.nodes, self.segments, self.stored_mib = rec.nodes, len(rec.segments), rec.stored_bytes / 2 ** 20
+        self.segment_times = rec.segment_times()
 
     def state(self, k: int) -> NavState:
         """State k, smoothed when it lies in a smoothed interval."""
         if not self.is_smoothed[k]:
             return self.forward[k]
         from v2xpos.ins.smoother import smoothed_nav_state
-        return smoothed_nav_state(self.forward[k], self.y[k], self.cov[k], FixStatus(int(self.fix[k])))
+        if self.timing is None:
+            return smoothed_nav_state(self.forward[k], self.y[k], self.cov[k], FixStatus(int(self.fix[k])))
+        return smoothed_nav_state(self.forward[k], self.y[k], self.cov[k], FixStatus(int(self.fix[k])),
+                                  self.dt_error_s[k], self.timing[k])
 
 
 def smoothed_fix(forward_fix: np.ndarray, last_fix: np.ndarray, last_gnss_t_s: np.ndarray) -> np.ndarray:
@@ -117,7 +140,8 @@ def run_in_process_smoothed(out: Path, master: tuple, slaves: list[tuple], rate_
         print(f"convoy (smoothed): {name}: forward and backward pass", file=log, flush=True)
         vehicles[name] = SmoothedVehicle(path)
     facts: dict = {"smoothing": {name: {"states": len(v.forward), "smoothed": int(v.is_smoothed.sum()),
-                                        "nodes": v.nodes, "segments": v.segments, "stored_mib": v.stored_mib}
+                                        "nodes": v.nodes, "segments": v.segments, "stored_mib": v.stored_mib,
+                                        "segment_times": v.segment_times}
                                  for name, v in vehicles.items()}}
     slave_ids = [s[1] for s in slaves]
     sink = ResultsCsvWriter(out / "results_forward.csv")
@@ -137,4 +161,6 @@ def run_in_process_smoothed(out: Path, master: tuple, slaves: list[tuple], rate_
         facts.update(feed_pipeline(sink, master[1], mstream, sstreams, rate_hz, log, before_handle=flag))
     finally:
         sink.close()
+    for name, stream in [(master[1], mstream)] + list(sstreams.items()):
+        facts["smoothing"][name]["non_monotonic"] = stream.non_monotonic
     return facts

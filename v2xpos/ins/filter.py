@@ -64,7 +64,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
     ``initialized`` / ``heading_known`` the alignment's progress; ``counts`` / ``residuals``
     what the updates did; ``on_update(result, filter)`` an optional hook after every update;
     ``recorder`` an optional ``smoother.StepRecorder`` told of every covariance propagation, every
-    correction fed back and every reset that rewrites P (what a backward smoothing pass needs).
+    correction fed back, every reset that rewrites P and moves the state (a boundary) and every
+    reopening of effect states (P rewritten, the state kept): what a backward smoothing pass needs.
     """
 
     def __init__(self, cfg: InsConfig | None = None):
@@ -300,9 +301,10 @@ class InsFilter(ImuPath, Initialization, Outputs):
         sd = self.cfg.undeclared_lever_arm_sd_m
         if not self.cfg.reopen_on_inconsistency or i < 0 or not sd > 0:
             return
-        self._smoothing_boundary()
+        P_before = self.P.copy() if self.recorder is not None else None
         sep = self.separation
         if sep is not None and sep.active and not sep.excluded:
+            self._smoothing_boundary()
             self._apply(sep.w)
             self.P = sep.P.copy()
             sep.exclude(self.P)
@@ -330,13 +332,15 @@ class InsFilter(ImuPath, Initialization, Outputs):
                 self.P[k, k] = s_k * s_k
                 widened = True
         if widened:
+            if self.recorder is not None:
+                self.recorder.reset(self, P_before)
             self.counts["lever_arm_reopened"] = self.counts.get("lever_arm_reopened", 0) + 1
             self.consistency.clear_windows()
             self._restart_separation()
 
     def _smoothing_boundary(self) -> None:
-        """Called before a reset rewrites P (start, position and heading resets, lever-arm
-        exclusion or reopening): the smoother's backward pass does not cross it."""
+        """Called before a reset rewrites P and moves the state (start, position and heading
+        resets, lever-arm exclusion): the smoother's backward pass does not cross it."""
         if self.recorder is not None:
             self.recorder.boundary(self)
 

@@ -8,9 +8,13 @@ Forward pass (``StepRecorder``, attached as ``InsFilter.recorder``). The filter 
   process noise ``q_c dt`` and the covariance ``P+`` it propagates -- this closes node i and opens
   node i+1 at the new time;
 * every correction ``dx`` fed back into the nominal state (``_update``): summed per node;
-* every reset that rewrites P (start, position and heading resets, lever-arm exclusion or
-  reopening, ``_smoothing_boundary``) and every propagation while the heading is still open
-  (``_decouple_yaw`` rewrites P then): the current segment ends there.
+* every reset that rewrites P and moves the nominal state (start, position and heading resets,
+  lever-arm exclusion, ``_smoothing_boundary``) and every propagation while the heading is still
+  open (``_decouple_yaw`` rewrites P then): the current segment ends there;
+* every reopening of effect states (``_on_inconsistency`` without an exclusion): P is rewritten,
+  the nominal state kept -- a transition ``P_after = T P_before T^T + Q`` (``reset_transition``:
+  the reopened states replaced by fresh errors of their prior variance, the lever arm's widening
+  as added noise), recorded as a node at the same time.
 
 Error convention (``ekf``): ``dx = estimate - truth``. The filter is closed loop: after the updates
 of node i its nominal state is ``x_i+`` and its error estimate is 0 with covariance ``P_i+``; the
@@ -34,9 +38,12 @@ KF-GINS's post-processing: the predicted error is 0 because the feedback already
 nominal, and the corrections re-enter as the difference between the two nominals. The smoothed
 state at node i is ``x_i+`` corrected by ``e_i`` as the filter corrects (``InsFilter._apply``);
 its covariance is ``P_i^s``. Covariances do not depend on the nominal, so ``P^s`` needs no
-feedback term. A reset that discards information (the filter replaces rows of P by a prior) has
-no transition the recursion could invert: it is a segment boundary, each segment is smoothed on
-its own, and what comes before a boundary is not corrected by what comes after it.
+feedback term. A reopening is a step of the same recursion with ``Phi = T`` and ``P- = T P+ T^T
++ Q``: what the reopened states were before it is not informed by what comes after, everything
+else is. A reset that moves the nominal state and replaces the covariance (a start, a position or
+heading reset taken from a fix, an exclusion that takes another solution) has no such transition:
+it is a segment boundary, each segment is smoothed on its own, and what comes before a boundary is
+not corrected by what comes after it.
 
 Between nodes (a "tap": an output the caller wants smoothed, e.g. a GNSS epoch or every IMU sample
 of a service) the nominal is the strapdown from ``x_i+``; the smoothed error there is interpolated
@@ -202,6 +209,36 @@ def smoother_gain(P_plus: np.ndarray, Phi: np.ndarray, P_minus: np.ndarray) -> n
     return G
 
 
+RESET_PSD_TOLERANCE = 1e-9
+"""Least eigenvalue of the correlation-scaled Q of a reset (``reset_transition``) still taken as
+positive semi-definite (rounding of the rewritten covariance)."""
+
+
+def reset_transition(P_before: np.ndarray, P_after: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(T, Q) with ``P_after = T P_before T^T + Q``, Q positive semi-definite, for a rewrite that
+    keeps the nominal state: T is the identity except the rows the rewrite decoupled (their
+    covariances with every other state 0 after, not before: the state replaced by a fresh error of
+    the variance it was given, e.g. an effect reopened to its prior); Q the rest (e.g. the lever
+    arm's widening ``G D G^T``, ``consistency.widen_lever_arm``). None when no such Q exists (the
+    rewrite is not a transition of the error: a boundary)."""
+    n = P_after.shape[0]
+    off_a = P_after - np.diag(P_after.diagonal())
+    off_b = P_before - np.diag(P_before.diagonal())
+    dropped = ~np.any(off_a != 0.0, axis=1) & np.any(off_b != 0.0, axis=1)
+    T = np.eye(n)
+    T[dropped, dropped] = 0.0
+    TP = P_before.copy()
+    TP[dropped, :] = 0.0
+    TP[:, dropped] = 0.0
+    Q = P_after - TP
+    Q = 0.5 * (Q + Q.T)
+    d = np.sqrt(np.maximum(P_after.diagonal(), 0.0))
+    inv = 1.0 / np.where(d > 0.0, d, 1.0)
+    if np.linalg.eigvalsh(Q * np.outer(inv, inv)).min() < -RESET_PSD_TOLERANCE:
+        return None
+    return T, Q
+
+
 class StepRecorder:
     """Records what the backward pass needs (module docstring) and runs it (``smooth``).
 
@@ -232,6 +269,7 @@ class StepRecorder:
         self.lo = _Blocks(c.width + n_phi + n, c.dtype)
         self.hi = _Blocks(1 + c.scale_width + n, np.float64)
         self.phi_full: dict[int, np.ndarray] = {}
+        self.resets: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.nodes = 0
         self._cur = -1
         self._cur_hi: np.ndarray | None = None
@@ -321,6 +359,27 @@ class StepRecorder:
         self._pending = np.zeros(self.n)
         self._pending_taps = []
 
+    def reset(self, f, P_before: np.ndarray) -> None:
+        """After ``f`` rewrote its P from ``P_before`` without moving its state (effect states
+        reopened, ``InsFilter._on_inconsistency``): a transition when it has that form
+        (``reset_transition``), else a boundary."""
+        self.transition(f.t_stamp_s, P_before, f.P)
+
+    def transition(self, t_s: float, P_before: np.ndarray, P_after: np.ndarray) -> None:
+        """A rewrite of the covariance at the current node with the nominal state unchanged:
+        recorded as a node at the same time with the transition (T, Q) of ``reset_transition``
+        when P_after = T P_before T^T + Q, else the segment ends with P_before."""
+        if self._cur < 0:
+            return
+        TQ = reset_transition(P_before, P_after)
+        if TQ is None:
+            self.close(P_before)
+            return
+        i = self._cur
+        self._store_P(i, P_before, hi=self._cur_hi)
+        self.resets[i] = TQ
+        self._new_node(t_s, None)
+
     def tap(self, t_s: float, J: np.ndarray) -> int:
         """An output to smooth at stamp time ``t_s`` (the filter's ``t_stamp_s``) with the rows J
         (m x n) of what is reported; returns its index in ``SmoothedTaps``."""
@@ -337,6 +396,10 @@ class StepRecorder:
             self._pending_taps.append(k)
         self.taps += 1
         return k
+
+    def segment_times(self) -> list[tuple[float, float]]:
+        """(first, last) node stamp times [s] of every smoothed segment."""
+        return [(float(self.hi.row(a)[0]), float(self.hi.row(b)[0])) for a, b in self.segments]
 
     @property
     def stored_bytes(self) -> int:
@@ -370,8 +433,13 @@ class StepRecorder:
             xs = np.zeros(n)
             Ps = self._node(last)[0]
             for i in range(last - 1, first - 1, -1):
-                Pp, Phi, qdt = self._node(i)
-                Pm = propagate_with_transition(Pp, Phi, qdt, 1.0)
+                if i in self.resets:
+                    Pp = self._node(i)[0]
+                    Phi, Q = self.resets[i]
+                    Pm = Phi @ Pp @ Phi.T + Q
+                else:
+                    Pp, Phi, qdt = self._node(i)
+                    Pm = propagate_with_transition(Pp, Phi, qdt, 1.0)
                 xm = xs + self.hi.row(i + 1)[self._hi[1]]
                 G = smoother_gain(Pp, Phi, Pm)
                 xs_i = G @ xm
@@ -444,15 +512,27 @@ def corrected_reported(lla: np.ndarray, v_ned_mps: np.ndarray, rpy_rad: np.ndarr
             euler_from_dcm(exp_so3(y[6:9]) @ C))
 
 
-def smoothed_nav_state(nav: NavState, y: np.ndarray, cov: np.ndarray, fix: FixStatus) -> NavState:
+def smoothed_nav_state(nav: NavState, y: np.ndarray, cov: np.ndarray, fix: FixStatus,
+                       time_offset_error_s: float = 0.0, timing_rows: np.ndarray | None = None) -> NavState:
     """``nav`` (``InsFilter.nav_state``) with position, velocity and attitude corrected by the
-    smoothed error ``y`` (``corrected_reported``), their sds and the position's correlations from
-    the smoothed covariance ``cov`` (= J P^s J^T, 9 x 9) and the given fix; the body rate and
-    acceleration, the time label and the filter's flags are the forward state's."""
+    smoothed error ``y`` = J dx (``corrected_reported``), their sds and the position's correlations
+    from the smoothed covariance ``cov`` (= J P^s J^T, 9 x 9) and the given fix; body rate and
+    acceleration and the filter's flags are the forward state's.
+
+    With the smoothed error of the IMU time offset ``time_offset_error_s`` (estimate minus truth)
+    and J's column of that state ``timing_rows`` (``reported``: -v, -a, C w), the state is moved
+    to the smoothed time label ``t_s - time_offset_error_s`` instead: the time-offset part of y
+    (what moves the quantities along the trajectory to the forward label) is left out of the
+    correction. The covariance is the same J P^s J^T: the smoothed label keeps the smoothed
+    offset's own uncertainty."""
+    t_s = nav.t_s
+    if timing_rows is not None and time_offset_error_s:
+        y = np.asarray(y, float) - time_offset_error_s * np.asarray(timing_rows, float)
+        t_s = nav.t_s - float(time_offset_error_s)
     lla, v, rpy = corrected_reported(nav.lla, nav.v_ned_mps, nav.rpy_rad, y)
     cov = np.asarray(cov, float)
     sd = np.sqrt(np.maximum(np.diagonal(cov), 0.0))
-    return replace(nav, lla=lla, v_ned_mps=v, rpy_rad=rpy, pos_sd_m=sd[0:3], vel_sd_mps=sd[3:6],
+    return replace(nav, t_s=t_s, lla=lla, v_ned_mps=v, rpy_rad=rpy, pos_sd_m=sd[0:3], vel_sd_mps=sd[3:6],
                    att_sd_rad=sd[6:9], pos_corr=correlations(cov[0:3, 0:3]), fix=FixStatus(int(fix)))
 
 
