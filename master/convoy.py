@@ -10,7 +10,10 @@ and ``DIR/logs``, the master's summary in ``DIR/master_summary.json``.
 
 ``--in-process`` runs the same recordings through the same master pipeline in one process
 without a link (each slave state evaluated against the master's state at the same session time):
-the reference that shows what processes, link and time handling cost.
+the reference that shows what processes, link and time handling cost. ``--in-process --smooth``
+forms the results from every vehicle's smoothed states instead (``master.smoothed_convoy``,
+docs/smoothing.md): ``results.csv`` with a trailing column ``smoothed``, the forward results in
+``results_forward.csv``.
 
 ``--truth truth_rel.csv`` scores the results (``v2xpos.diagnose.truth``); the vehicles'
 ``truth.csv`` are taken from beside their datasets when present. The score goes into
