@@ -95,6 +95,8 @@ def run_demo(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 10
     ego = sc.actors[sc.master_id]
     report["rtk_fixed_sd_m"] = {"horizontal": ego.gnss_sd_fixed_m,
                                 "vertical": ego.gnss_sd_fixed_m * ego.gnss_vertical_factor}
+    if not interrupted:
+        report["sensor_evaluation"] = evaluate_sensor(sc, out, duration_s, log)
     (out / "report.json").write_text(json.dumps(report, indent=1))
     if plots:
         try:
@@ -144,6 +146,41 @@ def _run_fleet(fleet: Fleet, plan: FleetPlan, sc, start_file: Path, duration_s: 
         if fleet.running():
             fleet.stop()
     return codes, interrupted
+
+
+def evaluate_sensor(sc, out: Path, duration_s: float, log) -> dict | None:
+    """The demo's last step: a front radar on the master simulated from the scenario truth
+    (``sim.object_sensor``, error model ``radar_biased``) and judged by ``v2xpos evaluate`` against
+    the master's own session recording; writes ``DIR/sensor/`` and ``DIR/sensor_evaluation/``."""
+    from sim.object_sensor import MODELS, DeclaredSensor, scenario_truth, simulate_objects, write_sensor
+    from v2xpos.evaluate.config import load_sensor_config
+    from v2xpos.evaluate.evaluation import evaluate
+    from v2xpos.evaluate.objects import read_objects
+    from v2xpos.evaluate.reference import read_reference
+    from v2xpos.evaluate.report import summary_text, write_outputs
+    session = out / "session.mcap"
+    if not session.exists():
+        return None
+    truths = scenario_truth(sc, sc.epoch_gps_s, sc.epoch_gps_s + duration_s)
+    front_m = float(sc.master.geometry.points_body_m[:, 0].max())
+    sensor = DeclaredSensor(name="demo_front_radar", mount_m=(front_m, 0.0, -0.5))
+    objs = simulate_objects(truths, sensor, MODELS["radar_biased"], seed=int(sc.params.get("seed", 0)))
+    write_sensor(objs, out / "sensor", sensor, {k: t.reference_point_m for k, t in truths.items()})
+    cfg = load_sensor_config(out / "sensor" / "sensor.toml")
+    try:
+        ev = evaluate(read_objects(out / "sensor" / "objects.csv", cfg), read_reference(session), cfg)
+    except ValueError as exc:
+        print(f"demo: sensor evaluation not possible: {exc}", file=log, flush=True)
+        return {"error": str(exc)}
+    write_outputs(ev, out / "sensor_evaluation", {"reference": session, "sensor": out / "sensor" / "objects.csv",
+                                                  "sensor_config": out / "sensor" / "sensor.toml"}, "csv")
+    print("demo: simulated front radar judged against the session (v2xpos evaluate):\n" + summary_text(ev.metrics)
+          + f"\n  report {out / 'sensor_evaluation' / 'report.html'}; injected "
+          + json.dumps(objs.truth["expected"]), file=log, flush=True)
+    m = ev.metrics
+    return {"report": str(out / "sensor_evaluation" / "report.html"), "injected": objs.truth["expected"],
+            **{k: m[k] for k in ("latency_ms", "mount_yaw_deg", "range_bias_m", "false_objects_per_min")},
+            "detection_rate": {k: t["detection_rate"] for k, t in m["targets"].items()}}
 
 
 def run_latency(rows: dict, t_from_gps_s: float) -> dict:
@@ -354,6 +391,13 @@ def run(args: argparse.Namespace) -> int:
     print(f"  master pipeline p50/p99 = {ms(report['master_pipeline_ms_p50'])}/{ms(report['master_pipeline_ms_p99'])} ms; "
           f"e2e p50/p99 = {ms(report['e2e_ms_p50'])}/{ms(report['e2e_ms_p99'])} ms; CAN frames {report['can_frames']}, "
           f"UDP datagrams {report['udp_datagrams']}")
+    se = report.get("sensor_evaluation") or {}
+    if "report" in se:
+        lat, yaw, rb = se["latency_ms"], se["mount_yaw_deg"], se["range_bias_m"]
+        print(f"  simulated front radar judged against the session: latency {lat['value']:.1f} +- {lat['sd']:.1f} ms, "
+              f"mounting yaw {yaw['value']:.2f} +- {yaw['sd']:.2f} deg, range bias {rb['value']:.3f} +- {rb['sd']:.3f} m "
+              f"(injected {se['injected']['latency_ms']:g} ms, {se['injected']['mount_yaw_deg']:g} deg, "
+              f"{se['injected']['range_bias_m']:g} m); report {se['report']}")
     if report.get("partial"):
         print(f"v2xpos demo: interrupted; partial report in {Path(args.out) / 'report.json'}", file=sys.stderr)
         return 130

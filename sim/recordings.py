@@ -376,7 +376,12 @@ def apply_overrides(p: ConvoyParams, mountings: list[str], effects: list[str], f
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("kind", choices=["convoy"], help="what to simulate: convoy = leader A + followers")
+    kinds = parser.add_subparsers(dest="kind", required=True, metavar="KIND",
+                                  help="convoy: leader A + followers; sensor: an object list from a convoy's truth")
+    from sim.object_sensor import add_sensor_arguments
+    add_sensor_arguments(kinds.add_parser("sensor", help="a radar/camera object list with a declared error model "
+                                                         "(sim.object_sensor)"))
+    parser = kinds.add_parser("convoy", help="leader A + followers in the shared recording formats, with truth")
     parser.add_argument("--out", required=True, help="output directory (A/, B/, truth_rel.csv, ...)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--preset", choices=PRESETS, default="dev_like",
@@ -412,6 +417,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import sys
+    if args.kind == "sensor":
+        from sim.object_sensor import run_sensor
+        return run_sensor(args)
     try:
         origin = None
         if args.origin:

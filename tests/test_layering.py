@@ -8,8 +8,8 @@ Floors, bottom to top:
 1 formats and the wire (datasets/, devices/, wire/, scene)
 2 estimation, relative kinematics, link, security, outputs (ins/, relative*, link, tls, security,
   verify_worker, output/)
-3 vehicle sources and clocks, quality, diagnose, tools on the library (sources/, quality/,
-  diagnose/, config, launch, stop_signals, monitor/, commands/)
+3 vehicle sources and clocks, quality, diagnose, sensor evaluation, tools on the library (sources/,
+  quality/, diagnose/, evaluate/, config, launch, stop_signals, monitor/, commands/)
 4 services (master/, slave/)
 5 simulation and benches (sim/, bench/)
 6 the CLI (v2xpos.cli, which imports the commands by name at run time)
@@ -34,7 +34,7 @@ FLOORS: dict[str, int] = {
     "v2xpos.datasets": 1, "v2xpos.devices": 1, "v2xpos.wire": 1, "v2xpos.scene": 1,
     "v2xpos.ins": 2, "v2xpos.relative": 2, "v2xpos.relative_jit": 2, "v2xpos.link": 2, "v2xpos.tls": 2,
     "v2xpos.security": 2, "v2xpos.verify_worker": 2, "v2xpos.output": 2,
-    "v2xpos.sources": 3, "v2xpos.quality": 3, "v2xpos.diagnose": 3, "v2xpos.config": 3,
+    "v2xpos.sources": 3, "v2xpos.quality": 3, "v2xpos.diagnose": 3, "v2xpos.evaluate": 3, "v2xpos.config": 3,
     "v2xpos.launch": 3, "v2xpos.stop_signals": 3, "v2xpos.monitor": 3, "v2xpos.commands": 3,
     "master": 4, "slave": 4,
     "sim": 5, "bench": 5,

@@ -35,7 +35,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "convoy": ("master.convoy", "run master and slaves on recorded drives as processes; write results.csv"),
     "monitor": ("v2xpos.commands.monitor", "live table and web bird's-eye view of a running master"),
     "emulate": ("v2xpos.commands.emulate", "serve a recording's byte streams as live devices (pseudo-terminals or TCP)"),
-    "simulate": ("sim.recordings", "write simulated recordings in the shared formats (convoy: leader + followers, truth)"),
+    "simulate": ("sim.recordings", "write simulated recordings in the shared formats (convoy: leader + followers, truth; "
+                                   "sensor: an object list)"),
+    "evaluate": ("v2xpos.commands.evaluate", "judge a sensor's object list against the reference: latency, "
+                                             "mounting yaw, range bias, errors, detection"),
 }
 
 STOPS_CLEANLY = {"master.service", "slave.service"}
@@ -51,6 +54,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "monitor": ("bench.monitor", "monitor CPU and status-change delay at N targets x rate"),
     "corpus": ("bench.corpus", "broken inputs through replay/calibrate/grade/config loading: tracebacks, silent exits"),
     "calibration": ("bench.calibration", "Monte-Carlo coverage of calibrate's estimates and sds (simulated drives)"),
+    "evaluate": ("bench.evaluate", "evaluate: Monte-Carlo recovery of simulated sensor effects; 30 min 20 Hz 32-object speed"),
     "real-pair": ("bench.real_pair", "a real recording and itself delayed as two vehicles, scored against the RTK"),
     "smoothing-memory": ("bench.smoothing_memory", "peak memory of replay --smooth on a generated hour (limit 1 GiB)"),
 }

@@ -48,6 +48,12 @@ class LinearProblem:
     prior_sd: np.ndarray
     active: np.ndarray = field(default_factory=lambda: np.ones(N_PARAMS, bool))
 
+    @property
+    def n_params(self) -> int:
+        """P: calibrate's effect vector (``inject.N_PARAMS``) or any other parameter vector
+        (``v2xpos.evaluate.effects``: a sensor's latency, range bias and mounting yaw)."""
+        return len(self.theta0)
+
     def subset(self, rows: np.ndarray) -> "LinearProblem":
         return LinearProblem(self.r[rows], self.J[rows], self.theta0, self.t_s[rows], self.prior_sd, self.active)
 
@@ -173,11 +179,11 @@ def influence_series(prob: LinearProblem, res: np.ndarray, Hinv: np.ndarray, act
     """u (T, P): per time bin, sum over its rows of H^-1 J_k^T r_k (the rows' contributions to the
     estimate's error, theta_hat - theta = -H^-1 sum_k J_k^T r_k to first order), inactive columns 0."""
     if len(res) == 0:
-        return np.zeros((0, N_PARAMS))
+        return np.zeros((0, prob.n_params))
     b = np.floor((prob.t_s - prob.t_s.min()) / bin_s).astype(int)
     scores = prob.J * res[:, None]
     scores[:, ~active] = 0.0
-    g = np.zeros((int(b.max()) + 1, N_PARAMS))
+    g = np.zeros((int(b.max()) + 1, prob.n_params))
     np.add.at(g, b, scores)
     return g @ Hinv.T
 
@@ -207,8 +213,8 @@ def _solve(prob: LinearProblem, active: np.ndarray) -> tuple[np.ndarray, np.ndar
     """theta (P,) and H^-1 (P,P): active parameters estimated, the others held at zero (effect
     absent). Minimises |r + J (theta - theta0)|^2 + |theta / prior_sd|^2 over the active set."""
     idx = np.flatnonzero(active)
-    theta = np.zeros(N_PARAMS)
-    Hinv = np.zeros((N_PARAMS, N_PARAMS))
+    theta = np.zeros(prob.n_params)
+    Hinv = np.zeros((prob.n_params, prob.n_params))
     r_at_zero = prob.r - prob.J @ prob.theta0
     if len(idx) == 0:
         return theta, Hinv
@@ -278,7 +284,7 @@ def jackknife_var(prob: LinearProblem, active: np.ndarray, n_blocks: int = 8) ->
     drive. Its blocks are treated as independent, so ``fit`` makes them no shorter than the HAC
     bandwidth; the estimate then has n_blocks - 1 degrees of freedom."""
     if n_blocks < 3 or len(prob.r) < 10 * n_blocks:
-        return np.zeros(N_PARAMS)
+        return np.zeros(prob.n_params)
     edges = np.quantile(prob.t_s, np.linspace(0, 1, n_blocks + 1))
     blk = np.clip(np.searchsorted(edges, prob.t_s, side="right") - 1, 0, n_blocks - 1)
     th = np.array([_solve(prob.subset(blk != b), active)[0] for b in range(n_blocks)])
@@ -301,33 +307,34 @@ def fit(prob: LinearProblem, systematic_sd: np.ndarray | None = None, active: np
     ``dof`` records the winner's, ``threshold_sd`` turns it into the significance threshold."""
     active = prob.active if active is None else active
     theta, Hinv = _solve(prob, active)
+    n_params = prob.n_params
     res = predicted_residual(prob, theta)
     m = len(res)
     k = int(active.sum())
     chi2 = float(res @ res) / max(m - k, 1)
     cov_naive = Hinv * max(chi2, 1.0)
     var_white = np.diag(cov_naive).copy()
-    var_hac = np.zeros(N_PARAMS)
-    dof_hac = np.full(N_PARAMS, np.inf)
-    bandwidth_s = np.zeros(N_PARAMS)
+    var_hac = np.zeros(n_params)
+    dof_hac = np.full(n_params, np.inf)
+    bandwidth_s = np.zeros(n_params)
     u = influence_series(prob, res, Hinv, active, bin_s)
     span_s = len(u) * bin_s
     for i in np.flatnonzero(active):
         lrv = long_run_variance(u[:, i], bin_s)
         var_hac[i], dof_hac[i], bandwidth_s[i] = lrv.variance_of_sum, lrv.dof, lrv.bandwidth_s
     n_jack = np.clip(np.floor(span_s / np.maximum(bandwidth_s, bin_s)), 3, JACKKNIFE_MAX_BLOCKS).astype(int)
-    var_jack = np.zeros(N_PARAMS)
+    var_jack = np.zeros(n_params)
     for n in np.unique(n_jack[active]):
         sel = active & (n_jack == n)
         var_jack[sel] = jackknife_var(prob, active, n_blocks=int(n))[sel]
     dof_jack = n_jack - 1.0
     cand_var = np.vstack([var_white, var_hac * normal_equivalent_factor(dof_hac) ** 2,
                           var_jack * normal_equivalent_factor(dof_jack) ** 2])
-    cand_dof = np.vstack([np.full(N_PARAMS, np.inf), dof_hac, dof_jack])
+    cand_dof = np.vstack([np.full(n_params, np.inf), dof_hac, dof_jack])
     win = np.argmax(cand_var, axis=0)
-    var_stat = cand_var[win, np.arange(N_PARAMS)]
-    dof = np.where(active, cand_dof[win, np.arange(N_PARAMS)], np.inf)
-    sys = np.zeros(N_PARAMS) if systematic_sd is None else np.asarray(systematic_sd, float)
+    var_stat = cand_var[win, np.arange(n_params)]
+    dof = np.where(active, cand_dof[win, np.arange(n_params)], np.inf)
+    sys = np.zeros(n_params) if systematic_sd is None else np.asarray(systematic_sd, float)
     var_stat = np.where(active, var_stat, prob.prior_sd ** 2)
     sd_stat = np.sqrt(var_stat)
     sd = np.sqrt(var_stat + sys ** 2)
@@ -335,7 +342,7 @@ def fit(prob: LinearProblem, systematic_sd: np.ndarray | None = None, active: np
     scale = np.where(sd_white > 0, sd_stat / np.maximum(sd_white, 1e-300), 1.0)
     cov = cov_naive * np.outer(scale, scale)
     determined = active & (sd < DETERMINED_RATIO * prob.prior_sd)
-    return Fit(theta=theta, cov=cov, sd=sd, sd_stat=sd_stat, cost_before=cost(prob, np.zeros(N_PARAMS)),
+    return Fit(theta=theta, cov=cov, sd=sd, sd_stat=sd_stat, cost_before=cost(prob, np.zeros(n_params)),
                cost_after=float(res @ res), n_rows=m, reduced_chi2=chi2, sd_white=sd_white,
                determined=determined, dof=dof, bandwidth_s=bandwidth_s)
 
@@ -351,7 +358,7 @@ def cross_validated_gain(prob: LinearProblem, active: np.ndarray) -> np.ndarray:
     """For every active parameter: cost reduction on one half when the effect estimated on the
     other half is included, minus when it is left out (summed over both directions)."""
     a, b = halves(prob)
-    gain = np.zeros(N_PARAMS)
+    gain = np.zeros(prob.n_params)
     for train, test in ((a, b), (b, a)):
         th_all, _ = _solve(train, active)
         c_all = cost(test, th_all)
