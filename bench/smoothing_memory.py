@@ -6,14 +6,14 @@ Without ``--recording`` it generates one (``sim.recordings.generate_convoy``: pr
 ``--duration`` seconds, IMU at 100 Hz, GNSS at 10 Hz, vehicle A). It then runs, each in its own
 child process so that nothing else shares the figure, the plain forward replay and the smoothed
 replay with the smoothed solution written to a CSV (every GNSS epoch), and prints each process's
-peak resident set size (``getrusage`` ``ru_maxrss`` of the child, read by itself at its end), the
-smoother's stored bytes, the times and the inside-outage figures.
+peak resident set size (``ru_maxrss`` of that child, ``os.wait4``), the smoother's stored bytes,
+the times and the inside-outage figures.
 """
 from __future__ import annotations
 
 import argparse
 import json
-import resource
+import os
 import shutil
 import subprocess
 import sys
@@ -32,26 +32,17 @@ def add_bench_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", help="write the figures to this JSON file")
 
 
-def _child(argv: list[str]) -> int:
-    """In the child: run ``v2xpos replay`` with ``argv`` and print its peak RSS [KiB] as JSON."""
-    from v2xpos.cli import main
-    rc = main(argv)
-    print(json.dumps({"rc": rc, "maxrss_kib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss}))
-    return 0
-
-
-def _measure(argv: list[str]) -> dict:
-    proc = subprocess.run([sys.executable, "-m", "bench.smoothing_memory", "--child", *argv],
-                          capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
-    last = (proc.stdout.strip().splitlines() or ["{}"])[-1]
-    try:
-        out = json.loads(last)
-    except ValueError:
-        out = {}
-    if proc.returncode != 0 or out.get("rc") not in (0, 1):
-        raise RuntimeError(f"replay {' '.join(argv)} failed (exit {proc.returncode}):\n{proc.stderr[-2000:]}")
-    out["mib"] = out["maxrss_kib"] / 1024.0
-    return out
+def _measure(argv: list[str], log: Path) -> dict:
+    """Run ``python -m v2xpos`` with ``argv`` as a child; its exit code and peak RSS [MiB]."""
+    with open(log, "w") as fh:
+        proc = subprocess.Popen([sys.executable, "-m", "v2xpos", *argv], stdout=fh, stderr=subprocess.STDOUT,
+                                cwd=Path(__file__).resolve().parents[1])
+        _, status, usage = os.wait4(proc.pid, 0)
+    rc = os.waitstatus_to_exitcode(status)
+    proc.returncode = rc
+    if rc not in (0, 1):
+        raise RuntimeError(f"v2xpos {' '.join(argv)} failed (exit {rc}):\n{log.read_text()[-2000:]}")
+    return {"rc": rc, "mib": usage.ru_maxrss / 1024.0}
 
 
 def run_bench(args: argparse.Namespace) -> int:
@@ -66,9 +57,9 @@ def run_bench(args: argparse.Namespace) -> int:
             generate_convoy(work / "rec", seed=args.seed, preset="clean", duration_s=args.duration)
             dataset = work / "rec" / "A" / "dataset.toml"
         common = ["replay", str(dataset), "--no-progress"]
-        fwd = _measure(common + ["--json", str(work / "forward.json")])
+        fwd = _measure(common + ["--json", str(work / "forward.json")], work / "forward.log")
         smo = _measure(common + ["--smooth", "--solution", str(work / "smoothed_solution.csv"),
-                                 "--json", str(work / "smoothed.json")])
+                                 "--json", str(work / "smoothed.json")], work / "smoothed.log")
         f_sum = json.loads((work / "forward.json").read_text())
         s_sum = json.loads((work / "smoothed.json").read_text())
         sm = s_sum["smoothing"]
@@ -98,9 +89,3 @@ def run_bench(args: argparse.Namespace) -> int:
             shutil.rmtree(work, ignore_errors=True)
 
 
-if __name__ == "__main__":
-    if len(sys.argv) > 1 and sys.argv[1] == "--child":
-        sys.exit(_child(sys.argv[2:]))
-    p = argparse.ArgumentParser()
-    add_bench_arguments(p)
-    sys.exit(run_bench(p.parse_args()))

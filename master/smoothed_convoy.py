@@ -8,7 +8,7 @@ velocity and attitude corrected, their sds the smoother's covariance, the time l
 smoothed IMU time offset) with the smoothed fix below;
 states outside a smoothed interval (before the heading is set at a parked start, after the last
 covariance step of the recording) stay forward. Both sets of states then go through the same
-in-process loop (``convoy.feed_pipeline``): ``results.csv`` from the smoothed states with a trailing
+in-process loop (``in_process.feed_pipeline``): ``results.csv`` from the smoothed states with a trailing
 column ``smoothed`` (1 when both the master's and the target's state are smoothed), and
 ``results_forward.csv`` from the forward states (what ``convoy --in-process`` writes). The
 pipeline forms each result's status from these states as from live ones: fix gate, attitude,
@@ -132,7 +132,7 @@ def run_in_process_smoothed(out: Path, master: tuple, slaves: list[tuple], rate_
                             log=sys.stderr) -> dict:
     """The smoothed in-process convoy (module docstring); returns the pipeline's counts per run and
     the smoother's per vehicle."""
-    from master.convoy import feed_pipeline
+    from master.in_process import feed_pipeline
     from v2xpos.output.results_csv import ResultsCsvWriter
     out.mkdir(parents=True, exist_ok=True)
     vehicles = {}
