@@ -6,8 +6,10 @@ Without ``--recording`` it generates one (``sim.recordings.generate_convoy``: pr
 ``--duration`` seconds, IMU at 100 Hz, GNSS at 10 Hz, vehicle A). It then runs, each in its own
 child process so that nothing else shares the figure, the plain forward replay and the smoothed
 replay with the smoothed solution written to a CSV (every GNSS epoch), and prints each process's
-peak resident set size (``ru_maxrss`` of that child, ``os.wait4``), the smoother's stored bytes,
-the times and the inside-outage figures.
+peak resident set size (``VmHWM`` of /proc/self/status, which the child writes at its end: the
+high-water mark of its own address space -- ``ru_maxrss`` would include the memory the child had
+before ``exec``, a copy of this process's), the smoother's stored bytes, the times and the
+inside-outage figures.
 """
 from __future__ import annotations
 
@@ -32,17 +34,27 @@ def add_bench_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", help="write the figures to this JSON file")
 
 
+CHILD = """
+import os, runpy, sys
+sys.argv = ["v2xpos"] + sys.argv[1:]
+try:
+    runpy.run_module("v2xpos", run_name="__main__")
+finally:
+    with open("/proc/self/status") as fh, open(os.environ["V2XPOS_PEAK_FILE"], "w") as out:
+        out.write(next(line for line in fh if line.startswith("VmHWM:")).split()[1])
+"""
+"""The child: ``python -m v2xpos ARGS`` that writes its peak resident set size [KiB] to a file."""
+
+
 def _measure(argv: list[str], log: Path) -> dict:
-    """Run ``python -m v2xpos`` with ``argv`` as a child; its exit code and peak RSS [MiB]."""
+    """Run ``v2xpos`` with ``argv`` as a child process; its exit code and peak RSS [MiB]."""
+    peak = log.with_suffix(".peak_kib")
     with open(log, "w") as fh:
-        proc = subprocess.Popen([sys.executable, "-m", "v2xpos", *argv], stdout=fh, stderr=subprocess.STDOUT,
-                                cwd=Path(__file__).resolve().parents[1])
-        _, status, usage = os.wait4(proc.pid, 0)
-    rc = os.waitstatus_to_exitcode(status)
-    proc.returncode = rc
-    if rc not in (0, 1):
-        raise RuntimeError(f"v2xpos {' '.join(argv)} failed (exit {rc}):\n{log.read_text()[-2000:]}")
-    return {"rc": rc, "mib": usage.ru_maxrss / 1024.0}
+        proc = subprocess.run([sys.executable, "-c", CHILD, *argv], stdout=fh, stderr=subprocess.STDOUT,
+                              cwd=Path(__file__).resolve().parents[1], env={**os.environ, "V2XPOS_PEAK_FILE": str(peak)})
+    if proc.returncode not in (0, 1) or not peak.is_file():
+        raise RuntimeError(f"v2xpos {' '.join(argv)} failed (exit {proc.returncode}):\n{log.read_text()[-2000:]}")
+    return {"rc": proc.returncode, "mib": float(peak.read_text()) / 1024.0}
 
 
 def run_bench(args: argparse.Namespace) -> int:
