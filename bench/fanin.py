@@ -158,7 +158,8 @@ def run_bench(args: argparse.Namespace) -> int:
     from v2xpos.launch import free_tcp_port, free_udp_port, to_toml
 
     stages = [int(x) for x in str(args.slaves).split(",") if x.strip()]
-    out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="v2xpos_fanin_"))
+    # absolute: the master resolves its config's paths against the config file's directory
+    out = Path(args.out).resolve() if args.out else Path(tempfile.mkdtemp(prefix="v2xpos_fanin_"))
     out.mkdir(parents=True, exist_ok=True)
     port = free_tcp_port()
     endpoint = f"tcp/127.0.0.1:{port}"

@@ -49,11 +49,48 @@ def make_recording(work: Path, preset: str, seed: int, mountings: list[str], eff
     return d
 
 
-def run_case(rec: Path, out: Path) -> dict:
+def prepared(rec: Path, work: Path, verified: bool = False, calibrate: bool = False) -> tuple[Path, Path]:
+    """The dataset.toml of A and B as the case runs them: as recorded; with ``verified`` each with
+    the ``[verification]`` record its own drive gives (a set-up verified on an earlier drive of the
+    same vehicle: ``diagnose.writeback.verification_of``); with ``calibrate`` the follower's
+    ``calibrate --write-dataset`` descriptor (its ``[calibration]`` and ``[verification]``)."""
+    a, b = rec / "A" / "dataset.toml", rec / "B" / "dataset.toml"
+    if not (verified or calibrate):
+        return a, b
+    from v2xpos.diagnose.writeback import verification_of, write_dataset
+    work.mkdir(parents=True, exist_ok=True)
+    out = []
+    for name, src in (("A", a), ("B", b)):
+        dst = work / f"{name}.toml"
+        if calibrate and name == "B":
+            if not dst.is_file():
+                from v2xpos.datasets.loader import load_dataset
+                from v2xpos.diagnose.calibrate import calibrate_dataset
+                from v2xpos.ins.replay_engine import OutageSchedule
+                cal = calibrate_dataset(load_dataset(src), OutageSchedule(), progress=False)
+                write_dataset(src, dst, cal.table, verify=True)
+        elif not dst.is_file():
+            import tomli_w
+            from v2xpos.datasets.loader import read_descriptor
+            from v2xpos.diagnose.writeback import PATH_KEYS, _rebased
+            desc = read_descriptor(src)
+            desc.pop("verification", None)
+            for tab, key in PATH_KEYS:
+                t = desc if not tab else desc.get(tab)
+                if isinstance(t, dict) and isinstance(t.get(key), str):
+                    t[key] = _rebased(t[key], src.parent, dst.parent)
+            record = verification_of(src) if verified else None
+            dst.write_text(tomli_w.dumps(desc) + ("\n" + record.to_toml() if record is not None else ""))
+        out.append(dst)
+    return out[0], out[1]
+
+
+def run_case(rec: Path, out: Path, verified: bool = False, calibrate: bool = False) -> dict:
     """In-process convoy of ``rec`` (A master, B slave) scored against its truth."""
     from master.convoy import dataset_identity, run_in_process
     from v2xpos.diagnose.truth import score_results_csv
-    a, b = dataset_identity(rec / "A"), dataset_identity(rec / "B")
+    a_toml, b_toml = prepared(rec, out / "datasets", verified, calibrate)
+    a, b = dataset_identity(a_toml), dataset_identity(b_toml)
     out.mkdir(parents=True, exist_ok=True)
     run_in_process(out, a, [b], log=io.StringIO())
     score = score_results_csv(out / "results.csv", rec / "truth_rel.csv",
@@ -65,7 +102,8 @@ def brief(s: dict) -> dict:
     """The figures of one scored target that the table shows."""
     mv = s["moving"]
     bias = max(abs(mv["x_mean_m"] or 0.0), abs(mv["y_mean_m"] or 0.0)) if mv["n"] else None
-    return {"valid": s["valid_fraction"], "n_moving": mv["n"], "h_rms_m": mv["h_rms_m"], "bias_m": bias,
+    return {"valid": s["valid_fraction"], "valid_moving": s.get("moving_valid_fraction"),
+            "first_valid_s": s.get("time_to_first_valid_s"), "n_moving": mv["n"], "h_rms_m": mv["h_rms_m"], "bias_m": bias,
             "in3x": s.get("within_3sd_x"), "in3y": s.get("within_3sd_y"), "nrms_x": s.get("normalised_rms_x"),
             "nrms_y": s.get("normalised_rms_y"), "sig_ratio": s.get("median_sigma_h_over_h_rms"),
             "sigma_h_m": s.get("median_sigma_h_m"), "violations": s.get("violations", 0),
@@ -77,7 +115,8 @@ def _f(v, d: int = 3) -> str:
 
 
 def line(name: str, b: dict) -> str:
-    return (f"{name:34s} VALID {_f(100 * b['valid'], 1):>5s} %  hRMS {_f(b['h_rms_m'])}  bias {_f(b['bias_m'])}  "
+    return (f"{name:34s} VALID {_f(100 * b['valid'], 1):>5s} % (moving {_f(100 * b['valid_moving'], 1) if b['valid_moving'] is not None else '-':>5s} %, "
+            f"first after {_f(b['first_valid_s'], 1):>5s} s)  hRMS {_f(b['h_rms_m'])}  bias {_f(b['bias_m'])}  "
             f"in3sd {_f(b['in3x'])}/{_f(b['in3y'])}  nRMS {_f(b['nrms_x'], 2)}/{_f(b['nrms_y'], 2)}  "
             f"sig_h {_f(b['sigma_h_m'])} ({_f(b['sig_ratio'], 1)}x)  viol {b['violations']}")
 
@@ -92,6 +131,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--real", action="append", default=[], help="a recording folder with A/, B/, truth_rel.csv")
     ap.add_argument("--work", default="/tmp/v2xpos-integrity-mc")
     ap.add_argument("--json", help="write every case's figures here")
+    ap.add_argument("--verified", action="store_true",
+                    help="every vehicle starts with the [verification] record of its own drive (verified before)")
+    ap.add_argument("--calibrate", action="store_true",
+                    help="the follower runs with its calibrate --write-dataset table (and verification record)")
     args = ap.parse_args(argv)
     work = Path(args.work)
     cases: list[tuple[str, Path]] = [(Path(r).name, Path(r)) for r in args.real]
@@ -102,7 +145,9 @@ def main(argv: list[str] | None = None) -> int:
     rows = {}
     for name, rec in cases:
         t0 = time.time()
-        b = brief(run_case(rec, work / "out" / rec.name))
+        mode = "_verified" if args.verified else ""
+        mode += "_calibrated" if args.calibrate else ""
+        b = brief(run_case(rec, work / "out" / (rec.name + mode), args.verified, args.calibrate))
         rows[name] = b
         print(line(name, b) + f"  ({time.time() - t0:.0f} s)", flush=True)
     by_preset: dict = {}
@@ -111,12 +156,17 @@ def main(argv: list[str] | None = None) -> int:
     for preset, bs in by_preset.items():
         h = [b["h_rms_m"] for b in bs if b["h_rms_m"] is not None]
         ratios = [b["sig_ratio"] for b in bs if b["sig_ratio"]]
+        mvs = [b["valid_moving"] for b in bs if b["valid_moving"] is not None]
+        fv = [b["first_valid_s"] for b in bs if b["first_valid_s"] is not None]
         print(f"{preset}: cases {len(bs)}, h RMS median {_f(float(np.median(h)) if h else None)} max "
               f"{_f(max(h) if h else None)}, min in3sd {_f(min(min(b['in3x'] or 0, b['in3y'] or 0) for b in bs))}, "
               f"sigma ratio median {_f(float(np.median(ratios)) if ratios else None, 1)} "
               f"max {_f(max(ratios) if ratios else None, 1)}, "
               f"violations {sum(b['violations'] for b in bs)}, VALID median "
-              f"{_f(100 * float(np.median([b['valid'] for b in bs])), 1)} % min {_f(100 * min(b['valid'] for b in bs), 1)} %")
+              f"{_f(100 * float(np.median([b['valid'] for b in bs])), 1)} % min {_f(100 * min(b['valid'] for b in bs), 1)} %, "
+              f"VALID while moving median {_f(100 * float(np.median(mvs)) if mvs else None, 1)} % "
+              f"min {_f(100 * min(mvs) if mvs else None, 1)} %, first VALID after max "
+              f"{_f(max(fv) if fv else None, 1)} s")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
     return 0

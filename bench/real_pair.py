@@ -51,6 +51,10 @@ MAX_TURN_DEG = 2.0
 MATCH_TOLERANCE_S = 0.05
 """A scored epoch takes the result rows bracketing it when they are this close (results come at the
 slave's state rate, 100 Hz: 10 ms apart)."""
+COURSE_BASELINE_S = 0.5
+"""A's course for the cross-range truth: the direction of its RTK antenna track from t - 0.5 s to
+t + 0.5 s (a 10 m chord at 10 m/s: 2 mrad from 1.4 cm of noise per fix), taken as A's heading --
+exact for a car without side slip on a straight road, which the scored epochs are."""
 VIOLATION_FLOOR_M = 0.3
 VIOLATION_SIGMAS = 4.0
 TIMETAG_OPEN_OFFSET = 64
@@ -157,11 +161,12 @@ def restamp_dataset(toml_path: str | Path, delay_s: float, out_dir: Path, name: 
 # ---------------------------------------------------------------------------------------- truth
 @dataclass
 class PairTruth:
-    """The scored epochs of one delay: ``t_s`` (A's epochs), the antenna range [m], and the count of
-    epochs left out per reason."""
+    """The scored epochs of one delay: ``t_s`` (A's epochs), the antenna range [m], B's antenna
+    across A's course [m, right positive] (``cross_m``), and the count of epochs left out per reason."""
     t_s: np.ndarray
     range_m: np.ndarray
     skipped: dict
+    cross_m: np.ndarray | None = None
 
 
 def pair_truth(gnss, delay_s: float, min_speed_mps: float = MIN_SPEED_MPS,
@@ -186,7 +191,8 @@ def pair_truth(gnss, delay_s: float, min_speed_mps: float = MIN_SPEED_MPS,
     index = {int(k): i for i, k in enumerate(ms)}
     d_ms = int(round(delay_s * 1000.0))
     skipped = {"no_epoch_at_t_minus_delay": 0, "not_fixed": 0, "slow": 0, "turning": 0}
-    keep_t, keep_r = [], []
+    keep_t, keep_r, keep_c = [], [], []
+    course_ms = int(round(COURSE_BASELINE_S * 1000.0))
     for i in range(len(t)):
         j = index.get(int(ms[i]) - d_ms)
         if j is None:
@@ -200,13 +206,21 @@ def pair_truth(gnss, delay_s: float, min_speed_mps: float = MIN_SPEED_MPS,
         else:
             keep_t.append(t[i])
             keep_r.append(float(np.linalg.norm(ecef[i] - ecef[j])))
-    return PairTruth(np.asarray(keep_t, float), np.asarray(keep_r, float), skipped)
+            a, b = index.get(int(ms[i]) - course_ms), index.get(int(ms[i]) + course_ms)
+            cross = math.nan
+            if a is not None and b is not None and fix[a] == FixStatus.FIXED and fix[b] == FixStatus.FIXED:
+                C = geo.dcm_ecef_to_ned(lla[i][0], lla[i][1])
+                u = (C @ (ecef[b] - ecef[a]))[:2]
+                r = (C @ (ecef[j] - ecef[i]))[:2]
+                cross = float((u[0] * r[1] - u[1] * r[0]) / max(float(np.hypot(u[0], u[1])), 1e-9))
+            keep_c.append(cross)
+    return PairTruth(np.asarray(keep_t, float), np.asarray(keep_r, float), skipped, np.asarray(keep_c, float))
 
 
 # ---------------------------------------------------------------------------------------- scoring
 def _rows(results_csv: Path, target: str) -> dict:
     import csv
-    cols = {"t": [], "range": [], "sd": [], "status": []}
+    cols = {"t": [], "range": [], "sd": [], "status": [], "y": [], "sd_y": []}
     with open(results_csv, newline="") as fh:
         for row in csv.DictReader(fh):
             if row.get("target") != target:
@@ -218,10 +232,13 @@ def _rows(results_csv: Path, target: str) -> dict:
             cols["range"].append(float(row["range_m"]) if row.get("range_m") else math.nan)
             cols["sd"].append(float(row["range_sd_m"]) if row.get("range_sd_m") else math.nan)
             cols["status"].append(row.get("status", ""))
+            cols["y"].append(float(row["y_m"]) if row.get("y_m") else math.nan)
+            cols["sd_y"].append(float(row["sd_y_m"]) if row.get("sd_y_m") else math.nan)
     t = np.asarray(cols["t"], float)
     o = np.argsort(t, kind="stable")
     return {"t": t[o], "range": np.asarray(cols["range"], float)[o], "sd": np.asarray(cols["sd"], float)[o],
-            "status": np.asarray(cols["status"], object)[o]}
+            "status": np.asarray(cols["status"], object)[o], "y": np.asarray(cols["y"], float)[o],
+            "sd_y": np.asarray(cols["sd_y"], float)[o]}
 
 
 def _figures(err: np.ndarray, sd: np.ndarray) -> dict:
@@ -231,6 +248,19 @@ def _figures(err: np.ndarray, sd: np.ndarray) -> dict:
     return {"n": int(len(err)), "rms_m": float(np.sqrt(np.mean(err ** 2))), "max_m": float(np.max(np.abs(err))),
             "bias_m": float(np.mean(err)), "within_3sd": float(np.mean(np.abs(err) <= 3.0 * sd)),
             "worst_bound_ratio": float(np.max(np.abs(err) / bound))}
+
+
+def _cross_figures(r: dict, k: np.ndarray, w: np.ndarray, near: np.ndarray, ok: np.ndarray, status: np.ndarray,
+                   truth: PairTruth) -> dict:
+    """B's position across A's heading (``y_m``) against the RTK course (``COURSE_BASELINE_S``): the
+    check of the master's heading and of ``sd_y_m``, which the range does not see."""
+    if truth.cross_m is None:
+        return {}
+    y = (1.0 - w) * r["y"][k - 1] + w * r["y"][k]
+    err = y - truth.cross_m
+    sd = r["sd_y"][near]
+    m = ok & np.isfinite(err)
+    return {"computed": _figures(err[m], sd[m]), "valid": _figures(err[m & (status == "VALID")], sd[m & (status == "VALID")])}
 
 
 def score_pair(results_csv: Path, target: str, truth: PairTruth) -> dict:
@@ -263,6 +293,7 @@ def score_pair(results_csv: Path, target: str, truth: PairTruth) -> dict:
                valid_share=float(valid.sum() / n_scored),
                violations=int(np.sum(np.abs(err[valid]) > np.maximum(VIOLATION_FLOOR_M, VIOLATION_SIGMAS * sd[valid]))),
                status_counts=dict(Counter(str(s) for s in status[ok])),
+               cross_range=_cross_figures(r, k, w, near, ok, status, truth),
                series={"t_s": truth.t_s[ok], "err_m": err[ok], "sd_m": sd[ok], "status": status[ok]})
     return out
 
@@ -400,6 +431,9 @@ def _print_score(label: str, score: dict) -> None:
           f"  {label}VALID rows:         n {v['n']}  RMS {_fmt(v['rms_m'])} m  max {_fmt(v['max_m'])} m  "
           f"bias {_fmt(v['bias_m'])} m  within 3 sd {_fmt(v['within_3sd'], 3)}  "
           f"worst / max(0.3 m, 4 sd) {_fmt(v['worst_bound_ratio'], 3)}\n"
+          f"  {label}across A's course (heading check, RTK course as truth): every computed row RMS "
+          f"{_fmt((score.get('cross_range') or {}).get('computed', {}).get('rms_m'))} m, within 3 sd_y "
+          f"{_fmt((score.get('cross_range') or {}).get('computed', {}).get('within_3sd'), 3)}\n"
           f"  {label}VALID share {100 * score['valid_share']:.1f} %  violations {score.get('violations', 0)}  "
           f"statuses {score['status_counts']}", flush=True)
 

@@ -194,7 +194,7 @@ def run_soak(slaves: int = 32, rate: float = 100.0, duration: float = 60.0, out_
         "transport/link/tx/queue/congestion_control/block/wait_before_close": int(block_wait_s * 1e6)}
     from v2xpos.security import TrustList, generate_vehicle_key, load_public_key_file
 
-    out = Path(out_dir)
+    out = Path(out_dir).resolve()    # absolute: the master resolves its config's paths against the config's directory
     out.mkdir(parents=True, exist_ok=True)
     keys = out / "keys"
     ids = [f"s{i:02d}" for i in range(slaves)]

@@ -16,7 +16,8 @@
     [validity]                        # when a computed result is VALID (docs/integrity.md)
     max_sigma_h_m = 0.10              # predicted 1-sigma horizontal relative position above it: SIGMA_EXCEEDED
     max_sigma_yaw_deg = 1.0           # predicted 1-sigma relative yaw above it: SIGMA_EXCEEDED
-    require_consistency = true        # both filters consistent and verified (protection level within its limit), else INCONSISTENT
+    require_consistency = true        # both filters consistent (else INCONSISTENT) and verified (else UNVERIFIED)
+    max_clock_disagreement_ms = 50    # a target's clock this far from the master's: clock alarm (CLOCK_UNSYNCED)
 
     [link]                            # the master embeds the router by default
     mode = "router"
@@ -44,6 +45,7 @@
     enabled = true
     host = "127.0.0.1"                # any unicast address or host name (not multicast/broadcast)
     port = 47001
+    status_hz = 10                    # heartbeat datagrams per second (0 = none): the master is alive
     [output.zenoh]
     enabled = true                    # republish RelativeResult on .../master/<id>/relative
 
@@ -51,7 +53,7 @@
     geojson = "scene.geojson"         # optional V2L lane lines / points / polygons
     rate_hz = 10                      # scene evaluations per second
 
-    [record]
+    [record]                          # paths relative to this file (as every path in it)
     results_csv = "out/results.csv"   # every result as a CSV row (master.results_csv.COLUMNS), streamed
     results_npz = "out/master_results.npz"   # per-result rows for the report (optional)
     summary_json = "out/master_summary.json"
@@ -80,8 +82,8 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from v2xpos.config import (ConfigError, SourceConfig, check_keys, corrections_from_table, link_from_table,
-                           load_toml, take)
+from v2xpos.config import (ConfigError, SourceConfig, check_keys, config_dir, corrections_from_table,
+                           link_from_table, load_toml, take)
 from v2xpos.link import LinkConfig
 
 
@@ -112,6 +114,7 @@ class MasterConfig:
     udp_enabled: bool = False
     udp_host: str = "127.0.0.1"
     udp_port: int = 47001
+    udp_status_hz: float = 10.0
     zenoh_enabled: bool = True
     geojson: str | None = None
     scene_hz: float = 10.0
@@ -131,11 +134,15 @@ class MasterConfig:
     max_sigma_h_m: float = 0.10
     max_sigma_yaw_deg: float = 1.0
     require_consistency: bool = True
+    max_clock_disagreement_s: float = 0.05
     path: str = "<defaults>"
 
     @classmethod
     def load(cls, path: str | Path) -> "MasterConfig":
         return cls.from_dict(load_toml(path), str(path))
+
+    PATH_FIELDS = ("results_npz", "results_csv", "summary_json", "mcap", "geojson", "trust_list")
+    """Fields that name files: relative ones resolve against the config file's directory."""
 
     @classmethod
     def from_dict(cls, d: dict, path: str = "<dict>") -> "MasterConfig":
@@ -143,7 +150,10 @@ class MasterConfig:
                        "validity"}, path)
         va = take(d, "validity", dict, {}, path)
         wv = f"{path}: [validity]"
-        check_keys(va, {"max_sigma_h_m", "max_sigma_yaw_deg", "require_consistency"}, wv)
+        check_keys(va, {"max_sigma_h_m", "max_sigma_yaw_deg", "require_consistency", "max_clock_disagreement_ms"}, wv)
+        max_clock_ms = take(va, "max_clock_disagreement_ms", float, 50.0, wv)
+        if not 0 < max_clock_ms <= 60000:
+            raise ConfigError(f"{wv}.max_clock_disagreement_ms: {max_clock_ms} outside (0, 60000]")
         max_sigma_h = take(va, "max_sigma_h_m", float, 0.10, wv)
         max_sigma_yaw = take(va, "max_sigma_yaw_deg", float, 1.0, wv)
         if not max_sigma_h > 0 or not max_sigma_yaw > 0:
@@ -207,7 +217,18 @@ class MasterConfig:
             max_age_s=take(sec, "max_age_s", float, 5.0, ws),
             future_tolerance_s=take(sec, "future_tolerance_s", float, 0.05, ws), replay_window=window,
             corrections=corrections_from_table(d, path), max_sigma_h_m=max_sigma_h, max_sigma_yaw_deg=max_sigma_yaw,
-            require_consistency=take(va, "require_consistency", bool, True, wv), path=path)
+            require_consistency=take(va, "require_consistency", bool, True, wv),
+            max_clock_disagreement_s=max_clock_ms / 1e3, path=path)._resolved()
+
+    def _resolved(self) -> "MasterConfig":
+        """Relative file paths made absolute against the config file's directory (``config_dir``), as
+        the file's comments say; a config built in memory resolves against the working directory."""
+        base = config_dir(self.path)
+        for name in self.PATH_FIELDS:
+            value = getattr(self, name)
+            if value:
+                setattr(self, name, str(base / Path(value).expanduser()))
+        return self
 
     def can_bus_kwargs(self) -> dict:
         """python-can ``Bus`` options of ``[output.can]`` (besides interface and channel)."""
@@ -235,7 +256,7 @@ def output_from_table(out: dict, path: str) -> dict:
     zen_t = take(out, "zenoh", dict, {}, f"{path}: [output]")
     check_keys(can_t, {"enabled", "interface", "channel", "rate_hz", "status_hz", "bitrate", "fd", "data_bitrate",
                        "receive_own_messages", "slots"}, wc)
-    check_keys(udp_t, {"enabled", "host", "port"}, wu)
+    check_keys(udp_t, {"enabled", "host", "port", "status_hz"}, wu)
     check_keys(zen_t, {"enabled"}, wz)
     can_rate = take(can_t, "rate_hz", float, 25.0, wc)
     if not 0 <= can_rate <= 1000:
@@ -282,9 +303,13 @@ def output_from_table(out: dict, path: str) -> dict:
     port = take(udp_t, "port", int, 47001, wu)
     if not 0 < port < 65536:
         raise ConfigError(f"{wu}.port: {port} outside 1..65535")
+    udp_status_hz = take(udp_t, "status_hz", float, 10.0, wu)
+    if not 0 <= udp_status_hz <= 100:
+        raise ConfigError(f"{wu}.status_hz: {udp_status_hz} outside 0..100 (0 = no heartbeat)")
     return dict(can_enabled=take(can_t, "enabled", bool, False, wc), can_interface=interface, can_channel=channel,
                 can_rate_hz=can_rate, can_status_hz=status_hz, can_bitrate=bitrates["bitrate"], can_fd=fd,
                 can_data_bitrate=bitrates["data_bitrate"],
                 can_receive_own_messages=take(can_t, "receive_own_messages", bool, False, wc), can_slots=dict(slots),
                 udp_enabled=take(udp_t, "enabled", bool, False, wu), udp_host=host, udp_port=port,
+                udp_status_hz=udp_status_hz,
                 zenoh_enabled=take(zen_t, "enabled", bool, True, wz))

@@ -58,7 +58,9 @@ def dataset_identity(path: str | Path) -> tuple[Path, str, str]:
 def write_configs(out: Path, master: tuple, slaves: list[tuple], speed: float, fleet: str = "convoy",
                   router_port: int | None = None, udp_port: int | None = None, can: bool = True,
                   mcap: bool = False) -> dict[str, Path]:
-    """Master and slave TOML files for a recorded convoy in ``out/configs``; returns id -> path."""
+    """Master and slave TOML files for a recorded convoy in ``out/configs``; returns id -> path. ``out``
+    is made absolute: the services resolve their config's paths against the config's directory."""
+    out = Path(out).resolve()
     cdir = out / "configs"
     cdir.mkdir(parents=True, exist_ok=True)
     port = router_port or free_tcp_port()

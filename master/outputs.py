@@ -42,13 +42,15 @@ def master_status(nav: Any, t_gps_s: float | None = None, heading_valid: bool | 
                   clock_synced: bool | None = None, clock_offset_s: float | None = None) -> dict:
     """The ``write_master_status`` dict of the master's latest filter state ``nav`` (NavState or
     StateMessage; None before the first state): time (``t_gps_s`` or the state's), fix, position sd
-    (N, E, D) and yaw sd; the heading and clock flags when the caller knows them (None = unknown)."""
+    (N, E, D), yaw sd and the filter's reason code; the heading and clock flags when the caller
+    knows them (None = unknown)."""
     st: dict = {"heading_valid": heading_valid, "clock_synced": clock_synced, "clock_offset_s": clock_offset_s}
     if nav is None:
         st.update(t_gps_s=t_gps_s if t_gps_s is not None else 0.0, master_fix=None)
         return st
     st.update(t_gps_s=float(nav.t_s if t_gps_s is None else t_gps_s), master_fix=int(nav.fix),
-              pos_sd_m=[float(x) for x in nav.pos_sd_m], yaw_sd_rad=float(nav.att_sd_rad[2]))
+              pos_sd_m=[float(x) for x in nav.pos_sd_m], yaw_sd_rad=float(nav.att_sd_rad[2]),
+              reason=int(getattr(nav, "reason", 0)))
     return st
 
 
@@ -143,6 +145,11 @@ class UdpSink:
         if q:
             self.out.send(q, q[-1].seq, q[-1].t_gps_s)
             q.clear()
+
+    def write_heartbeat(self, seq: int, t_gps_s: float) -> None:
+        """The master's heartbeat datagram (``v2xpos.output.udp.heartbeat``), after the queued results."""
+        self.flush()
+        self.out.send_heartbeat(seq, t_gps_s)
 
     def write_scene(self, scene_result, t_gps_s: float, seq: int) -> None:
         """One datagram with no targets and the lane / object records."""

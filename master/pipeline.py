@@ -13,7 +13,9 @@ For every received slave payload ``handle(payload, key, master, t_now_gps_s, t_a
    Rejections are counted by reason, globally and per vehicle (the id is taken from the key when
    the body cannot be decoded), and never touch another target's state.
 2. staleness: age = master GPS time now - slave time of validity; age > ``timeout_s`` gives
-   TIMEOUT and no kinematics (``v2xpos.relative.check_latency``).
+   TIMEOUT and no kinematics (``v2xpos.relative.check_latency``). The clocks are compared too
+   (``ClockComparison``): a sender that stamps its session GPS time at publishing lets the master
+   tell "late" from "on another clock".
 3. gate + compensate + transform: ``v2xpos.relative.evaluate_target`` with the master's latest
    filter state (time t_m): fix gate (RTK fixed/float on both sides), CTRA prediction of the slave
    over t_m - t_slave, operator T into the master body frame, range/bearing/gap/TTC from the
@@ -40,7 +42,7 @@ import math
 import re
 import time
 from array import array
-from collections import Counter, defaultdict
+from collections import Counter, defaultdict, deque
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterator, Protocol
@@ -50,7 +52,8 @@ import numpy as np
 from v2xpos.relative import check_latency, evaluate_target
 from v2xpos.stats import LatencyHistogram
 from v2xpos.types import FixStatus
-from v2xpos.wire import FixSide, RelativeResult, StateMessage, TargetStatus, WireError, decode_state
+from v2xpos.wire import (FixSide, RelativeResult, StateMessage, TargetStatus, WireError, decode_state, reason_name,
+                         reason_text)
 
 REJECT_MALFORMED = "malformed"
 REJECT_KEY_MISMATCH = "key_mismatch"
@@ -89,8 +92,12 @@ class PipelineConfig:
     Validity limits (docs/integrity.md): max_sigma_h_m / max_sigma_yaw_deg: a result whose predicted
     1-sigma horizontal position (sqrt(sd_x^2 + sd_y^2)) or relative yaw (vehicle targets) exceeds
     them is SIGMA_EXCEEDED; require_consistency: a result is INCONSISTENT while either vehicle's filter
-    has a failed consistency test not yet released (flag 4) or is not verified, i.e. its protection
-    level against an undeclared lever arm is above its limit (flag 8; ``v2xpos.ins.consistency``).
+    has a failed consistency test not yet released (flag 4), UNVERIFIED while either is not verified,
+    i.e. its protection level is above its limit (flag 8; ``v2xpos.ins.consistency``); the result
+    says which vehicle (``reason_side``) and carries both filters' reasons.
+    max_clock_disagreement_s: a target whose clock differs from the master's by more than this
+    (``ClockComparison``) is a clock alarm: its computed results are CLOCK_UNSYNCED (both sides, since
+    one comparison cannot say which clock is wrong), its silent ones say so in the status.
     """
     fleet: str = "demo"
     master_id: str = "ego"
@@ -103,6 +110,43 @@ class PipelineConfig:
     max_sigma_h_m: float = 0.10
     max_sigma_yaw_deg: float = 1.0
     require_consistency: bool = True
+    max_clock_disagreement_s: float = 0.05
+
+
+CLOCK_WINDOW_S = 10.0
+"""Window of the clock comparison's minimum [s of master time]."""
+
+
+class ClockComparison:
+    """The target's clock against the master's, from the messages' send stamps.
+
+    A sender stamps its session GPS time ``t_sent_gps_s`` when it publishes. At arrival the master
+    reads its own session GPS time; the difference ``d = t_master_at_arrival - t_sent_gps_s`` is
+    (master clock - sender clock) + transit. The transit is positive and its minimum over many
+    messages is close to the link's floor (loopback: < 1 ms; a V2V link: a few ms), so the
+    running minimum of ``d`` over ``CLOCK_WINDOW_S`` estimates the clock difference, biased by that
+    floor (the NTP lower-envelope argument, Mills, RFC 5905 section 10). One comparison cannot say
+    which clock is wrong: each service checks its own clock against GNSS time (its status)."""
+
+    def __init__(self, window_s: float = CLOCK_WINDOW_S):
+        self.window_s = float(window_s)
+        self._q: deque = deque()       # (t_master, d) with increasing d: the window's minimum first
+        self.samples = 0
+
+    def add(self, t_master_s: float, t_sent_gps_s: float) -> None:
+        d = t_master_s - t_sent_gps_s
+        q = self._q
+        while q and q[-1][1] >= d:
+            q.pop()
+        q.append((t_master_s, d))
+        while q[0][0] < t_master_s - self.window_s:
+            q.popleft()
+        self.samples += 1
+
+    @property
+    def offset_s(self) -> float:
+        """Master clock minus the target's (+ the transit floor) [s]; NaN before any stamp."""
+        return self._q[0][1] if self._q else math.nan
 
 
 @dataclass
@@ -119,6 +163,8 @@ class TargetTrack:
     restarts: int = 0
     results: Counter = field(default_factory=Counter)
     rejected: Counter = field(default_factory=Counter)
+    clock: ClockComparison = field(default_factory=ClockComparison)
+    last_message: StateMessage | None = None
 
 
 RECORD_FIELDS = ("t_gps_s", "t_slave_gps_s", "status", "latency_s", "pipeline_ms", "e2e_ms",
@@ -243,17 +289,29 @@ class MasterPipeline:
         cfg = self.config
         status, age_s = check_latency(t_now_gps_s, msg.t_gps_s, cfg.timeout_s, cfg.future_tolerance_s)
         self.master_fix = FixStatus(master.fix)
+        track = self.tracks.get(msg.vehicle_id)
+        clock_alarm = False
+        if track is not None:
+            track.last_message = msg
+            if msg.t_sent_gps_s is not None:
+                track.clock.add(t_now_gps_s, msg.t_sent_gps_s)
+            clock_alarm = self.clock_alarm(track)
         if status != TargetStatus.VALID:
             res = RelativeResult(target_id=msg.vehicle_id, target_kind=msg.kind, status=status,
                                  source_seq=msg.seq, t_gps_s=float(master.t_s), latency_s=age_s,
                                  t_sent_wall_s=msg.t_sent_wall_s, master_fix=self.master_fix,
                                  target_fix=FixStatus(msg.fix))
+            if clock_alarm:
+                res.reason_side = FixSide.MASTER | FixSide.SLAVE
         else:
             res = evaluate_target(master, msg, self._mpoint, timeout_s=math.inf,
                                   future_tolerance_s=math.inf)
             res.latency_s = age_s
             if res.status == TargetStatus.VALID:
-                res.status = self._validity(master, msg, res)
+                res.status = self._validity(master, msg, res, clock_alarm)
+        res.master_reason = int(getattr(master, "reason", 0))
+        res.target_reason = int(msg.reason)
+        res.protection_m = float(getattr(master, "protection_m", math.nan)) + float(msg.protection_m)
         res.master_fix = master.fix
         res.target_fix = msg.fix
         unc = None
@@ -264,22 +322,30 @@ class MasterPipeline:
             unc = evaluate_compiled(master, msg, 0.0, self._mpoint, 0.0, 0.0, res.t_gps_s).rel_pos_body_m
         return self._emit(res, msg, t_arrival_wall_s, unc)
 
-    def _validity(self, master: Any, msg: StateMessage, res: RelativeResult) -> TargetStatus:
+    def clock_alarm(self, track: TargetTrack) -> bool:
+        """True while the target's clock differs from the master's beyond the configured bound."""
+        return abs(track.clock.offset_s) > self.config.max_clock_disagreement_s
+
+    def _validity(self, master: Any, msg: StateMessage, res: RelativeResult, clock_alarm: bool = False) -> TargetStatus:
         """A computed result is VALID only when both vehicles' attitude is determined (a heading
         pending at a standstill start turns every bearing into a guess), both clocks are on GNSS
-        time, both filters pass their own consistency tests and are verified (the protection level
-        of their fault-tolerant solution bounds what an undeclared lever arm could do, within the
-        filter's limit: ``v2xpos.ins.consistency``), and the
-        predicted sigma is within the configured limits; otherwise the status says which, in this
-        order (the kinematics stay in the result). docs/integrity.md gives the reasoning."""
+        time and agree with each other, both filters pass their own consistency tests
+        (INCONSISTENT otherwise) and are verified (UNVERIFIED otherwise: the protection level of
+        their fault-tolerant solution bounds what an undeclared error could do, within the
+        filter's limit: ``v2xpos.ins.consistency``), and the predicted sigma is within the
+        configured limits; otherwise the status says which, in this order, and ``reason_side``
+        which vehicle (the kinematics stay in the result). docs/integrity.md gives the reasoning."""
         cfg = self.config
-        if not (getattr(master, "attitude_ok", True) and msg.attitude_ok):
-            return TargetStatus.ATTITUDE_UNCERTAIN
-        if not (self.master_time_ok and msg.time_ok):
-            return TargetStatus.CLOCK_UNSYNCED
-        if cfg.require_consistency and not (getattr(master, "consistent", True) and getattr(master, "verified", True)
-                                            and msg.consistent and msg.verified):
-            return TargetStatus.INCONSISTENT
+        checks = [(TargetStatus.ATTITUDE_UNCERTAIN, getattr(master, "attitude_ok", True), msg.attitude_ok),
+                  (TargetStatus.CLOCK_UNSYNCED, self.master_time_ok and not clock_alarm, msg.time_ok and not clock_alarm)]
+        if cfg.require_consistency:
+            checks += [(TargetStatus.INCONSISTENT, getattr(master, "consistent", True), msg.consistent),
+                       (TargetStatus.UNVERIFIED, getattr(master, "verified", True), msg.verified)]
+        for status, master_ok, target_ok in checks:
+            if not (master_ok and target_ok):
+                res.reason_side = (FixSide.NONE if master_ok else FixSide.MASTER) | (
+                    FixSide.NONE if target_ok else FixSide.SLAVE)
+                return status
         sd = res.rel_pos_sd_m
         sigma_h = math.hypot(float(sd[0]), float(sd[1]))
         if not sigma_h <= cfg.max_sigma_h_m:
@@ -408,6 +474,10 @@ class MasterPipeline:
                                  source_seq=max(track.last_seq, 0), t_gps_s=t_m, latency_s=lat,
                                  master_fix=self.master_fix,
                                  target_fix=FixStatus.NONE if track.last_result is None else track.last_result.target_fix)
+            if track.last_message is not None:
+                res.target_reason = int(track.last_message.reason)
+            if self.clock_alarm(track):
+                res.reason_side = FixSide.MASTER | FixSide.SLAVE
             out.append(self._emit(res, None, self.clock_wall()))
         return out
 
@@ -422,12 +492,23 @@ class MasterPipeline:
             "pipeline_ms_p50": pct(self.pipeline_ms, 50), "pipeline_ms_p99": pct(self.pipeline_ms, 99),
             "e2e_ms_p50": pct(self.e2e_ms, 50), "e2e_ms_p99": pct(self.e2e_ms, 99),
             "scene": self.scene_summary(),
-            "targets": {vid: {"kind": t.kind, "status": t.status.name.lower(), "fix_side": int(t.fix_side),
-                              "accepted": t.accepted, "restarts": t.restarts, "results": dict(t.results),
-                              "rejected": dict(t.rejected), "degraded": vid in self.degraded_vehicles,
-                              "last": _result_brief(t.last_result)}
-                        for vid, t in self.tracks.items()},
+            "targets": {vid: self._target_summary(vid, t) for vid, t in self.tracks.items()},
         }
+
+    def _target_summary(self, vid: str, t: TargetTrack) -> dict:
+        res = t.last_result
+        clock_s = t.clock.offset_s
+        return {"kind": t.kind, "status": t.status.name.lower(), "fix_side": int(t.fix_side),
+                "accepted": t.accepted, "restarts": t.restarts, "results": dict(t.results),
+                "rejected": dict(t.rejected), "degraded": vid in self.degraded_vehicles,
+                "last": _result_brief(res),
+                "reason_side": None if res is None else int(res.reason_side),
+                "master_reason": None if res is None else reason_name(res.master_reason),
+                "target_reason": None if res is None else reason_name(res.target_reason),
+                "reason": None if res is None else reason_text(res),
+                "protection_m": None if res is None or not math.isfinite(res.protection_m) else res.protection_m,
+                "clock": {"offset_ms": None if math.isnan(clock_s) else clock_s * 1e3,
+                          "alarm": bool(self.clock_alarm(t)), "samples": t.clock.samples}}
 
     def records_arrays(self) -> dict[str, np.ndarray]:
         """Recorded rows per target as (N, len(RECORD_FIELDS)) float arrays."""

@@ -50,7 +50,7 @@ from master.pipeline import RECORD_FIELDS, MasterPipeline, PipelineConfig
 from v2xpos.config import ConfigError, config_dir
 from v2xpos.link import Link, LinkUnavailable
 from v2xpos.sources import SourceContext, SourceError, make_source
-from v2xpos.wire import STATE_KEY_ALL, grades_key, relative_key, status_key
+from v2xpos.wire import STATE_KEY_ALL, alive_key, grades_key, relative_key, status_key
 
 GRADING_NICE = 10
 """CPU priority offset of the IMU grading worker: grading is background analysis (windows of
@@ -59,6 +59,8 @@ FINAL_GRADES_TIMEOUT_S = 10.0
 """Longest wait at shutdown for the grading worker's final grades (a starved, niced worker may need
 seconds to finish the regrade in hand)."""
 NAV_TICK_S = 0.01
+EXIT_INTERRUPTED = 130
+"""Exit code of a service stopped by a signal (README: exit codes)."""
 """The own source is advanced every 10 ms of session time."""
 
 
@@ -126,6 +128,14 @@ class MasterService:
         self.realtime = False
         self.phase = "init"
         self._closed = False
+        self.signalled = False
+        self.quiet = False
+        from v2xpos.sources.status import VehicleStatus
+        self.vehicle_status = VehicleStatus("master", cfg.master_id, cfg.fleet)
+
+    def _on_signal(self) -> None:
+        self.signalled = True
+        self.stop_event.set()
 
     def _stopping(self) -> bool:
         return self.stop_event is not None and self.stop_event.is_set()
@@ -157,7 +167,8 @@ class MasterService:
                               measurement_point_m=cfg.measurement_point_m, known_vehicles=cfg.known_vehicles,
                               evaluate_uncompensated=cfg.evaluate_uncompensated,
                               record=cfg.results_npz is not None, max_sigma_h_m=cfg.max_sigma_h_m,
-                              max_sigma_yaw_deg=cfg.max_sigma_yaw_deg, require_consistency=cfg.require_consistency)
+                              max_sigma_yaw_deg=cfg.max_sigma_yaw_deg, require_consistency=cfg.require_consistency,
+                              max_clock_disagreement_s=cfg.max_clock_disagreement_s)
         if cfg.results_csv:
             from v2xpos.output.results_csv import ResultsCsvWriter
             self.sinks.append(ResultsCsvWriter(cfg.results_csv))
@@ -170,6 +181,7 @@ class MasterService:
             self.recorder = RecorderProcess(cfg.mcap, max_bytes=int(cfg.mcap_max_mb * 2 ** 20))
             self.pipeline = RecordingPipeline(self.pipeline, self.recorder)
         self.status_pub = self.link.publisher(status_key(cfg.fleet, cfg.master_id), express=False)
+        self.link.declare_alive(alive_key(cfg.fleet, "master", cfg.master_id))
         self.imu_grades: dict = {}
         self._final_grades = threading.Event()
         if cfg.grading:
@@ -250,43 +262,76 @@ class MasterService:
                     self.pipeline.tick(self.gps_now(), float(self.nav.t_s), self.nav.fix)
 
     def status(self, window: int | None = 2000) -> dict:
-        """Summary for monitors; percentiles over the last ``window`` messages (None = all)."""
+        """Summary for monitors; percentiles over the last ``window`` messages (None = all). Before
+        the session clock runs (a master waiting for its slaves) it says which phase it is in."""
         s = self.pipeline.summary(window)
-        t_now = self.gps_now()
-        s.update({"master_id": self.cfg.master_id, "t_gps_s": t_now, "t_rel_s": t_now - self.t_start_gps_s,
-                  "phase": self.phase, "clock": self.clock.status(), "time_synchronised": self.clock.synchronised(),
-                  "source_status": self.source.status(),
+        clock = self.clock if self.phase == "run" else None
+        t_now = self.gps_now() if clock is not None else None
+        s.update({"master_id": self.cfg.master_id, "t_gps_s": t_now,
+                  "t_rel_s": None if t_now is None else t_now - self.t_start_gps_s, "phase": self.phase,
+                  "waiting_for": self._waiting_for(), "timeout_s": self.cfg.timeout_ms / 1e3,
+                  "status_period_s": 1.0 / self.cfg.status_hz, "t_wall_s": time.time(),
+                  "vehicle": self.vehicle_status.snapshot(
+                      self.source, clock, self.nav, None if self.relay is None else {"corrections": self.relay.stats()}),
+                  "clock": None if clock is None else clock.status(),
+                  "time_synchronised": None if clock is None else clock.synchronised(),
+                  "source_status": None if self.source is None else self.source.status(),
                   "corrections": None if self.relay is None else self.relay.stats(),
                   "master_fix": None if self.nav is None else int(self.nav.fix), "nav_steps": self.nav_steps,
                   "nav_ms_p50": float(np.percentile(self.nav_ms, 50)) if self.nav_ms else None,
                   "can_frames": self.can.frames if self.cfg.can_enabled else 0,
                   "udp_datagrams": self.udp.datagrams if self.cfg.udp_enabled else 0,
-                  "source": self.source.name, "imu_grades": self.imu_grades,
+                  "source": getattr(self.source, "name", None), "imu_grades": self.imu_grades,
                   "degraded_vehicles": sorted(self.pipeline.degraded_vehicles),
                   "clock_skew": self.authenticator.skew_report(),
                   "admission": self.authenticator.stats.as_dict()})
         return s
 
+    def _waiting_for(self) -> list | None:
+        """Vehicles a recording master still waits for before its session clock starts."""
+        if self.phase != "clock" or self.clock is None:
+            return None
+        missing = getattr(self.clock, "missing", None)
+        return sorted(missing()) if callable(missing) else None
+
     async def _can_status_task(self) -> None:
         """MASTER_STATUS / MASTER_SIGMA frames at ``[output.can] status_hz``: the master's own time,
-        fix, sigmas, whether its heading is determined and its clock synchronised."""
+        fix, sigmas, whether its heading is determined and its clock synchronised, its filter's
+        reason."""
         period = 1.0 / self.cfg.can_status_hz
         clock = self.clock
         while not self.stop_event.is_set():
             await asyncio.sleep(period)
             nav = self.nav
             with self.lock:
-                self.can.write_master_status(master_status(
-                    nav, t_gps_s=self.gps_now(), heading_valid=None if nav is None else bool(nav.attitude_ok),
-                    clock_synced=clock.synchronised(), clock_offset_s=clock.status().get("offset_s")))
+                st = master_status(nav, t_gps_s=self.gps_now(),
+                                   heading_valid=None if nav is None else bool(nav.attitude_ok),
+                                   clock_synced=clock.synchronised(), clock_offset_s=clock.status().get("offset_s"))
+                self.can.write_master_status(st)
+
+    async def _udp_heartbeat_task(self) -> None:
+        """The UDP heartbeat at ``[output.udp] status_hz`` (``v2xpos.output.udp.heartbeat``): a
+        consumer tells a master that is gone from one with nothing to report."""
+        period = 1.0 / self.cfg.udp_status_hz
+        while not self.stop_event.is_set():
+            await asyncio.sleep(period)
+            with self.lock:
+                self.udp.write_heartbeat(self.pipeline.seq, self.gps_now())
 
     async def _status_task(self) -> None:
+        """The status JSON at ``status_hz`` from the moment the link is open (a master still
+        waiting for its slaves says so), and a one-line status every few seconds on stderr."""
+        from v2xpos.sources.status import STATUS_LINE_PERIOD_S
         period = 1.0 / self.cfg.status_hz
+        next_line = time.time() + STATUS_LINE_PERIOD_S
         while not self.stop_event.is_set():
             await asyncio.sleep(period)
             with self.lock:
                 st = self.status()
             self.status_pub.put(json.dumps(st).encode())
+            if not self.quiet and time.time() >= next_line:
+                next_line = time.time() + STATUS_LINE_PERIOD_S
+                print(master_line(st), file=sys.stderr, flush=True)
 
     async def _in_thread(self, fn, *args):
         """Run a blocking start-up step on a daemon thread so that a signal can end the wait (the
@@ -315,7 +360,7 @@ class MasterService:
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGTERM, signal.SIGINT):
             try:
-                loop.add_signal_handler(sig, self.stop_event.set)
+                loop.add_signal_handler(sig, self._on_signal)
             except (NotImplementedError, RuntimeError):  # not the main thread (tests)
                 pass
         self.realtime = apply_realtime_priority(self.cfg.realtime_priority)
@@ -340,6 +385,7 @@ class MasterService:
         except ConfigError:
             self._close()
             raise
+        status_task = asyncio.create_task(self._status_task())
         if self.cfg.corrections is not None and self.cfg.corrections.source is not None:
             from v2xpos.sources.corrections import CorrectionRelay
             try:
@@ -355,6 +401,7 @@ class MasterService:
         except TimeoutError as exc:
             raise ConfigError(f"{self.cfg.path}: [source]: {exc}") from None
         if not started:
+            status_task.cancel()
             return self._early_exit()
         self.phase = "run"
         self.t_start_gps_s = self.clock.session_start_gps_s()
@@ -375,12 +422,14 @@ class MasterService:
         gc.collect()
         gc.freeze()                       # long-lived setup objects leave the collector's scans
         gc.set_threshold(50_000, 50, 100)  # fewer young-generation pauses in the message path
-        coros = [self._nav_task(), self._tick_task(), self._status_task()]
+        coros = [self._nav_task(), self._tick_task()]
         if self.cfg.can_enabled and self.cfg.can_status_hz > 0:
             coros.append(self._can_status_task())
+        if self.cfg.udp_enabled and self.cfg.udp_status_hz > 0:
+            coros.append(self._udp_heartbeat_task())
         if self.cfg.dispatch != "inline":
             coros.append(self._consume_task(sub))
-        tasks = [asyncio.create_task(c) for c in coros]
+        tasks = [status_task] + [asyncio.create_task(c) for c in coros]
         try:
             await self.stop_event.wait()
         finally:
@@ -467,8 +516,22 @@ class MasterService:
             Path(cfg.summary_json).write_text(json.dumps(final, indent=1))
 
 
+def master_line(st: dict) -> str:
+    """The master's one-line status: its vehicle line, then its targets and their statuses."""
+    from v2xpos.sources.status import status_line
+    if st.get("phase") != "run":
+        waiting = st.get("waiting_for")
+        return (f"master {st.get('master_id')}: {st.get('phase')}"
+                + (f", waiting for {', '.join(waiting)}" if waiting else ""))
+    targets = st.get("targets") or {}
+    rows = ", ".join(f"{tid} {t['status'].upper()}" + (f" ({t['reason']})" if t.get("reason") and t["status"] != "valid"
+                                                        else "") for tid, t in targets.items())
+    return f"{status_line(st['vehicle'])}  processed {st.get('processed', 0)}  targets: {rows or 'none yet'}"
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", required=True, help="master TOML file (see configs/master.toml)")
+    parser.add_argument("--quiet", action="store_true", help="no one-line status every 5 s on stderr")
 
 
 def _interrupt(signum, frame) -> None:
@@ -481,6 +544,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         cfg = MasterConfig.load(args.config)
         svc = MasterService(cfg)
+        svc.quiet = bool(getattr(args, "quiet", False))
         final = asyncio.run(svc.run())
     except ConfigError as exc:
         print(f"v2xpos master: {exc}", file=sys.stderr)
@@ -493,4 +557,4 @@ def run(args: argparse.Namespace) -> int:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
     print(json.dumps({k: final[k] for k in ("processed", "rejected", "pipeline_ms_p99", "e2e_ms_p99",
                                              "can_frames", "udp_datagrams")}), flush=True)
-    return 0
+    return EXIT_INTERRUPTED if svc.signalled else 0

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -366,6 +367,9 @@ def make_plots(sc, plan: FleetPlan, out: Path) -> list[Path]:
 def run(args: argparse.Namespace) -> int:
     if args.vehicles < 2:
         print("v2xpos demo: --vehicles must be >= 2 (master + at least one slave)", file=sys.stderr)
+        return 2
+    if not (math.isfinite(args.duration) and args.duration > 0):
+        print(f"v2xpos demo: --duration must be > 0 s, got {args.duration:g}", file=sys.stderr)
         return 2
     try:
         check_rtk_vertical_factor(args.rtk_vertical_factor)

@@ -50,8 +50,13 @@ class FleetPlan:
 
 def write_configs(sc: Scenario, plan: FleetPlan, duration_s: float, can: bool = True, udp: bool = True,
                   publish_imu: bool = True) -> FleetPlan:
-    """Master and slave TOML files for every actor of the scenario (in plan.out_dir/configs)."""
+    """Master and slave TOML files for every actor of the scenario (in plan.out_dir/configs). The plan's
+    directory and start file are made absolute first: the services resolve their config's paths
+    against the config's directory."""
     import json
+    plan.out_dir = Path(plan.out_dir).resolve()
+    if plan.start_file is not None:
+        plan.start_file = Path(plan.start_file).resolve()
     from sim.scenarios import scene_geojson
     cdir = plan.out_dir / "configs"
     cdir.mkdir(parents=True, exist_ok=True)

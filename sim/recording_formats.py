@@ -96,6 +96,44 @@ def timetag_bytes(open_gps_s: float, tick_ms: int, rec_ms: np.ndarray, rec_offse
     return head + struct.pack("<IId", int(tick_ms) & 0xFFFFFFFF, sec, frac) + rec.tobytes()
 
 
+NAV_PVT_FMT = struct.Struct("<IHBBBBBBIiBBBBiiiiIIiiiiiIIHH4xihH")
+"""UBX-NAV-PVT payload (u-blox F9 interface description, UBX-01-07, 92 bytes)."""
+
+
+def ubx_frame(msg_class: int, msg_id: int, payload: bytes) -> bytes:
+    """A UBX frame: sync 0xB5 0x62, class, id, length, payload, 8-bit Fletcher checksum."""
+    body = bytes((msg_class, msg_id)) + struct.pack("<H", len(payload)) + payload
+    ck_a = ck_b = 0
+    for b in body:
+        ck_a = (ck_a + b) & 0xFF
+        ck_b = (ck_b + ck_a) & 0xFF
+    return b"\xb5\x62" + body + bytes((ck_a, ck_b))
+
+
+def nav_pvt(t_gps_s: float, lla: np.ndarray, carr_soln: int, num_sv: int, sd_ned_m: np.ndarray,
+            vel_ned_mps: np.ndarray, vel_sd_mps: float) -> bytes:
+    """One NAV-PVT frame of an RTK receiver at GPS time ``t_gps_s`` (iTOW, and the UTC date and time
+    through the leap-second table, fully resolved): position (lla rad, rad, ellipsoidal m; 1e-7 deg
+    and mm, as the receiver rounds them), ``carr_soln`` 2 fixed / 1 float, hAcc = sqrt(2) * the
+    horizontal sd per axis (the inverse of ``v2xpos.devices.ubx``), velocity NED and sAcc."""
+    week, tow = timebase.week_tow_from_gps_seconds(t_gps_s)
+    itow_ms = int(round(tow * 1e3))
+    utc_s = t_gps_s - float(timebase.gps_minus_utc_at_gps(t_gps_s))
+    ms = int(round(utc_s * 1e3))
+    cal = timebase.gps_seconds_to_gpst_calendar(ms // 1000)
+    nano = (ms % 1000) * 1_000_000
+    h_acc = int(round(math.hypot(sd_ned_m[0], sd_ned_m[1]) * 1e3))
+    v = [int(round(x * 1e3)) for x in vel_ned_mps]
+    payload = NAV_PVT_FMT.pack(
+        itow_ms, cal.year, cal.month, cal.day, cal.hour, cal.minute, cal.second, 0x07, 20, nano, 3,
+        0x01 | 0x02 | (int(carr_soln) << 6), 0xE0, int(num_sv),
+        int(round(math.degrees(lla[1]) * 1e7)), int(round(math.degrees(lla[0]) * 1e7)),
+        int(round(lla[2] * 1e3)), int(round(lla[2] * 1e3)), h_acc, int(round(sd_ned_m[2] * 1e3)),
+        v[0], v[1], v[2], int(round(math.hypot(v[0], v[1]))), 0, int(round(vel_sd_mps * 1e3)), 18000000, 120, 0,
+        0, 0, 0)
+    return ubx_frame(0x01, 0x07, payload)
+
+
 def gpst_calendar(t_gps_s: float) -> str:
     """``yyyy/mm/dd hh:mm:ss.sss`` in GPST (RTKLIB's time column), rounded to the millisecond."""
     ms = int(round(t_gps_s * 1000.0))
@@ -152,7 +190,8 @@ def dataset_toml(name: str, imu_to_body: np.ndarray, lever_arm_m: np.ndarray, le
     lever = "[" + ", ".join(repr(round(float(x), 4)) for x in lever_arm_m) + "]"
     return (f'name = "{name}"\nplatform = "{platform}"\n\n[imu]\nfile = "imu.csv"\nformat = "csv_g_dps_ms"\n'
             f'timetag = "imu.csv.tag"\nimu_to_body = {_toml_matrix(imu_to_body)}\n\n[gnss]\nfile = "gnss.pos"\n'
-            f'format = "rtklib_pos"\nlever_arm_m = {lever}\nlever_arm_sd_m = {float(lever_arm_sd_m)!r}\n')
+            f'format = "rtklib_pos"\nraw = "gnss.ubx"\nraw_timetag = "gnss.ubx.tag"\nlever_arm_m = {lever}\n'
+            f'lever_arm_sd_m = {float(lever_arm_sd_m)!r}\n')
 
 
 def write_bytes(path: Path, data: bytes | str) -> None:

@@ -4,7 +4,8 @@ followers B, C, ... on the same road, written in exactly the file formats and la
 
 Layout of ``DIR``::
 
-    A/ B/ ...   imu.csv, imu.csv.tag, gnss.pos, dataset.toml (declared facts only), truth.csv
+    A/ B/ ...   imu.csv, imu.csv.tag, gnss.pos, gnss.ubx, gnss.ubx.tag, dataset.toml (declared facts
+                only), truth.csv
     truth_rel.csv            B's IMU point in A's body frame and yaw(B) - yaw(A), every 0.1 s
     truth_rel_C.csv ...      the same for every further follower (N > 2)
     truth_effects.json       undeclared effects (convoy_dev's keys for B at the top level, every
@@ -121,8 +122,30 @@ def _imu_files(p: ConvoyParams, spec: VehicleSpec, truth: Trajectory) -> tuple[d
     return files, notes
 
 
+UBX_LATENCY_MIN_S = 0.025
+UBX_LATENCY_JITTER_MEAN_S = 0.008
+"""NAV-PVT output latency of the simulated receiver: a floor plus a gamma-distributed delay (shape 2)
+-- the 20-50 ms a u-blox F9 shows on a lightly loaded port (docs/field.md, section 1)."""
+
+
+def _ubx_stream(p: ConvoyParams, spec: VehicleSpec, t_gps: np.ndarray, lla: np.ndarray, is_float: np.ndarray,
+                ns: np.ndarray, sd_ned: np.ndarray, vel: np.ndarray, vel_sd: np.ndarray) -> tuple[bytes, bytes]:
+    """gnss.ubx (the receiver's NAV-PVT stream: the same solutions as gnss.pos) and gnss.ubx.tag (when
+    each message reached the logger: epoch + output latency), so that ``v2xpos emulate`` serves the
+    vehicle as live devices. Its own random stream: the other files do not change."""
+    rng = rng_for(p.seed, f"ubx:{spec.name}")
+    frames = [fmt.nav_pvt(float(t_gps[k]), lla[k], 1 if is_float[k] else 2, int(ns[k]), sd_ned[k], vel[k],
+                          float(np.max(vel_sd[k]))) for k in range(len(t_gps))]
+    arrival = t_gps + UBX_LATENCY_MIN_S + rng.gamma(2.0, UBX_LATENCY_JITTER_MEAN_S / 2.0, len(t_gps))
+    arrival = np.maximum.accumulate(arrival)
+    open_gps = float(arrival[0] - 0.002)
+    rec_ms = np.ceil((arrival - open_gps) * 1e3).astype(np.int64)
+    offsets = np.cumsum([len(f) for f in frames])
+    return b"".join(frames), fmt.timetag_bytes(open_gps, spec.logging.tick_ms, rec_ms, offsets)
+
+
 def _gnss_file(p: ConvoyParams, spec: VehicleSpec, truth: Trajectory) -> tuple[bytes, dict]:
-    """gnss.pos of one vehicle (see module docstring)."""
+    """gnss.pos of one vehicle (see module docstring), and in ``notes["files"]`` its NAV-PVT stream."""
     gs = p.gnss
     rng = rng_for(p.seed, f"gnss:{spec.name}")
     zero = {FixStatus.FIXED: 0.0, FixStatus.FLOAT: 0.0}
@@ -158,7 +181,9 @@ def _gnss_file(p: ConvoyParams, spec: VehicleSpec, truth: Trajectory) -> tuple[b
     ns = np.where(is_float, spec.satellites - rng.integers(3, 7, len(rel)), spec.satellites)
     t_gps = t0 + rel
     text = fmt.pos_text(t_gps, lla, q, ns, sd_neu, vel_neu, vel_sd)
-    return text.encode("ascii"), {"gnss_epochs": int(len(rel)), "float_epochs": int(is_float.sum())}
+    ubx, tag = _ubx_stream(p, spec, t_gps, lla, is_float, ns, sd_ned, vel, vel_sd)
+    return text.encode("ascii"), {"gnss_epochs": int(len(rel)), "float_epochs": int(is_float.sum()),
+                                  "files": {"gnss.ubx": ubx, "gnss.ubx.tag": tag}}
 
 
 def _grid_rows(duration_s: float) -> np.ndarray:
@@ -214,6 +239,7 @@ def simulate(p: ConvoyParams) -> ConvoyRecording:
     for spec, truth, lane in zip(p.vehicles, truths, lanes):
         files, notes = _imu_files(p, spec, truth)
         files["gnss.pos"], gnotes = _gnss_file(p, spec, truth)
+        files.update(gnotes.pop("files"))
         notes.update(gnotes)
         files["truth.csv"] = fmt.truth_text(tow, truth.lla[rows], truth.v_ned_mps[rows],
                                             truth.rpy_rad[rows]).encode("ascii")

@@ -5,7 +5,8 @@ IMU model per axis (Groves 2013 eq. 4.16 simplified to diagonal scale):
     w_meas = M (1 + s_g) w_true + b_g + n_g,     f_meas = M (1 + s_a) f_true + b_a + n_a
 where M rotates body-frame quantities into the IMU's axes (``imu_to_body`` transposed, then a small
 ``misalignment_rad`` rotation), noise densities are in unit/sqrt(Hz) (so the per-sample sd is
-density * sqrt(rate)), and biases follow a random walk of density ``*_bias_rw``.
+density * sqrt(rate)), and biases follow a random walk of density ``*_bias_rw``, plus an optional
+step at ``bias_step_t_s`` (a bias shift between two stops, as a temperature change makes).
 GNSS errors: white noise per fix status plus a first-order Gauss-Markov term (tau
 ``gm_tau_s``) that models multipath/atmosphere for float and single fixes.
 """
@@ -34,6 +35,9 @@ class ImuErrorModel:
     gyro_bias_rw_rps_rts: float = 0.0
     accel_bias_rw_mps2_rts: float = 0.0
     misalignment_rad: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    bias_step_t_s: float | None = None        # from this true time on, the biases are larger by ...
+    gyro_bias_step_rps: np.ndarray = field(default_factory=lambda: np.zeros(3))      # ... these
+    accel_bias_step_mps2: np.ndarray = field(default_factory=lambda: np.zeros(3))    # (IMU axes)
 
     @classmethod
     def preset(cls, grade: str, rng: np.random.Generator | None = None) -> "ImuErrorModel":
@@ -79,6 +83,10 @@ def simulate_imu(traj: Trajectory, model: ImuErrorModel | None = None, rate_hz: 
     f_i = f_b @ C_ib.T
     bg = model.gyro_bias_rps + np.cumsum(rng.normal(0, model.gyro_bias_rw_rps_rts / np.sqrt(rate), (n, 3)), axis=0)
     ba = model.accel_bias_mps2 + np.cumsum(rng.normal(0, model.accel_bias_rw_mps2_rts / np.sqrt(rate), (n, 3)), axis=0)
+    if model.bias_step_t_s is not None:
+        after = (t >= model.bias_step_t_s)[:, None]
+        bg = bg + after * np.asarray(model.gyro_bias_step_rps, float)
+        ba = ba + after * np.asarray(model.accel_bias_step_mps2, float)
     gyro = w_i * (1.0 + model.gyro_scale) + bg + rng.normal(0, model.gyro_noise_rps_rthz * np.sqrt(rate), (n, 3))
     acc = f_i * (1.0 + model.accel_scale) + ba + rng.normal(0, model.accel_noise_mps2_rthz * np.sqrt(rate), (n, 3))
     return ImuData(t_s=t - time_offset_s, acc_mps2=acc, gyro_rps=gyro)

@@ -37,7 +37,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from v2xpos.config import (ConfigError, LinkImpairment, SourceConfig, check_keys,  # noqa: F401
+from v2xpos.config import (ConfigError, LinkImpairment, SourceConfig, check_keys, config_dir,  # noqa: F401
                            corrections_from_table, impairment_from_table, link_from_table, load_toml, take)
 from v2xpos.link import LinkConfig
 
@@ -82,4 +82,6 @@ class SlaveConfig:
                   key_file=take(sec, "key_file", str, None, f"{path}: [security]"),
                   publish_imu=take(s, "publish_imu", bool, False, w),
                   corrections=corrections_from_table(d, path), path=path)
+        if cfg.key_file:                      # relative to the config file, as every path in it
+            cfg.key_file = str(config_dir(path) / Path(cfg.key_file).expanduser())
         return cfg

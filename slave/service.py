@@ -17,8 +17,15 @@ Phases (each stops within about half a second on SIGINT/SIGTERM):
    source with several IMU units, their raw samples go to ``v2xpos/<fleet>/vehicle/<id>/imu`` every
    0.25 s for the master's IMU grading.
 
+Every second it publishes its live status (``v2xpos.sources.status``: clock, device streams and
+their rates, IMU clock drift, corrections, filter state and reason) on
+``v2xpos/<fleet>/vehicle/<id>/status``, and every 5 s prints it as one line on stderr (``--quiet``:
+not). Each published state carries the slave's session GPS time at publishing (``t_sent_gps_s``),
+from which the master compares the two clocks.
+
 Stops at clock start + ``duration_s``, when the source has nothing more (end of a recording), or on
-SIGTERM/SIGINT; closes the link and prints one JSON line with its counters.
+SIGTERM/SIGINT; closes the link and prints one JSON line with its counters. Exit code 0 when it
+ran to its end, 130 when a signal stopped it (README, exit codes).
 """
 from __future__ import annotations
 
@@ -37,8 +44,10 @@ from slave.config import ConfigError, SlaveConfig
 from v2xpos.config import config_dir
 from v2xpos.link import Link, LinkUnavailable
 from v2xpos.sources import SourceContext, SourceError, Stopped, make_source, run_until_stopped
-from v2xpos.wire import StateMessage, encode_imu_payload, encode_state, imu_key, state_key
+from v2xpos.wire import StateMessage, encode_imu_payload, encode_state, imu_key, state_key, vehicle_status_key, alive_key
 
+EXIT_INTERRUPTED = 130
+"""Exit code of a service stopped by a signal (README: exit codes)."""
 IMU_PERIOD_S = 0.25
 """IMU grading messages carry the samples of the last 0.25 s of every unit (full rate)."""
 TICK_S = 0.01
@@ -57,7 +66,7 @@ def _say(vehicle_id: str):
     return lambda text: print(f"slave {vehicle_id}: {text}", file=sys.stderr, flush=True)
 
 
-def run_slave(cfg: SlaveConfig, stop: _Stop | None = None) -> dict:
+def run_slave(cfg: SlaveConfig, stop: _Stop | None = None, quiet: bool = False) -> dict:
     """Run until the configured duration ends, the source ends, or ``stop.flag``; returns the counters."""
     stop = stop or _Stop()
     stopped = lambda: stop.flag  # noqa: E731
@@ -101,7 +110,7 @@ def run_slave(cfg: SlaveConfig, stop: _Stop | None = None) -> dict:
         except TimeoutError as exc:
             raise ConfigError(f"{cfg.path}: [source]: {exc}") from None
         counters["phase"] = "run"
-        _loop(cfg, source, clock, link, signer, stop, counters)
+        _loop(cfg, source, clock, link, signer, stop, counters, quiet, sink)
         counters["phase"] = "done"
     except Stopped:
         counters["stopped_early"] = True
@@ -119,8 +128,10 @@ def run_slave(cfg: SlaveConfig, stop: _Stop | None = None) -> dict:
     return counters
 
 
-def _loop(cfg: SlaveConfig, source, clock, link: Link, signer, stop: _Stop, counters: dict) -> None:
+def _loop(cfg: SlaveConfig, source, clock, link: Link, signer, stop: _Stop, counters: dict,
+          quiet: bool = False, corrections=None) -> None:
     pub = link.publisher(state_key(cfg.fleet, cfg.vehicle_id))
+    live = _LiveStatus(cfg, link, quiet, corrections)
     units = source.imu_units() if cfg.publish_imu else None
     imu_pub = link.publisher(imu_key(cfg.fleet, cfg.vehicle_id), express=False) if units else None
     imp = cfg.impairment
@@ -145,7 +156,8 @@ def _loop(cfg: SlaveConfig, source, clock, link: Link, signer, stop: _Stop, coun
             break
         if not done:
             time_ok = clock.synchronised()
-            for nav in source.advance(min(t_gps, end_gps)):
+            nav_states = source.advance(min(t_gps, end_gps))
+            for nav in nav_states:
                 counters["states"] += 1
                 if nav.t_s + 1e-6 < next_pub_t:
                     continue
@@ -159,13 +171,17 @@ def _loop(cfg: SlaveConfig, source, clock, link: Link, signer, stop: _Stop, coun
                 last_send_wall = send_at
                 queue.append((send_at, msg))
                 counters["queued"] += 1
+            if nav_states:
+                live.nav = nav_states[-1]
         now = time.time()
         while queue and queue[0][0] <= now:
             send_at, msg = queue.popleft()
             msg.t_sent_wall_s = time.time()
+            msg.t_sent_gps_s = clock.now_gps_s()
             pub.put(encode_state(msg, signer))
             counters["sent"] += 1
             counters["late_ms_max"] = max(counters["late_ms_max"], (msg.t_sent_wall_s - send_at) * 1e3)
+        live.tick(now, source, clock, counters)
         if imu_pub is not None and not done and t_gps >= next_imu_pub_t:
             next_imu_pub_t = t_gps + IMU_PERIOD_S
             imu_pub.put(_imu_payload(cfg, unit_imu, mounting, unit_idx, t_gps))
@@ -176,6 +192,35 @@ def _loop(cfg: SlaveConfig, source, clock, link: Link, signer, stop: _Stop, coun
         dt = t_next - time.time()
         if dt > 0:
             time.sleep(min(dt, 0.25))
+
+
+class _LiveStatus:
+    """The slave's status at 1 Hz on zenoh and as a line every few seconds on stderr."""
+
+    def __init__(self, cfg: SlaveConfig, link: Link, quiet: bool, corrections=None):
+        from v2xpos.sources.status import STATUS_LINE_PERIOD_S, STATUS_PERIOD_S, VehicleStatus
+        self.builder = VehicleStatus("slave", cfg.vehicle_id, cfg.fleet)
+        self.pub = link.publisher(vehicle_status_key(cfg.fleet, cfg.vehicle_id), express=False)
+        link.declare_alive(alive_key(cfg.fleet, "vehicle", cfg.vehicle_id))
+        self.quiet = quiet
+        self.period_s, self.line_period_s = STATUS_PERIOD_S, STATUS_LINE_PERIOD_S
+        self.next_pub = self.next_line = 0.0
+        self.nav = None
+        self.corrections = corrections       # the CorrectionSink writing RTCM into the receiver, if any
+
+    def tick(self, t_wall_s: float, source, clock, counters: dict) -> None:
+        if t_wall_s < self.next_pub:
+            return
+        from v2xpos.sources.status import status_line
+        self.next_pub = t_wall_s + self.period_s
+        extra = {"sent": counters["sent"]}
+        if self.corrections is not None:
+            extra["corrections"] = self.corrections.stats()
+        doc = self.builder.snapshot(source, clock, self.nav, extra, t_wall_s)
+        self.pub.put(json.dumps(doc).encode())
+        if not self.quiet and t_wall_s >= self.next_line:
+            self.next_line = t_wall_s + self.line_period_s
+            print(status_line(doc), file=sys.stderr, flush=True)
 
 
 def _imu_payload(cfg: SlaveConfig, units: dict, mounting: dict, idx: dict, t_gps_s: float) -> bytes:
@@ -192,6 +237,7 @@ def _imu_payload(cfg: SlaveConfig, units: dict, mounting: dict, idx: dict, t_gps
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", required=True, help="slave TOML file (see configs/slave_*.toml)")
     parser.add_argument("--summary", default=None, help="write the final counters to this JSON file")
+    parser.add_argument("--quiet", action="store_true", help="no one-line status every 5 s on stderr")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -206,7 +252,7 @@ def run(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
     try:
-        counters = run_slave(cfg, stop)
+        counters = run_slave(cfg, stop, quiet=args.quiet)
     except ConfigError as exc:
         print(f"v2xpos slave: {exc}", file=sys.stderr)
         return 2
@@ -217,4 +263,4 @@ def run(args: argparse.Namespace) -> int:
     print(line, flush=True)
     if args.summary:
         Path(args.summary).write_text(line + "\n")
-    return 0
+    return EXIT_INTERRUPTED if stop.flag else 0

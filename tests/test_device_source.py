@@ -18,7 +18,7 @@ from v2xpos import geo
 from v2xpos.devices.emulate import streams_of
 from v2xpos.devices.stream import DeviceStream
 from v2xpos.rotation import dcm_from_euler
-from v2xpos.sources import SourceContext, SourceError, make_source
+from v2xpos.sources import SourceContext, SourceError, check_source_table, make_source
 from v2xpos.sources.device import DeviceSource
 from v2xpos.sources.gnss_clock import HostGnssClock
 from tests.shared_data import SHARED_DATA, needs_shared
@@ -84,9 +84,29 @@ def antenna_difference(states, series) -> np.ndarray:
 
 
 # ------------------------------------------------------------------ config
+@pytest.mark.parametrize("key", ["platform", "imu_to_body", "lever_arm_m"])
+def test_a_missing_mounting_lever_arm_or_platform_is_refused_naming_the_key(key, tmp_path):
+    """Issue 29 item 3: not silently a car with the identity mounting and a zero lever arm; the
+    service exits 2 naming the key. The identity is declared explicitly as "identity"."""
+    from v2xpos import cli
+    table = {"type": "device", "gnss": {"format": "ubx", "tcp": "127.0.0.1:9"}, "imu": "receiver", "platform": "car",
+             "imu_to_body": "identity", "lever_arm_m": [0.0, 0.0, 0.0]}
+    check_source_table(table, "[source]")
+    with pytest.raises(SourceError, match=r"imu_to_body: 'identy'"):
+        check_source_table({**table, "imu_to_body": "identy"}, "[source]")
+    del table[key]
+    with pytest.raises(SourceError, match=rf"\[source\]\.{key}: missing"):
+        check_source_table(table, "[source]")
+    rest = "".join(f"{k} = {json.dumps(v)}\n" for k, v in table.items() if k != "gnss")
+    cfg = tmp_path / "slave.toml"
+    cfg.write_text(f'[service]\nvehicle_id = "t1"\n[source]\n{rest}gnss = {{ format = "ubx", tcp = "127.0.0.1:9" }}\n')
+    assert cli.main(["slave", "--config", str(cfg)]) == 2
+
+
 def test_device_config_is_validated_with_where_and_key():
     ctx = SourceContext("v1")
-    base = {"type": "device", "gnss": {"format": "nmea", "tcp": "127.0.0.1:9"}, "imu": "receiver"}
+    base = {"type": "device", "gnss": {"format": "nmea", "tcp": "127.0.0.1:9"}, "imu": "receiver", "platform": "car",
+            "imu_to_body": "identity", "lever_arm_m": [0.0, 0.0, 0.0]}
     with pytest.raises(SourceError, match=r"\[source\]: unknown key 'lever_arm'.*did you mean 'lever_arm_m'"):
         make_source({**base, "lever_arm": [0, 0, 0]}, "[source]", ctx)
     with pytest.raises(SourceError, match=r"\[source\]\.imu: \"receiver\" needs a gnss stream of format \"ubx\""):
@@ -171,6 +191,7 @@ def test_device_source_on_emulated_pseudo_terminals_gives_the_replay_states(walk
         info = json.loads(emu.stdout.readline())
         dev = info["devices"]
         table = {"type": "device", "platform": "pedestrian", "imu_to_body": WALK_IMU_TO_BODY, "lever_arm_sd_m": 0.05,
+                 "lever_arm_m": [0.0, 0.0, 0.0],
                  "gnss": {"format": "ubx", "port": dev["gnss"]["port"]},
                  "imu": {"format": "csv_g_dps_ms", "port": dev["imu"]["port"]},
                  "reorder_window_s": 0.1 * speed * 0.75,
@@ -233,7 +254,7 @@ def _parked_device_source(table_extra: dict):
     from v2xpos.ins.calibrated import ins_config
     from v2xpos.types import FixStatus
     where = "[source]"
-    table = {"gnss": {"format": "ubx", "tcp": "127.0.0.1:9"}, "imu": "receiver", "lever_arm_m": [0.3, 0.0, -1.2],
+    table = {"gnss": {"format": "ubx", "tcp": "127.0.0.1:9"}, "imu": "receiver", "platform": "car", "imu_to_body": "identity", "lever_arm_m": [0.3, 0.0, -1.2],
              **table_extra}
     v = check_table(table, where)
     cfg = ins_config("car", v["imu_to_body"], v["lever"], v["lever_sd"], integrity=True)
@@ -272,7 +293,8 @@ def test_a_dual_antenna_heading_makes_a_parked_start_attitude_determined():
 
 def test_heading_baseline_is_validated():
     ctx = SourceContext("v1")
-    base = {"type": "device", "gnss": {"format": "ubx", "tcp": "127.0.0.1:9"}, "imu": "receiver"}
+    base = {"type": "device", "gnss": {"format": "ubx", "tcp": "127.0.0.1:9"}, "imu": "receiver", "platform": "car",
+            "imu_to_body": "identity", "lever_arm_m": [0.0, 0.0, 0.0]}
     with pytest.raises(SourceError, match=r"\[source\]\.heading_baseline_m: a vertical baseline has no azimuth"):
         make_source({**base, "heading_baseline_m": [0.0, 0.0, 1.0]}, "[source]", ctx)
     with pytest.raises(SourceError, match=r"\[source\]\.heading_baseline_m: expected a finite array of shape"):

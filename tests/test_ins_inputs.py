@@ -91,6 +91,10 @@ def test_outlier_position_is_gated():
 
 
 def test_seed001_static_calibration_estimates_biases():
+    """Without a filter (``standalone_prior``: samples in vehicle axes, no attitude) the calibrator
+    measures the gyro bias (Earth rate included, in its sd) and the accelerometer bias along gravity;
+    the horizontal accelerometer bias cannot be told from tilt and keeps its prior; a 5-degree
+    pitched stop is not level and yields no estimate."""
     tr = generate([Segment(5.0), Segment(3.0, accel_mps2=1.0), Segment(3.0), Segment(3.0, accel_mps2=-1.0),
                    Segment(6.0)])
     bg, ba = np.array([0.01, -0.02, 0.005]), np.array([0.05, -0.08, 0.1])
@@ -98,19 +102,27 @@ def test_seed001_static_calibration_estimates_biases():
                           accel_noise_mps2_rthz=2e-3)
     imu = simulate_imu(tr, model, rng=np.random.default_rng(2))
     g = geo.normal_gravity_mps2(tr.lla0[0], tr.lla0[2])
-    cal = StaticCalibrator(StaticCalibrationConfig(gravity_mps2=g))
+    cfg = StaticCalibrationConfig(gravity_mps2=g)
+    cal = StaticCalibrator(cfg)
     for k in range(0, len(imu), 10):      # the filter vetoes chunks with its speed estimate
         cal.feed(imu.t_s[k:k + 10], imu.acc_mps2[k:k + 10], imu.gyro_rps[k:k + 10],
                  moving=bool(tr.speed_mps[k:k + 10].max() > 0.1))
-    assert len(cal.estimates) == 2            # one per stop, none while moving
+    cal.finish()
+    assert len(cal.estimates) == 2 and cal.stops_not_level == 0     # one per stop, none while moving
     for est in cal.estimates:
-        assert np.allclose(est.gyro_bias_rps, bg, atol=5e-4)       # + Earth rate (7e-5)
-        assert np.allclose(est.accel_bias_mps2, ba, atol=5e-3)
+        assert not est.attitude and est.filter_gyro_bias_rps is None
+        assert np.all(np.abs(est.gyro_bias_rps - bg) < 3 * est.gyro_sd_rps)
+        assert np.all(est.gyro_sd_rps < 6e-4)
+        assert abs(est.accel_bias_mps2[2] - ba[2]) < 3e-3              # along gravity (level stop)
+        np.testing.assert_allclose(est.accel_bias_mps2[:2], 0.0, atol=1e-3)   # the prior
+        np.testing.assert_allclose(est.accel_sd_mps2[:2], cfg.accel_bias_prior_sd_mps2, rtol=1e-3)
         assert est.t_start_s < tr.t_s[0] + 5.0 or est.t_start_s > tr.t_s[0] + 14.0
     tilted = simulate_imu(static(5.0, pitch0_rad=np.radians(5.0)), model)
-    cal2 = StaticCalibrator(StaticCalibrationConfig(gravity_mps2=g))
+    cal2 = StaticCalibrator(cfg)
     cal2.feed(tilted.t_s, tilted.acc_mps2, tilted.gyro_rps)
-    assert cal2.estimates == []               # not level -> no estimate
+    cal2.finish()
+    assert cal2.estimates == [] and cal2.stops_not_level == 1
+    assert abs(np.degrees(cal2.not_level[0].tilt_rad[1]) - 5.0) < 1.0
 
 
 def test_replay_cli_writes_json_and_plots(tmp_path):

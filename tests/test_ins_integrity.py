@@ -175,25 +175,38 @@ def test_reported_vehicle_yaw_sd_uses_the_misalignment_correlation():
     assert math.sqrt(C[8, 8]) < 0.2 * sd_body
 
 
-def test_a_failed_test_reopens_the_horizontal_lever_arm():
+def test_a_consistency_failure_changes_no_state_and_reopens_a_verified_setup():
+    """A failed innovation test says the covariance does not describe the innovations: the filter
+    changes no state (a jump would move every vehicle's reported point), and a set-up verified on
+    an earlier drive goes back to the prior of an unverified one."""
     from v2xpos.ins import InsConfig, InsFilter
-    flt = InsFilter(InsConfig(platform="car", lever_arm_sd_m=0.02, undeclared_lever_arm_sd_m=0.5,
-                              reopen_on_inconsistency=True))
-    i = flt.layout.at("lever_arm")
-    before = np.diag(flt.P)[i:i + 3].copy()
+    flt = InsFilter(InsConfig(platform="car", lever_arm_sd_m=0.02, fault_tolerant_solution=True,
+                              setup_verified=True))
+    flt.initialize(100.0, np.array([0.7, 0.2, 300.0]), np.array([10.0, 0.0, 0.0]), np.zeros(3))
+    assert flt.separation.prior == flt.cfg.setup_change_prior
+    P, nav = flt.P.copy(), flt.nav.copy()
     flt._on_inconsistency()
-    after = np.diag(flt.P)[i:i + 3]
-    np.testing.assert_allclose(after[:2], 0.25)
-    assert after[2] == before[2]
-    # what an unknown antenna offset does to the IMU point the filter reports (C_nb = I here):
-    # its position is as uncertain, and its error is minus the lever arm's
-    np.testing.assert_allclose(np.diag(flt.P)[0:2], 0.25)
-    np.testing.assert_allclose([flt.P[0, i], flt.P[1, i + 1]], -0.25)
-    assert flt.counts["lever_arm_reopened"] == 1
-    k = flt.layout.at("gnss_vel_latency")               # the other effects back to their priors
-    assert flt.P[k, k] == pytest.approx(flt.cfg.effect_initial_sd["gnss_vel_latency"] ** 2)
-    flt._on_inconsistency()                                 # already open: not reset again
-    assert flt.counts["lever_arm_reopened"] == 1
+    np.testing.assert_array_equal(flt.P, P)
+    np.testing.assert_array_equal(flt.nav, nav)
+    assert flt.separation.prior == flt.cfg.setup_fault_prior
+    assert flt.counts["verification_reopened"] == 1
+
+
+def test_protection_levels_known_answers():
+    """The bound L of (1 - w1) P(|e0| > L) + w1 P(|s + ew| > L) = risk: the fault-free quantile
+    when w1 = 0; the separation plus the twin's quantile at risk / w1 when the fault is certain."""
+    from scipy.stats import norm
+    from v2xpos.ins.integrity import protection_levels
+    pl = protection_levels(1e-5, 0.0, np.array([0.02]), np.array([0.0]), np.array([0.5]))
+    assert pl[0] == pytest.approx(0.02 * norm.isf(0.5e-5), rel=1e-6)
+    pl = protection_levels(1e-5, 1.0, np.array([0.02]), np.array([0.4]), np.array([0.05]))
+    assert pl[0] == pytest.approx(0.4 + 0.05 * norm.isf(1e-5), rel=1e-3)
+    # a prior too small to matter leaves the fault-free bound; one that matters widens it
+    small = protection_levels(1e-5, 1e-7, np.array([0.02]), np.array([0.0]), np.array([0.5]))
+    large = protection_levels(1e-5, 1e-3, np.array([0.02]), np.array([0.0]), np.array([0.5]))
+    assert small[0] == pytest.approx(0.02 * norm.isf(0.5e-5), rel=0.05)
+    assert large[0] > 1.0
+    assert np.isinf(protection_levels(1e-5, 1.0, np.array([0.02]), np.array([0.0]), np.array([1e5])))[0]
 
 
 def _toy_truth(T: int, rate_rps: float, lever_error_m: np.ndarray, seed: int):
@@ -209,13 +222,14 @@ def _toy_truth(T: int, rate_rps: float, lever_error_m: np.ndarray, seed: int):
     return out
 
 
-def _toy_run(lever_error_m, rate_rps: float = 0.15, T: int = 1200, seed: int = 0, limit_m: float = 0.25):
+def _toy_run(lever_error_m, rate_rps: float = 0.15, T: int = 1200, seed: int = 0, prior: float = 1e-3):
     """Linear error-state model of ``FaultTolerantSolution``'s use in the filter: states position
     (random walk), velocity, lever arm; GNSS antenna position h = r + C l at 10 Hz (1 cm). The main
     filter holds the declared lever arm (sd 2 cm); the truth has ``lever_error_m`` more.
-    Returns, per epoch, the main filter's position error, the protection level and the alarm, and
-    the fault-tolerant solution's position next to an independent wide-prior Kalman filter's."""
-    from v2xpos.ins.consistency import FaultTolerantSolution
+    Returns, per epoch, the main filter's position error, the protection level and the alarm, the
+    fault-tolerant solution's position next to an independent wide-prior Kalman filter's, and the
+    probability of the set-up fault."""
+    from v2xpos.ins.integrity import FaultTolerantSolution
     from v2xpos.ins.ekf import propagate_covariance, transition_matrix
     n, L = 9, 6
     A = np.zeros((n, n))
@@ -226,7 +240,7 @@ def _toy_run(lever_error_m, rate_rps: float = 0.15, T: int = 1200, seed: int = 0
     x_true[L:L + 3] = lever_error_m            # errors relative to the declared lever arm
     P = np.diag([0.01 ** 2] * 3 + [0.01 ** 2] * 3 + [0.02 ** 2] * 3)
     est = np.zeros(n)
-    sep = FaultTolerantSolution(L, fault_sd_m=0.5, false_alarm_per_hour=1e-3, missed_detection=1e-3,
+    sep = FaultTolerantSolution(L, fault_sd_m=0.5, false_alarm_per_hour=1e-3, prior=prior, integrity_risk=1e-5,
                                 test_every_s=1.0)
     sep.start(P, np.eye(3), np.zeros(3))
     P_ref, est_ref = sep.P.copy(), np.zeros(n)   # the independent wide-prior filter
@@ -249,7 +263,7 @@ def _toy_run(lever_error_m, rate_rps: float = 0.15, T: int = 1200, seed: int = 0
         S = H @ P @ H.T + R
         K = P @ H.T @ np.linalg.inv(S)
         dx = K @ d
-        sep.update(H, d, R, dx)
+        sep.update(H, d, R, dx, float(d @ np.linalg.solve(S, d)), S)
         est = est - dx
         P = P - K @ H @ P
         K_ref = P_ref @ H.T @ np.linalg.inv(H @ P_ref @ H.T + R)
@@ -257,7 +271,7 @@ def _toy_run(lever_error_m, rate_rps: float = 0.15, T: int = 1200, seed: int = 0
         P_ref = P_ref - K_ref @ H @ P_ref
         alarm = sep.test(0.1 * k, np.eye(n)[0:3], P, 0.0) if sep.due(0.1 * k) else False
         rows.append((float(np.hypot(*(est - x_true)[0:2])), sep.protection_m, alarm,
-                     (est - sep.w)[0:3].copy(), est_ref[0:3].copy()))
+                     (est - sep.w)[0:3].copy(), est_ref[0:3].copy(), sep.fault_probability))
     return rows
 
 
@@ -265,37 +279,43 @@ def test_fault_tolerant_solution_is_the_wide_prior_filter():
     """The separation filter, kept in the main filter's error coordinates, reproduces a Kalman
     filter run independently with the wide lever-arm prior."""
     rows = _toy_run(np.array([0.3, -0.2, 0.0]), T=300)
-    for _, _, _, ft, ref in rows:
+    for _, _, _, ft, ref, _ in rows:
         np.testing.assert_allclose(ft, ref, atol=1e-9)
 
 
 def test_no_fault_no_alarm_and_the_protection_level_falls_with_turning():
     rows = _toy_run(np.zeros(3), rate_rps=0.15)
     assert not any(r[2] for r in rows)
-    assert rows[5][1] > 1.0                         # before turning: the lever arm is open
-    assert rows[-1][1] < 0.25                       # after 120 s at 8.6 deg/s: pinned down
+    assert rows[5][1] > 0.3                         # before turning: the lever arm is open
+    assert rows[-1][1] < 0.3                        # after 120 s at 8.6 deg/s: pinned down
+    assert max(r[5] for r in rows) == pytest.approx(1e-3)   # no evidence for a fault: the prior
     straight = _toy_run(np.zeros(3), rate_rps=0.0, T=600)
-    assert straight[-1][1] > 1.0                    # a straight road never verifies a lever arm
+    assert straight[-1][1] > 0.3                    # a straight road never verifies a lever arm...
+    verified = _toy_run(np.zeros(3), rate_rps=0.0, T=600, prior=1e-6)
+    assert all(r[1] < 0.3 for r in verified[20:])   # ...but a set-up verified before needs no turn
 
 
-@pytest.mark.parametrize("error", [(0.3, 0.0), (0.0, -0.5), (0.4, 0.4)])
+@pytest.mark.parametrize("error", [(0.3, 0.0), (0.0, -0.5), (0.4, 0.4), (0.15, -0.1)])
 def test_an_undeclared_lever_arm_is_found_before_the_protection_level_vouches(error):
-    """Integrity: at every epoch before the first alarm, a protection level within the limit bounds
-    the main filter's real error (the undetected lever arm never makes a verified, wrong result)."""
+    """Integrity: at every epoch before the first alarm, a protection level within the alert limit
+    bounds the main filter's real error (the undetected lever arm never makes a verified, wrong
+    result); the data make the fault probable as the car turns."""
     rows = _toy_run(np.array([error[0], error[1], 0.0]), rate_rps=0.15)
     first_alarm = next((k for k, r in enumerate(rows) if r[2]), len(rows))
-    assert first_alarm < len(rows)
-    for err, pl, _, _, _ in rows[:first_alarm]:
-        if pl <= 0.25:
+    assert first_alarm < len(rows) or math.hypot(*error) < 0.2
+    for err, pl, *_ in rows[:first_alarm]:
+        if pl <= 0.3:
             assert err <= pl
+    if first_alarm < len(rows):
+        assert rows[first_alarm][5] > 0.5
 
 
-def test_a_failed_test_excludes_the_declared_lever_arm_by_taking_the_fault_tolerant_solution():
-    """RAIM exclusion: with the fault-tolerant solution running, a failure makes the filter take its
-    state and covariance (the estimate that never relied on the declared lever arm)."""
+def test_an_exclusion_takes_the_fault_tolerant_solution():
+    """RAIM exclusion: the separation test's alarm makes the filter take the twin's state and
+    covariance (the estimate that never relied on the declared lever arm)."""
     from v2xpos.ins.filter import InsConfig, InsFilter
     flt = InsFilter(InsConfig(platform="car", lever_arm_sd_m=0.02, undeclared_lever_arm_sd_m=0.5,
-                              reopen_on_inconsistency=True, fault_tolerant_solution=True))
+                              fault_tolerant_solution=True))
     flt.initialize(100.0, np.array([0.7, 0.2, 300.0]), np.array([10.0, 0.0, 0.0]), np.zeros(3))
     sep = flt.separation
     assert sep.active
@@ -304,8 +324,8 @@ def test_a_failed_test_excludes_the_declared_lever_arm_by_taking_the_fault_toler
     sep.w[0:3] = [0.3, -0.2, 0.0]                    # it thinks the main position is 0.3 m north, 0.2 m west off
     P_ft = sep.P.copy()
     north_before = flt.nav[0]
-    flt._on_inconsistency()
-    assert flt.counts["lever_arm_excluded"] == 1 and sep.excluded
+    flt._exclude_declaration()
+    assert flt.counts["lever_arm_excluded"] == 1 and sep.excluded and sep.fault_probability == 0.0
     np.testing.assert_allclose(flt.P, P_ft)
     r_m = 6.36e6                                       # ~ meridian radius at 40 deg (only the sign and size matter)
     assert (north_before - flt.nav[0]) * r_m == pytest.approx(0.3, rel=0.01)

@@ -56,9 +56,12 @@ def test_hooks_see_every_epoch_in_order_and_no_gnss_inside_outages(dataset):
     assert np.array_equal([u for _, _, u, _ in rec.epochs], ~inside)
     assert [i for _, i in rec.ends] == list(range(len(outages)))
     assert np.allclose([t for t, _ in rec.ends], [b for _, b in outages])
-    # the state reaches each epoch (to within one IMU interval) before the hook sees it
+    # the state reaches each epoch (to within one IMU interval) before the hook sees it; its label,
+    # stamp + time-offset estimate, may pass the epoch by what that estimate moved while the batch
+    # up to it was integrated (updates at its chunk ends: tens of microseconds as the offset
+    # becomes observable when the car drives off)
     lag = np.array([t - tf for t, _, _, tf in rec.epochs if np.isfinite(tf)])
-    assert len(lag) > 0.9 * len(t_gnss) and np.all(lag >= 0) and np.all(lag < 0.02)
+    assert len(lag) > 0.9 * len(t_gnss) and np.all(lag > -1e-3) and np.all(lag < 0.02)
     # no GNSS update inside an outage; the per-update hook sees every update (the filter keeps GNSS's)
     t_gnss_updates = np.array([r.t_s for r in rec.updates if r.kind == "gnss_pos"])
     assert len(t_gnss_updates) > 0

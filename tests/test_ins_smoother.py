@@ -78,7 +78,8 @@ def closed_loop_run(sys, rec: StepRecorder | None, feed_back: bool = True, split
     update estimates the error dx = K (H x - z) (estimate minus truth) and feeds it back, x <- x - dx.
     Taps (J = I) after every step's updates (and, with ``split_updates``, between a step's two scalar
     updates). ``boundary_at``: a reset there (the covariance back to the prior around the estimate).
-    ``reset = (k, T, Q)``: after step k's updates P <- T P T^T + Q, the estimate kept (a reopening).
+    ``reset = (k, T, Q, x_new)``: after step k's updates the states T decouples get the estimate
+    ``x_new`` and P <- T P T^T + Q (a reset of those states to a fresh estimate, the others kept).
     Returns (tap index, step, nominal) per tap, the last estimate and covariance, and the estimate
     at the reset."""
     x, P = sys["m0"].copy(), sys["P0"].copy()
@@ -113,8 +114,10 @@ def closed_loop_run(sys, rec: StepRecorder | None, feed_back: bool = True, split
             else:
                 update(slice(0, 2))
         if reset is not None and reset[0] == k:
-            P_after = reset[1] @ P @ reset[1].T + reset[2]
-            rec.transition(k, P, P_after)
+            T_r, Q_r, x_new = reset[1:]
+            P_after = T_r @ P @ T_r.T + Q_r
+            rec.transition(k, P, P_after, np.flatnonzero(np.diag(T_r) == 0.0))
+            x = T_r @ x + (np.eye(N_STATES) - T_r) @ x_new
             P, x_reset = P_after, x.copy()
         taps.append((rec.tap(k, np.eye(N_STATES)), k, x.copy()))
     rec.close(P)
@@ -200,23 +203,28 @@ def test_codec_round_trip_and_a_state_without_variance():
     assert np.all(G[:, 3] == 0.0) and np.allclose(np.delete(np.delete(G, 3, 0), 3, 1), np.eye(7), atol=1e-6)
 
 
-def test_a_reopening_is_a_transition_not_a_boundary():
-    """A covariance rewrite that keeps the estimate (a state reopened: its row decoupled and its
-    variance set; another block widened by a rank-one term) is smoothed across as the transition
-    x' = T x + (I - T) x_est + w, cov(w) = Q: the smoothed states on both sides equal the batch
-    solution of that model over the whole record; the recorder found T and Q from P alone."""
+def test_a_decoupling_reset_is_a_transition_not_a_boundary():
+    """A covariance rewrite that gives a block of states a fresh estimate and covariance of its own
+    (decoupled from the rest, e.g. the gyro biases reset to a stop's estimate) and adds variance
+    elsewhere is smoothed across as the transition x' = T x + (I - T) x_new + w, cov(w) = Q: the
+    smoothed states on both sides equal the batch solution of that model over the whole record; the
+    recorder found Q from the two covariances and the decoupled states."""
     sys = linear_system(seed=9)
     k_r = 14
     T = np.eye(N_STATES)
-    T[2, 2] = 0.0
-    g = np.array([1.0, -0.5, 0.0, 0.0, 0.0])
+    T[2, 2] = T[3, 3] = 0.0
+    g = np.array([1.0, -0.5, 0.0, 0.0, 0.3])
     Q = 0.3 * np.outer(g, g)
-    Q[2, 2] = 2.0
+    Q[2:4, 2:4] = [[2.0, 0.5], [0.5, 1.0]]
+    x_new = np.array([0.0, 0.0, 1.5, -0.7, 0.0])
     rec = StepRecorder(N_STATES, None, tap_rows=N_STATES, precision="float64")
-    taps, _, _, x_reset = closed_loop_run(sys, rec, reset=(k_r, T, Q))
-    assert len(rec.segments) == 1 and list(rec.resets) != []
-    T_found, Q_found = rec.resets[next(iter(rec.resets))]
+    taps, _, _, x_reset = closed_loop_run(sys, rec, reset=(k_r, T, Q, x_new))
+    assert len(rec.segments) == 1 and len(rec.resets) == 1
+    T_found, Q_found = next(iter(rec.resets.values()))
     assert np.allclose(T_found, T) and np.allclose(Q_found, Q)
+    from v2xpos.ins.smoother import reset_transition
+    P_b = np.diag([1.0, 2.0, 3.0, 4.0, 5.0]) + 0.5
+    assert reset_transition(P_b, P_b - 0.1 * np.eye(N_STATES), [2, 3]) is None   # other states lost variance
     mean, _ = batch_solution(sys, reset=(k_r, T, (np.eye(N_STATES) - T) @ x_reset, Q))
     sm = rec.smooth()
     for k_tap, k, x_nom in taps:

@@ -102,17 +102,16 @@ def test_nhc_and_odometer_residuals_are_h_times_the_error(mis_rad):
 
 def test_stop_models_measure_the_bias_errors():
     w_ie_b = C_NB.T @ geo.earth_rate_ned_rps(LLA[0])
-    b_g, b_a = np.array([2e-3, -1e-3, 4e-3]), np.array([0.05, -0.02, 0.03])
+    b_g = np.array([2e-3, -1e-3, 4e-3])
     dx = _error(vel=[0.01, -0.02, 0.005], bg=[1e-4, -3e-4, 2e-4], ba=[0.01, 0.02, -0.01])
     zupt = updates.zupt(LAYOUT, dx[VEL:VEL + 3], 0.02)
     np.testing.assert_allclose(zupt.d, zupt.H @ dx)
     zaru = updates.zaru(LAYOUT, C_NB, LLA[0], b_g + w_ie_b, b_g + dx[BG:BG + 3], 2e-3)
     np.testing.assert_allclose(zaru.d, zaru.H @ dx, atol=1e-12)
-    stop = updates.stop_biases(LAYOUT, C_NB, LLA[0], b_g + dx[BG:BG + 3], b_a + dx[BA:BA + 3], b_g + w_ie_b,
-                               np.full(3, 1e-5), b_a, 0.35)
+    cov = np.diag([1e-8, 4e-8, 9e-8])
+    stop = updates.stop_gyro_bias(LAYOUT, b_g + dx[BG:BG + 3], b_g, cov)
     np.testing.assert_allclose(stop.d, stop.H @ dx, atol=1e-12)
-    np.testing.assert_allclose(np.sqrt(np.diag(stop.R)),
-                               [updates.STOP_GYRO_BIAS_SD_FLOOR_RPS] * 3 + [0.35] * 3)
+    np.testing.assert_allclose(stop.R, cov)
 
 
 @pytest.mark.parametrize("baseline_vehicle_m", [[1.2, 0.0, 0.0], [0.1, -0.9, 0.05], [-0.7, 0.4, -0.3]])

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from master.pipeline import MasterPipeline, PipelineConfig
-from v2xpos.types import FixStatus, NavState
-from v2xpos.wire import StateMessage, TargetStatus, decode_state, encode_state
+from v2xpos.types import FilterReason, FixStatus, NavState
+from v2xpos.wire import FixSide, StateMessage, TargetStatus, decode_state, encode_state, reason_text
 
 FLEET = "demo"
 LAT, LON = math.radians(48.0), math.radians(11.0)
@@ -37,15 +37,55 @@ def test_clean_pair_within_limits_is_valid():
 
 
 @pytest.mark.parametrize("side", ["master", "target"])
-@pytest.mark.parametrize("flags,status", [({"attitude_ok": False}, TargetStatus.ATTITUDE_UNCERTAIN),
-                                          ({"consistent": False}, TargetStatus.INCONSISTENT),
-                                          ({"verified": False}, TargetStatus.INCONSISTENT)])
+@pytest.mark.parametrize("flags,status", [
+    ({"attitude_ok": False, "reason": FilterReason.HEADING_PENDING}, TargetStatus.ATTITUDE_UNCERTAIN),
+    ({"consistent": False, "reason": FilterReason.TEST_POSITION}, TargetStatus.INCONSISTENT),
+    ({"verified": False, "reason": FilterReason.SETUP_UNVERIFIED}, TargetStatus.UNVERIFIED),
+    ({"verified": False, "reason": FilterReason.TIME_OFFSET_CONVERGING}, TargetStatus.UNVERIFIED)])
 def test_a_vehicle_flag_makes_the_result_not_valid_and_says_why(side, flags, status):
+    """A failed test (INCONSISTENT) and "not yet verified" (UNVERIFIED) are told apart, and the result
+    names the vehicle and its filter's reason (results.csv ``reason``, CAN ReasonSide/TargetReason)."""
     master = _nav(100.0, **(flags if side == "master" else {}))
     target = _nav(99.98, north_m=-20.0, **(flags if side == "target" else {}))
     res = _result(master, target)
     assert res.status == status
     assert np.all(np.isfinite(res.rel_pos_body_m))          # the kinematics stay in the result
+    assert res.reason_side == (FixSide.MASTER if side == "master" else FixSide.SLAVE)
+    assert reason_text(res) == f"{side}:{flags['reason'].name}"
+
+
+def test_the_protection_level_of_the_pair_is_the_sum_of_both():
+    res = _result(_nav(100.0, protection_m=0.05), _nav(99.98, north_m=-20.0, protection_m=0.07))
+    assert res.protection_m == pytest.approx(0.12)
+    assert math.isnan(_result(_nav(100.0), _nav(99.98, north_m=-20.0, protection_m=0.07)).protection_m)
+
+
+def test_clocks_that_disagree_are_a_clock_alarm_not_only_late_rows():
+    """Two services whose clocks differ by 0.2 s: the master's comparison of the send stamps says so
+    (CLOCK_UNSYNCED while the rows are computed; TIMEOUT rows name the clock), not TIMEOUT alone."""
+    pipe = MasterPipeline(PipelineConfig(fleet=FLEET, master_id="ego"), clock_wall=lambda: 1.0)
+    for k in range(20):
+        t = 100.0 + 0.01 * k
+        target = StateMessage.from_nav_state(_nav(t - 0.02, north_m=-20.0), FLEET, "B", k + 1)
+        target.t_sent_gps_s = t - 0.002 - 0.2          # its clock 0.2 s behind the master's, 2 ms transit
+        res = pipe.handle(encode_state(target), None, _nav(t), t, 1.0)
+    assert res.status == TargetStatus.CLOCK_UNSYNCED
+    assert reason_text(res) == "both:CLOCK"
+    clock = pipe.summary()["targets"]["B"]["clock"]
+    assert clock["alarm"] and clock["offset_ms"] == pytest.approx(202.0)
+    silent = pipe.tick(101.0, 101.0)
+    assert silent[0].status == TargetStatus.TIMEOUT and reason_text(silent[0]) == "both:CLOCK"
+
+
+def test_clocks_that_agree_raise_no_alarm():
+    pipe = MasterPipeline(PipelineConfig(fleet=FLEET, master_id="ego"), clock_wall=lambda: 1.0)
+    for k in range(20):
+        t = 100.0 + 0.01 * k
+        target = StateMessage.from_nav_state(_nav(t - 0.02, north_m=-20.0), FLEET, "B", k + 1)
+        target.t_sent_gps_s = t - 0.002
+        res = pipe.handle(encode_state(target), None, _nav(t), t, 1.0)
+    assert res.status == TargetStatus.VALID and reason_text(res) == ""
+    assert not pipe.summary()["targets"]["B"]["clock"]["alarm"]
 
 
 def test_consistency_requirement_can_be_switched_off():

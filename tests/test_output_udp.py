@@ -7,9 +7,9 @@ import struct
 import numpy as np
 import pytest
 
-from v2xpos.output.udp import (HEADER, TARGET, TARGET_V1, LaneRecord, ObjectRecord, UdpFormatError, UdpOutput,
-                               build_datagram, check_destination, parse_datagram)
-from v2xpos.types import FixStatus
+from v2xpos.output.udp import (HEADER, TARGET, TARGET_V1, TARGET_V2, LaneRecord, ObjectRecord, UdpFormatError,
+                               UdpOutput, build_datagram, check_destination, parse_datagram)
+from v2xpos.types import FilterReason, FixStatus
 from v2xpos.wire import FixSide, RelativeResult, TargetStatus
 
 
@@ -116,7 +116,7 @@ def test_records_carry_their_own_time_of_validity_fix_states_and_sigmas(receiver
     with UdpOutput("127.0.0.1", port) as out:
         out.send(results, seq=104, t_gps_s=t0 + 0.05)
     d = parse_datagram(receiver.recv(65536))
-    assert d.version == 2 and len(d.targets) == 4
+    assert d.version == 3 and len(d.targets) == 4
     assert [r.t_gps_s for r in d.targets] == [t0, t0 + 0.02, t0 + 0.05, t0 + 0.05]
     assert [r.seq for r in d.targets] == [101, 102, 103, 104]
     assert [r.target_fix for r in d.targets] == [FixStatus.FIXED, FixStatus.FLOAT, FixStatus.SINGLE, FixStatus.FIXED]
@@ -129,6 +129,40 @@ def test_records_carry_their_own_time_of_validity_fix_states_and_sigmas(receiver
     unc = d.targets[3]   # kinematics with a status that says why it is not VALID
     assert unc.status == TargetStatus.ATTITUDE_UNCERTAIN and unc.has_kinematics
     assert unc.range_m == pytest.approx(1234.63) and unc.rel_yaw_sd_rad == pytest.approx(0.3, rel=1e-6)
+
+
+def test_records_say_which_vehicle_and_why_and_the_protection_level(receiver):
+    """Version 3: a non-VALID record names the vehicle (reason_side), both filters' reasons and the
+    relative protection level; the heartbeat says the master is alive when it has nothing else."""
+    port = receiver.getsockname()[1]
+    unverified = valid(status=TargetStatus.UNVERIFIED, reason_side=FixSide.SLAVE, master_reason=0,
+                       target_reason=int(FilterReason.SETUP_UNVERIFIED), protection_m=0.31)
+    failed = valid("car-3", status=TargetStatus.INCONSISTENT, reason_side=FixSide.MASTER,
+                   master_reason=int(FilterReason.TEST_POSITION))
+    with UdpOutput("127.0.0.1", port) as out:
+        out.send([unverified, failed], seq=5, t_gps_s=1_400_000_000.0)
+        out.send_heartbeat(6, 1_400_000_000.1)
+    d = parse_datagram(receiver.recv(65536))
+    u, f = d.targets
+    assert (u.status, u.reason_side, u.target_reason) == (TargetStatus.UNVERIFIED, FixSide.SLAVE,
+                                                          FilterReason.SETUP_UNVERIFIED)
+    assert u.protection_m == pytest.approx(0.31, rel=1e-6) and math.isnan(f.protection_m)
+    assert (f.status, f.reason_side, f.master_reason) == (TargetStatus.INCONSISTENT, FixSide.MASTER,
+                                                          FilterReason.TEST_POSITION)
+    hb = parse_datagram(receiver.recv(65536))
+    assert hb.heartbeat and not hb.targets and hb.t_gps_s == 1_400_000_000.1 and not d.heartbeat
+
+
+def test_version_2_datagrams_still_parse():
+    rec = TARGET_V2.pack(b"car-2", 8, 0, 0, 5, 4, 1_400_000_000.0, 41, 9, 0.1, *([0.5] * 15), 3.0, *([0.1] * 8),
+                         0.01)
+    r = parse_datagram(HEADER.pack(b"V2XR", 2, 0, 1, 0, 0, 9, 1_400_000_000.0) + rec).targets[0]
+    assert r.status == TargetStatus.INCONSISTENT and r.target_fix == FixStatus.FLOAT
+    assert r.reason_side == FixSide.NONE and math.isnan(r.protection_m) and r.range_m == 3.0
+    rec9 = TARGET_V2.pack(b"car-2", 9, 0, 0, 5, 4, 1_400_000_000.0, 41, 9, 0.1, *([0.5] * 15), 3.0, *([0.1] * 8),
+                          0.01)
+    with pytest.raises(UdpFormatError, match="version 2"):
+        parse_datagram(HEADER.pack(b"V2XR", 2, 0, 1, 0, 0, 9, 1_400_000_000.0) + rec9)
 
 
 def test_version_1_datagrams_still_parse():

@@ -57,8 +57,8 @@ def test_layout_and_files_parse_with_only_the_cut_first_line_malformed(dev_like)
     assert sorted(p.name for p in dev_like.iterdir()) == ["A", "B", "truth_effects.json", "truth_rel.csv"]
     for name in ("A", "B"):
         folder = dev_like / name
-        assert sorted(p.name for p in folder.iterdir()) == ["dataset.toml", "gnss.pos", "imu.csv", "imu.csv.tag",
-                                                           "truth.csv"]
+        assert sorted(p.name for p in folder.iterdir()) == ["dataset.toml", "gnss.pos", "gnss.ubx", "gnss.ubx.tag",
+                                                           "imu.csv", "imu.csv.tag", "truth.csv"]
         raw = (folder / "imu.csv").read_bytes()
         assert raw.endswith(b"\r\n") and raw.count(b"\r\n") == raw.count(b"\n") == int(DURATION_S * 100)
         ds = load_dataset(folder / "dataset.toml")

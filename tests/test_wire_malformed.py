@@ -67,7 +67,7 @@ def test_oversize_rejected_before_parsing():
 
 @pytest.mark.parametrize("changes,field,reason", [
     ({"T": "relative"}, "T", "not 'state'"),
-    ({"ver": 2}, "ver", "unknown schema version"),
+    ({"ver": 99}, "ver", "unknown schema version"),
     ({"ver": "1"}, "ver", "non-integer"),
     ({"seq": KeyError}, "seq", "missing"),
     ({"lat": KeyError}, "lat", "missing"),

@@ -12,6 +12,7 @@ Exit codes: 0 done; 1 done, and the result says something failed (a graded unit,
 from __future__ import annotations
 
 import argparse
+import difflib
 import importlib
 import os
 import sys
@@ -60,9 +61,28 @@ BENCHES: dict[str, tuple[str, str]] = {
 }
 
 
+BENCH_LINE = ("bench", "benchmarks that print figures: replay, fanin, soak, trust, ... (v2xpos bench --help)")
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse with a "did you mean" for a misspelt option (``--outage-lenght``)."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        hint = ""
+        for word in message.replace(",", " ").split():
+            if word.startswith("--") and "unrecognized" in message:
+                options = [o for a in self._actions for o in a.option_strings if o.startswith("--")]
+                near = difflib.get_close_matches(word.split("=", 1)[0], options, n=1)
+                if near:
+                    hint = f" (did you mean {near[0]}?)"
+                    break
+        super().error(message + hint)
+
+
 def _usage(table: dict, prog: str) -> str:
-    width = max(len(k) for k in table)
-    rows = "\n".join(f"  {k:<{width}}  {d}" for k, (_, d) in table.items())
+    entries = list(table.items()) + ([(BENCH_LINE[0], ("", BENCH_LINE[1]))] if table is COMMANDS else [])
+    width = max(len(k) for k, _ in entries)
+    rows = "\n".join(f"  {k:<{width}}  {d}" for k, (_, d) in entries)
     version = "\n  --version  print the version and exit\n" if prog == "v2xpos" else ""
     return f"usage: {prog} COMMAND [options]\n\ncommands:\n{rows}\n{version}"
 
@@ -73,12 +93,15 @@ def _dispatch(table: dict, argv: list[str], prog: str, entry: str) -> int:
         return 0 if argv else 2
     name = argv[0]
     if name not in table:
-        print(f"{prog}: unknown command {name!r}\n\n{_usage(table, prog)}", file=sys.stderr)
+        names = list(table) + ([BENCH_LINE[0]] if table is COMMANDS else [])
+        near = difflib.get_close_matches(name, names, n=1)
+        hint = f" (did you mean {near[0]!r}?)" if near else ""
+        print(f"{prog}: unknown command {name!r}{hint}\n\n{_usage(table, prog)}", file=sys.stderr)
         return 2
     if table[name][0] in STOPS_CLEANLY:
         stop_signals.exit_until_handled(name)
     module = importlib.import_module(table[name][0])
-    parser = argparse.ArgumentParser(prog=f"{prog} {name}", description=table[name][1])
+    parser = Parser(prog=f"{prog} {name}", description=table[name][1])
     getattr(module, f"add_{entry}arguments")(parser)
     args = parser.parse_args(argv[1:])
     return int(getattr(module, f"run_{entry[:-1]}" if entry else "run")(args) or 0)

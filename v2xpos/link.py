@@ -208,6 +208,13 @@ class Link:
         self._entities.append(pub)
         return Publisher(pub)
 
+    def declare_alive(self, key: str):
+        """Declare a liveliness token on ``key`` (``v2xpos.wire.alive_key``): peers see it go when
+        this session closes, also when the process is killed (zenoh liveliness)."""
+        token = self.session.liveliness().declare_token(key)
+        self._entities.append(token)
+        return token
+
     def subscribe(self, key: str, callback: Callable[[bytes, str, bytes | None, float], None]):
         """Subscribe with a plain callback ``cb(payload, key, attachment, arrival_wall_s)`` called on
         a zenoh thread."""

@@ -3,7 +3,7 @@
 A service process spends its first second or so importing numpy, numba and zenoh. A signal in
 that window would otherwise end it with Python's default (a KeyboardInterrupt traceback, or death
 by SIGTERM) instead of a clean stop. Nothing is open yet and nothing can be lost, so the clean stop
-is to exit at once with code 0 and the one JSON line a service prints when it ends
+is to exit at once with code 130 (interrupted, README exit codes) and the one JSON line a service prints when it ends
 (``{"phase": "starting", "stopped_early": true}``). The CLI calls :func:`exit_until_handled`
 before it imports a service's module; the service's own handlers replace this one.
 
@@ -27,12 +27,12 @@ from collections.abc import Iterator
 
 
 def exit_until_handled(service: str) -> None:
-    """Until a handler replaces it: on SIGINT or SIGTERM say so and exit with code 0."""
+    """Until a handler replaces it: on SIGINT or SIGTERM say so and exit with code 130 (interrupted)."""
     def _exit(signum: int, _frame: object) -> None:
         print(f"v2xpos {service}: stopped ({signal.Signals(signum).name}) while starting", file=sys.stderr,
               flush=True)
         print(json.dumps({"phase": "starting", "stopped_early": True}), flush=True)
-        os._exit(0)          # nothing is open yet; skip the interpreter shutdown (seconds under load)
+        os._exit(130)        # nothing is open yet; skip the interpreter shutdown (seconds under load)
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, _exit)

@@ -111,6 +111,9 @@ class Dataset:
     calibration: object | None = None
     """``v2xpos.datasets.calibration.CalibrationTable`` from the descriptor's ``[calibration]``
     table (estimated effects to apply), or None."""
+    verification: object | None = None
+    """``v2xpos.datasets.verification.VerificationRecord`` from the descriptor's ``[verification]``
+    table (the set-up verified on an earlier drive), or None."""
 
 
 

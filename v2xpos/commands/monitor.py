@@ -14,7 +14,7 @@ import time
 
 from v2xpos.link import LinkConfig
 from v2xpos.monitor.attach import MasterMonitor
-from v2xpos.monitor.table import render
+from v2xpos.monitor.table import render, waiting_text
 from v2xpos.monitor.web import WebServer, parse_host_port
 
 PLAIN_EVERY_S = 5.0
@@ -39,16 +39,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 class _TableOut:
     """Redraws in place on a terminal; on a pipe or file prints one block every PLAIN_EVERY_S."""
 
-    def __init__(self, out=sys.stdout, rows: int = 64):
+    def __init__(self, out=sys.stdout, rows: int = 64, endpoint: str = "", fleet: str = "", master: str | None = None):
         self.out = out
         self.rows = rows
         self.tty = out.isatty()
         self._last = 0.0
+        self.endpoint, self.fleet, self.master = endpoint, fleet, master
 
     def __call__(self, snap: dict) -> None:
-        if not snap["rows"] and snap["master"]["id"] is None:
-            return   # nothing heard from the master yet
-        text = render(snap, self.rows)
+        if not snap["rows"] and snap["master"]["id"] is None and snap["master"]["state"] == "not_heard":
+            text = waiting_text(snap, self.endpoint, self.fleet, self.master)
+        else:
+            text = render(snap, self.rows)
         if self.tty:
             self.out.write("\x1b[H\x1b[J" + text + "\n")
             self.out.flush()
@@ -68,7 +70,8 @@ def run(args: argparse.Namespace) -> int:
     if args.refresh_hz <= 0 or args.rows < 1:
         print("v2xpos monitor: --refresh-hz must be > 0 and --rows >= 1", file=sys.stderr)
         return 2
-    table = None if args.no_table else _TableOut(rows=args.rows)
+    table = None if args.no_table else _TableOut(rows=args.rows, endpoint=args.connect, fleet=args.fleet,
+                                                 master=args.master)
     mon = MasterMonitor(link_cfg, args.fleet, args.master, refresh_period_s=1.0 / args.refresh_hz, on_snapshot=table)
     try:
         mon.start()

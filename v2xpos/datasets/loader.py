@@ -44,8 +44,8 @@ from v2xpos.types import Dataset, GnssData, MultiImuRecording
 from v2xpos.compat import tomllib
 
 IMU_FORMATS = ("csv_g_dps_ms",)
-TOP_KEYS = ("name", "platform", "imu", "gnss", "calibration")
-LAYOUT_KEYS = ("layout", "path", "name", "grade", "calibration")
+TOP_KEYS = ("name", "platform", "imu", "gnss", "calibration", "verification")
+LAYOUT_KEYS = ("layout", "path", "name", "grade", "calibration", "verification")
 IMU_KEYS = ("file", "format", "timetag", "imu_to_body")
 GNSS_KEYS = ("file", "format", "timetag", "lever_arm_m", "lever_arm_sd_m", "height_datum", "raw",
              "raw_timetag")
@@ -130,6 +130,7 @@ def _load_toml(toml_path: Path, read_raw: bool) -> Dataset:
         ds.name = _field(desc, "name", "", toml_path, required=False, default=ds.name)
         ds.source = toml_path
         ds.calibration = _calibration(desc, toml_path)
+        ds.verification = _verification(desc, toml_path)
         return ds
 
     check_keys(desc, TOP_KEYS, f"{toml_path}: top level")
@@ -140,6 +141,7 @@ def _load_toml(toml_path: Path, read_raw: bool) -> Dataset:
     check_keys(imu_t, IMU_KEYS, f"{toml_path}: [imu]")
     check_keys(gnss_t, GNSS_KEYS, f"{toml_path}: [gnss]")
     calibration = _calibration(desc, toml_path)
+    verification = _verification(desc, toml_path)
 
     imu_format = _field(imu_t, "format", "[imu] ", toml_path)
     if imu_format not in IMU_FORMATS:
@@ -227,7 +229,8 @@ def _load_toml(toml_path: Path, read_raw: bool) -> Dataset:
                         shown)
     return Dataset(name=name, platform=platform, imu=imu_res.imu, gnss=gnss,
                    imu_to_body=imu_to_body, lever_arm_m=lever, lever_arm_sd_m=lever_sd,
-                   malformed_lines=malformed, source=toml_path, notes=notes, calibration=calibration)
+                   malformed_lines=malformed, source=toml_path, notes=notes, calibration=calibration,
+                   verification=verification)
 
 
 def _calibration(desc: dict, toml_path: Path):
@@ -235,6 +238,13 @@ def _calibration(desc: dict, toml_path: Path):
         return None
     from v2xpos.datasets.calibration import parse_calibration
     return parse_calibration(desc["calibration"], f"{toml_path}: [calibration]")
+
+
+def _verification(desc: dict, toml_path: Path):
+    if "verification" not in desc:
+        return None
+    from v2xpos.datasets.verification import parse_verification
+    return parse_verification(desc["verification"], f"{toml_path}: [verification]")
 
 
 def _enough(n: int, what: str, path: Path, label: str, toml_path: Path, issues) -> None:

@@ -49,6 +49,7 @@ class EmulatedStream:
     source: str
     times_s: np.ndarray
     chunks: list[bytes]
+    vehicle: str = ""
     path: str = ""
     address: str = ""
     written: int = 0
@@ -101,6 +102,17 @@ def streams_of(toml_path: str | Path) -> list[EmulatedStream]:
     return out
 
 
+def vehicle_name(toml_path: Path, taken: dict) -> str:
+    """A vehicle id for a recording: its descriptor's ``name`` (else its folder's), made unique."""
+    from v2xpos.datasets.loader import read_descriptor
+    name = str(read_descriptor(toml_path).get("name") or toml_path.parent.name or "vehicle")
+    name = "".join(c if c.isalnum() or c in "_.-" else "_" for c in name)[:28] or "vehicle"
+    base, k = name, 2
+    while name in taken:
+        name, k = f"{base}-{k}", k + 1
+    return name
+
+
 def min_nav_pvt_latency_s(stream: EmulatedStream, tag_path: str | Path | None) -> float | None:
     """Smallest NAV-PVT latency of a recorded UBX stream [s] (``datasets.ubx``), or None."""
     if stream.format != "ubx" or tag_path is None:
@@ -111,24 +123,49 @@ def min_nav_pvt_latency_s(stream: EmulatedStream, tag_path: str | Path | None) -
     return float(lat.min()) if lat.size else None
 
 
-class Emulator:
-    """Serve the streams of a recording (see module docstring).
+def missing_streams(toml_path: str | Path) -> list[str]:
+    """What a recording lacks for a ``device`` source (a GNSS byte stream and an IMU byte stream,
+    each with its TIMETAG file), in words; empty when it can be served fully."""
+    names = {s.name for s in streams_of(toml_path)}
+    out = []
+    if "gnss" not in names:
+        out.append("no GNSS byte stream: [gnss] raw + raw_timetag (the receiver's u-blox stream and its TIMETAG) "
+                   "or a [gnss] file of format \"ubx\" with its timetag (an RTKLIB .pos is a solution, not bytes)")
+    if "imu" not in names:
+        out.append("no IMU byte stream: [imu] file + timetag")
+    return out
 
-    ``Emulator(toml, speed=1.0, tcp=False, start_in_s=2.0, duration_s=None, only=None)``; after
-    construction ``devices()`` and ``timing()`` say where and when; ``run()`` plays (blocking) until
-    the end or ``stop()``.
+
+class Emulator:
+    """Serve the streams of one or more recordings on one timeline (see module docstring).
+
+    ``Emulator(toml or [toml, ...], speed=1.0, tcp=False, start_in_s=2.0, duration_s=None,
+    only=None)``; after construction ``devices()`` (one recording) or ``vehicles()`` and ``timing()``
+    say where and when; ``run()`` plays (blocking) until the end or ``stop()``. Several recordings
+    of one drive (a convoy) share the timeline, so every consumer takes the same
+    ``host_time_offset_s``.
     """
 
-    def __init__(self, toml_path: str | Path, speed: float = 1.0, tcp: bool = False, start_in_s: float = 2.0,
+    def __init__(self, toml_path: str | Path | list, speed: float = 1.0, tcp: bool = False, start_in_s: float = 2.0,
                  duration_s: float | None = None, only: list[str] | None = None, skip_s: float = 0.0):
         if not speed > 0:
             raise ValueError("speed must be > 0")
-        self.toml_path = Path(toml_path)
+        paths = [Path(p) for p in toml_path] if isinstance(toml_path, (list, tuple)) else [Path(toml_path)]
+        self.toml_paths = paths
+        self.toml_path = paths[0]
         self.speed = float(speed)
         self.tcp = tcp
-        self.streams = [s for s in streams_of(self.toml_path) if only is None or s.name in only]
-        if not self.streams:
-            raise ValueError(f"{self.toml_path}: no byte stream with a TIMETAG file to emulate")
+        self.streams = []
+        self.vehicle_ids: dict[str, Path] = {}
+        for path in paths:
+            vid = vehicle_name(path, self.vehicle_ids)
+            self.vehicle_ids[vid] = path
+            found = [s for s in streams_of(path) if only is None or s.name in only]
+            if not found:
+                raise ValueError(f"{path}: no byte stream with a TIMETAG file to emulate")
+            for st in found:
+                st.vehicle = vid
+            self.streams += found
         self.t0_rec_s = min(float(s.times_s[0]) for s in self.streams if len(s.times_s)) + skip_s
         self.t_end_rec_s = max(float(s.times_s[-1]) for s in self.streams if len(s.times_s))
         if duration_s is not None:
@@ -161,10 +198,16 @@ class Emulator:
             os.close(sl)                # the master then polls POLLHUP until a reader opens the path
             s._master_fd = m
 
-    def devices(self) -> dict:
-        """{name: {"format", "path" | "tcp", "source"}} of the served streams."""
+    def vehicles(self) -> dict:
+        """{vehicle id: {"dataset": toml path, "devices": {name: {...}}}} of every recording served."""
+        return {vid: {"dataset": str(path), "devices": self.devices(vid)} for vid, path in self.vehicle_ids.items()}
+
+    def devices(self, vehicle: str | None = None) -> dict:
+        """{name: {"format", "path" | "tcp", "source"}} of the served streams (of ``vehicle``; default
+        the first recording)."""
+        vehicle = next(iter(self.vehicle_ids)) if vehicle is None else vehicle
         out = {}
-        for s in self.streams:
+        for s in [s for s in self.streams if s.vehicle == vehicle]:
             d = {"format": s.format, "source": s.source}
             if s.path:
                 d["port"] = s.path
@@ -260,7 +303,10 @@ class Emulator:
         return self.counts()
 
     def counts(self) -> dict:
-        return {s.name: {"written": s.written, "dropped": s.dropped} for s in self.streams}
+        """Bytes written and dropped per stream (``vehicle/stream`` when several recordings are served)."""
+        several = len(self.vehicle_ids) > 1
+        return {f"{s.vehicle}/{s.name}" if several else s.name: {"written": s.written, "dropped": s.dropped}
+                for s in self.streams}
 
     def stop(self) -> None:
         self._stop.set()

@@ -14,7 +14,7 @@ Conventions (the JSON of ``v2xpos calibrate`` uses the same names and signs; doc
   per axis, for gyro and accelerometer.
 
 ``inject`` writes additional, undeclared effects into the data (what a test does to a real
-recording); ``correct`` removes estimated effects (stamps, samples and GNSS tags) and declares
+recording; ``inject_imu_bias`` a constant sensor bias); ``correct`` removes estimated effects (stamps, samples and GNSS tags) and declares
 the rest (``imu_to_body``, ``lever_arm_m``) so that the replay runs on a calibrated model.
 Both return a new ``Dataset``; the input is never modified.
 """
@@ -178,6 +178,19 @@ def inject(ds: Dataset, effects: EffectSet, attitude: tuple | None = None) -> Da
         out.gnss = copy.copy(out.gnss)
         out.gnss.t_s = out.gnss.t_s + e.gnss_latency_s
     out.notes["injected_effects"] = repr(e)
+    return out
+
+
+def inject_imu_bias(ds: Dataset, gyro_bias_rps: np.ndarray, accel_bias_mps2: np.ndarray) -> Dataset:
+    """A copy of ``ds`` whose IMU samples carry an additional constant bias, given in IMU axes
+    (rad/s, m/s^2), with nothing declared about it; in the filter's body axes it is
+    ``imu_to_body @ bias``."""
+    out = _copy(ds)
+    out.imu = copy.copy(ds.imu)
+    out.imu.gyro_rps = np.asarray(ds.imu.gyro_rps, float) + np.asarray(gyro_bias_rps, float)
+    out.imu.acc_mps2 = np.asarray(ds.imu.acc_mps2, float) + np.asarray(accel_bias_mps2, float)
+    out.notes["injected_imu_bias"] = {"gyro_bias_rps": np.asarray(gyro_bias_rps, float).tolist(),
+                                      "accel_bias_mps2": np.asarray(accel_bias_mps2, float).tolist()}
     return out
 
 

@@ -124,6 +124,15 @@ def score_target(rows: dict, target: str, truth_rel: TruthTrack, master_truth: T
                 "x_rms_m": _rms(ex[m]), "y_rms_m": _rms(ey[m])}
 
     out["moving"] = block(moving)
+    # availability while both move: the VALID share of those rows and the time from the first
+    # instant both move to the first VALID row (None: never VALID, or no vehicle truth)
+    if master_truth is not None and target_truth is not None and len(t):
+        both = ((master_truth.at("speed_mps", t) > moving_speed_mps)
+                & (target_truth.at("speed_mps", t) > moving_speed_mps))
+        out["moving_valid_fraction"] = float(valid[both].mean()) if both.any() else None
+        first_valid = t[valid & both]
+        out["time_to_first_valid_s"] = (float(first_valid[0] - t[both][0]) if both.any() and len(first_valid)
+                                        else None)
     out["standstill"] = block(~moving)
     # the computed kinematics of every status that carries them (VALID or flagged), while both move:
     # the accuracy of the computation itself, e.g. to compare two runs whose flags differ

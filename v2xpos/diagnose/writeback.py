@@ -119,14 +119,18 @@ def _rebased(value: str, src_dir: Path, out_dir: Path) -> str:
     return os.path.relpath(p.resolve(), out_dir.resolve())
 
 
-def write_dataset(src_toml: str | Path, out_toml: str | Path, table: CalibrationTable) -> Path:
-    """Write ``out_toml``: the declared tables of ``src_toml`` (its own ``[calibration]`` replaced),
-    every file path rewritten so that it resolves from ``out_toml``'s folder, and ``table``."""
+def write_dataset(src_toml: str | Path, out_toml: str | Path, table: CalibrationTable,
+                  verify: bool = True) -> Path:
+    """Write ``out_toml``: the declared tables of ``src_toml`` (its own ``[calibration]`` and
+    ``[verification]`` replaced), every file path rewritten so that it resolves from
+    ``out_toml``'s folder, and ``table``; with ``verify`` also the ``[verification]`` record of the
+    calibrated set-up (``verification_of``)."""
     import tomli_w
     from v2xpos.datasets.loader import read_descriptor
     src, out = Path(src_toml), Path(out_toml)
     desc = read_descriptor(src)
     desc.pop("calibration", None)
+    desc.pop("verification", None)
     out.parent.mkdir(parents=True, exist_ok=True)
     for tab, key in PATH_KEYS:
         t = desc if not tab else desc.get(tab)
@@ -135,4 +139,23 @@ def write_dataset(src_toml: str | Path, out_toml: str | Path, table: Calibration
     header = (f"# written by v2xpos calibrate from {src} on {table.date}: the declared tables of that file\n"
               f"# (file paths relative to this one) and the effects it estimated, as corrections to them.\n\n")
     out.write_text(header + tomli_w.dumps(desc) + "\n" + table.to_toml())
+    if verify:
+        record = verification_of(out, drive=str(src))
+        out.write_text(out.read_text() + "\n" + record.to_toml())
     return out
+
+
+def verification_of(dataset_toml: str | Path, drive: str | None = None):
+    """The ``[verification]`` record (``v2xpos.datasets.verification``) of a recording's set-up as
+    its descriptor states it (with its ``[calibration]``): the recording through the services'
+    filter (``dataset_ins_config(integrity=True)``), and what that filter vouches for at its end."""
+    from v2xpos.datasets.loader import load_dataset
+    from v2xpos.datasets.verification import record_from_filter
+    from v2xpos.ins import InsFilter
+    from v2xpos.ins.calibrated import dataset_ins_config
+    from v2xpos.ins.replay_engine import run_replay
+    ds = load_dataset(dataset_toml)
+    ds.verification = None
+    flt = InsFilter(dataset_ins_config(ds, integrity=True))
+    run_replay(flt, ds, [], wheel=True)
+    return record_from_filter(flt, drive or str(dataset_toml), software_version())

@@ -52,9 +52,12 @@ def _vec(v: Any) -> np.ndarray:
 
 
 def ins_config(platform: str, imu_to_body: np.ndarray, lever_arm_m: np.ndarray, lever_arm_sd_m: float,
-               calibration: Any = None, integrity: bool = False, **overrides: Any) -> InsConfig:
+               calibration: Any = None, integrity: bool = False, verification: Any = None,
+               **overrides: Any) -> InsConfig:
     """``InsConfig`` of a vehicle from its declared mounting and antenna lever arm and an optional
-    ``CalibrationTable`` (``v2xpos.datasets.calibration``; None = declared values only).
+    ``CalibrationTable`` (``v2xpos.datasets.calibration``; None = declared values only) and an
+    optional ``VerificationRecord`` (``v2xpos.datasets.verification``: a set-up verified on an earlier
+    drive starts with the prior of a change since, ``InsConfig.setup_change_prior``).
 
     platform: "car", "pedestrian" or anything else (-> "generic"); imu_to_body: declared nominal
     ``v_body = imu_to_body v_imu``; lever_arm_m: declared antenna position from the IMU [m, vehicle
@@ -64,8 +67,8 @@ def ins_config(platform: str, imu_to_body: np.ndarray, lever_arm_m: np.ndarray, 
     the IMU white noise is measured online from the samples (``v2xpos.ins.noise.ImuNoiseMeter``)
     unless the calibration carries the noise measured offline by the same estimator -- that one
     wins, it was tuned together with the rest of the table --, a failed consistency test
-    reopens the effect states (``InsFilter._on_inconsistency``) and the filter carries the
-    fault-tolerant solution whose protection level verifies it (``consistency.FaultTolerantSolution``).
+    re-opens a verified set-up (``InsFilter._on_inconsistency``) and the filter carries the set-up
+    hypothesis whose protection level verifies it (``integrity.FaultTolerantSolution``).
     """
     plat = platform if platform in ("car", "pedestrian") else "generic"
     B = np.asarray(imu_to_body, float).reshape(3, 3)
@@ -73,10 +76,11 @@ def ins_config(platform: str, imu_to_body: np.ndarray, lever_arm_m: np.ndarray, 
                               lever_arm_sd_m=float(lever_arm_sd_m))
     if calibration is not None and calibration.effects:
         kw.update(_calibrated_fields(plat, B, _vec(lever_arm_m), float(lever_arm_sd_m), calibration))
+    if verification is not None and getattr(verification, "verified", False):
+        kw["setup_verified"] = True             # verified on an earlier drive (``datasets.verification``)
     if integrity:
         kw["imu_noise_from_data"] = "gyro_noise_rps_rthz" not in kw and "accel_noise_mps2_rthz" not in kw
-        kw["reopen_on_inconsistency"] = True
-        kw["fault_tolerant_solution"] = True     # protection level against an undeclared lever arm
+        kw["fault_tolerant_solution"] = True     # the set-up hypothesis and the protection level
         # the heading error of a gyro scale error grows with the angle turned: estimated, from the
         # calibration's value and sd or the datasheet-class prior (docs/integrity.md)
         effects = tuple(kw.get("effects") or PLATFORM_EFFECTS[plat])
@@ -151,5 +155,6 @@ def _calibrated_fields(platform: str, B: np.ndarray, lever: np.ndarray, lever_sd
 def dataset_ins_config(dataset: Any, integrity: bool = False, **overrides: Any) -> InsConfig:
     """:func:`ins_config` of a loaded ``Dataset`` (its declared values and ``Dataset.calibration``)."""
     return ins_config(dataset.platform, dataset.imu_to_body, dataset.lever_arm_m, dataset.lever_arm_sd_m,
-                      getattr(dataset, "calibration", None), integrity=integrity, **overrides)
+                      getattr(dataset, "calibration", None), integrity=integrity,
+                      verification=getattr(dataset, "verification", None), **overrides)
 

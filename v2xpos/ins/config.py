@@ -62,13 +62,14 @@ class InsConfig:
     consistency_release_windows: int = 6          # ... i.e. this many consecutive blocks per kind pass at the 1 % level
     verify_detectable_lever_arm_m: float = 0.3    # turning counts while the test would find a lever-arm error this size
     verify_turn_deg: float = 0.0                  # turning that must pass the test before the solution is verified
-    reopen_on_inconsistency: bool = False         # a failed test reopens the effect states (_on_inconsistency)
-    undeclared_lever_arm_sd_m: float = 0.5        # horizontal lever-arm sd the filter reopens to when its test fails
-    reopen_all_effects: bool = True               # ... and every other effect state to its prior sd
-    fault_tolerant_solution: bool = False         # solution separation against an undeclared lever arm (FaultTolerantSolution)
-    protection_limit_m: float = 0.25              # verified only while the horizontal protection level is within this
-    integrity_false_alarm_per_hour: float = 1e-3  # of the separation test (Bonferroni over its tests in an hour)
-    integrity_missed_detection: float = 1e-3      # probability the protection level allows for a missed fault
+    fault_tolerant_solution: bool = False         # the set-up hypothesis: its twin, P(H1 | data), the protection level
+    undeclared_lever_arm_sd_m: float = 0.5        # horizontal lever-arm sd the twin assumes without the declaration
+    alert_limit_m: float = 0.30                   # verified only while the horizontal protection level is within this
+    integrity_risk: float = 1e-5                  # the protection level's risk budget (both horizontal axes together)
+    setup_fault_prior: float = 1e-3               # P(the declared set-up is wrong) when not verified on an earlier drive
+    setup_change_prior: float = 1e-6              # ... when verified on an earlier drive (it changed since)
+    setup_verified: bool = False                  # the set-up was verified on an earlier drive ([verification] record)
+    integrity_false_alarm_per_hour: float = 1e-3  # of the exclusion test (Bonferroni over its tests in an hour)
     effect_initial_sd: dict = field(default_factory=dict)
     initial_time_offset_s: float = 0.0             # starting value of imu_time_offset (e.g. from calibrate)
     initial_misalignment_rad: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -92,7 +93,7 @@ class InsConfig:
     # vehicle constraints and stops
     constraint_rate_hz: float = 10.0
     constraints_on_request: bool = False          # NHC/ZUPT only via apply_vehicle_constraints() (calibration replays)
-    nhc_sd_mps: tuple = (0.1, 0.5)                # lateral, vertical (body pitch varies with load/braking)
+    nhc_sd_mps: tuple = (0.05, 0.5)               # lateral, vertical (body pitch varies with load/braking); docs/ins.md
     nhc_sd_per_yaw_rate_m: float = 1.0            # adds |yaw rate| x 1 m to the lateral sd (IMU off the rear axle)
     nhc_min_speed_mps: float = 0.5
     odometer_sd_mps: float = 0.05

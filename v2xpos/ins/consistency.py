@@ -35,22 +35,25 @@ So the monitor keeps these facts per vehicle (``ConsistencyMonitor``):
   hour) <= sum of the levels (Bonferroni's inequality, valid whatever the tests' correlation).
   For 1e-3 per hour the mean test's limit is 5.17 sd (it was 3, i.e. 0.27 % per window, about a
   dozen false alarms an hour for an exactly consistent filter);
-* **failed** (``INCONSISTENT``) from an alarm until the evidence has gone: released after
+* **what an alarm means**: a block NIS beyond its limit says the covariance understates the
+  spread of the innovations -- a real RTK receiver's sds are pessimistic on average and optimistic
+  in bursts (docs/integrity.md) -- and is answered by
+  covariance matching in what the filter reports (``variance_ratio``), so the reported sds stay
+  honest; it is counted (``variance_alarms``), not a failure. A block *mean* beyond its limit is
+  a systematic error the model lacks: that is a failure;
+* **failed** (``INCONSISTENT``) from a failure until the evidence has gone: released after
   ``release_windows`` consecutive blocks per kind (6 x 5 s = 30 s of GNSS) in which every statistic
   passes at the 1 % level -- a hysteresis between the alarm level (~5 sd) and the release level
   (2.58 sd), so one marginal block neither sets nor clears it, and a false alarm costs tens of
-  seconds, not the session (``reverify=False`` latches instead). A release does not vouch for the
-  vehicle by itself: the filter reopened its effect states at the alarm and restarted its
-  fault-tolerant solution, so it is *verified* again only when that solution's protection level
-  is back within its limit -- i.e. when turning since the alarm has pinned the lever arm down;
-* **verified**: not failed, and the horizontal protection level of the fault-tolerant solution
-  (``FaultTolerantSolution``, set by the filter through ``set_protection``) within its limit --
-  the largest position error an undeclared lever arm could cause without the separation test
-  finding it. This replaces counting turns against a minimal detectable bias computed as if the
-  innovations carried the lever arm's whole signature: the filter absorbs most of it (in a steady
-  turn a body-frame accelerometer bias -w^2 dl carries the same signal), so the naive MDB let
-  0.5-0.6 m lever-arm errors through on 2 of 10 generated followers. Turn counting
-  (``verify_turn_deg``) remains available as an extra requirement (0 by default).
+  seconds, not the session (``reverify=False`` latches instead). An alarm changes no state of the
+  filter: it says that the filter's covariance does not describe its innovations (the reported
+  sds are scaled by ``variance_ratio`` meanwhile) and it re-opens a set-up verified on an earlier
+  drive (``InsFilter._on_inconsistency``). What a wrong set-up does to the solution is the
+  business of the set-up hypothesis (``integrity.FaultTolerantSolution``), which excludes the
+  declaration on its own evidence;
+* **verified**: not failed, and the horizontal protection level (``integrity``, set by the
+  filter through ``set_protection``) within the alert limit. Turn counting (``verify_turn_deg``)
+  remains available as an extra requirement (0 by default).
 
 ``state`` is then ``VERIFIED``, ``UNVERIFIED`` (not failed, protection level not yet within its
 limit) or ``INCONSISTENT``. Updates within ``settle_s`` of the heading being set are not tested
@@ -66,7 +69,6 @@ from scipy.stats import chi2, norm
 
 from v2xpos.rotation import skew
 
-from .ekf import POS, VEL, kalman_update, propagate_with_transition
 
 VERIFIED, UNVERIFIED, INCONSISTENT = "verified", "unverified", "inconsistent"
 _CAP_PROBABILITY = 1e-9
@@ -111,6 +113,8 @@ class ConsistencyMonitor:
         self.releases = 0
         self.quiet_blocks = 0
         self.last_failure_t_s = math.nan
+        self.last_failed_kind = ""
+        self.variance_alarms = 0
         self.last_statistic: dict[str, tuple] = {}
         self.protection_m = 0.0
         self.protection_limit_m = math.inf
@@ -121,9 +125,11 @@ class ConsistencyMonitor:
         self.protection_m = float(protection_m)
         self.protection_limit_m = float(limit_m)
 
-    def fail(self, t_s: float) -> None:
-        """A failure (of these tests or of another test of the same filter, the solution separation)."""
+    def fail(self, t_s: float, kind: str = "") -> None:
+        """A failure of these tests (``kind``: the kind of update whose block failed) or of another
+        test of the same filter (e.g. ``"separation"``)."""
         self.failed = True
+        self.last_failed_kind = str(kind)
         self.turn_since_fail_rad = 0.0
         self.failures += 1
         self.quiet_blocks = 0
@@ -203,20 +209,26 @@ class ConsistencyMonitor:
     def _evaluate(self, kind: str, blk: list, t_s: float) -> bool:
         """The tests of one completed block (disjoint blocks: each update is tested once)."""
         _, nis_sum, dof_sum, zx, zy, n = blk
-        alarm = dof_sum > 0 and nis_sum > self._chi2(self.p_test, dof_sum)
+        # a block NIS beyond its quantile says the covariance understates the innovations' spread:
+        # answered by covariance matching in what is reported (``variance_ratio``), so the sds stay
+        # honest; it is counted, and it holds off a release. A *mean* beyond its limit is a
+        # systematic error the model lacks: that is the failure.
+        if dof_sum > 0 and nis_sum > self._chi2(self.p_test, dof_sum):
+            self.variance_alarms += 1
+        alarm = False
         quiet = dof_sum == 0 or nis_sum <= self._chi2(self.release_level, dof_sum)
         mx = my = math.nan
         if n >= _MIN_MEAN_UPDATES:
             r = 1.0 / math.sqrt(n)
             mx, my = zx * r, zy * r
-            alarm |= max(abs(mx), abs(my)) > self.mean_z_limit
+            alarm = max(abs(mx), abs(my)) > self.mean_z_limit
             quiet &= max(abs(mx), abs(my)) <= self.release_z
             if kind == "gnss_vel":
                 self.vel_updates_per_block = n
         self.last_statistic[kind] = (nis_sum, dof_sum, self._chi2(self.p_test, dof_sum) if dof_sum else math.inf)
         self.last_statistic[kind + "_mean"] = (mx, my, self.mean_z_limit)
         if alarm:
-            self.fail(t_s)
+            self.fail(t_s, kind)
         elif quiet:
             self.quiet_blocks += 1
             if self.failed and self.reverify and self.quiet_blocks >= self.release_windows * len(self.kinds):
@@ -276,6 +288,7 @@ class ConsistencyMonitor:
 
     def summary(self) -> dict:
         return {"state": self.state, "failures": self.failures, "releases": self.releases,
+                "variance_alarms": self.variance_alarms,
                 "last_failure_t_s": self.last_failure_t_s, "protection_m": self.protection_m,
                 "turn_since_failure_deg": math.degrees(self.turn_since_fail_rad),
                 "window": {k: list(v) for k, v in self.last_statistic.items()}}
@@ -309,148 +322,3 @@ def widen_lever_arm(P: np.ndarray, lever_index: int, pos_index: int, vel_index: 
         g[lever_index + a] = 1.0
         P += add * np.outer(g, g)
     return 0.5 * (P + P.T)
-
-
-class FaultTolerantSolution:
-    """Solution separation against an undeclared horizontal antenna lever arm (protection level).
-
-    The filter's lever-arm state starts from the *declared* prior (a few cm). A lever arm that is
-    wrong by dl makes a position error that is constant in the body frame; the filter can tell it
-    from a position error only through rotation (w x dl in the GNSS velocity), and even then part of
-    the signature is absorbed by other states (in a steady turn a body-frame accelerometer bias
-    -w^2 dl carries the same signal; a velocity latency a dt = v w dt sideways mimics w x dl_x).
-    How much of dl the data has pinned down, after all that absorption, is what an estimator that
-    does *not* trust the declaration knows about it. So a second, fault-tolerant estimate runs
-    alongside the filter: the same error-state model, the same measurements and gains structure,
-    but a horizontal lever-arm prior of ``fault_sd_m`` (an undeclared antenna offset on a car roof).
-    This is the solution-separation form of RAIM (Brenner 1996, "Integrated GPS/inertial fault
-    detection availability", Navigation 43(2); Blanch et al. 2015, "Baseline advanced RAIM user
-    algorithm and possible improvements", IEEE TAES 51(1)), with the fault-tolerant "subset"
-    solution being the one that drops the declared lever-arm information.
-
-    Kept in the main filter's error coordinates: ``w`` is the fault-tolerant filter's estimate of
-    the main filter's error state (so ``w[pos]`` is the separation main - fault-tolerant).
-    Prediction ``w <- Phi w``, ``P_w <- Phi P_w Phi^T + Q`` (``ekf.propagate_with_transition``); at an
-    update with ``d = H e + v`` (main's prediction minus measurement) ``w <- w + K_w (d - H w)``,
-    ``P_w <- (I - K_w H) P_w``, then ``w <- w - dx_main`` (the main filter feeds its correction
-    back into its nominal state, which moves the origin of these coordinates).
-
-    Test and protection (per body axis x / y, horizontal):
-    under the fault-free hypothesis the main filter is the better estimate, so the separation's
-    covariance is ``P_w - P_m`` (the two errors are orthogonal, Brenner 1996); the test alarms when
-    ``|s_i| > K_fa sigma_ss,i``; the protection level, the largest error the test misses with
-    probability ``p_md``, is ``PL_i = K_fa sigma_ss,i + K_md sigma_w,i`` (Blanch et al. 2015
-    eq. 30; RTCA DO-229 defines the protection level as the bound that holds with the integrity
-    risk). The test runs every ``test_every_s`` (the separation changes over seconds, not
-    epochs), and its level is set per hour by the Bonferroni bound over the tests of an hour:
-    ``P(any false alarm in an hour) <= N_tests p_test`` with ``N_tests = 2 axes x 3600 /
-    test_every_s`` -- a union bound, valid whatever the correlation between the tests.
-    """
-
-    def __init__(self, lever_index: int, fault_sd_m: float = 0.5, false_alarm_per_hour: float = 1e-3,
-                 missed_detection: float = 1e-3, test_every_s: float = 1.0, min_sd_m: float = 1e-3,
-                 consider: slice | None = None):
-        self.lever_index = int(lever_index)
-        self.consider = consider
-        self.fault_sd_m = float(fault_sd_m)
-        self.test_every_s = float(test_every_s)
-        n_tests = 2.0 * 3600.0 / self.test_every_s
-        self.p_test = float(false_alarm_per_hour) / n_tests
-        self.k_fa = float(norm.isf(0.5 * self.p_test))
-        self.k_md = float(norm.isf(float(missed_detection)))
-        self.min_sd_m = float(min_sd_m)
-        self.P: np.ndarray | None = None
-        self.w: np.ndarray | None = None
-        self.t_last_test_s = -math.inf
-        self.protection_m = math.inf
-        self.separation_sd: tuple = (math.nan, math.nan)
-        self.last: dict = {}
-        self.alarms = 0
-        self.excluded = False
-
-    @property
-    def active(self) -> bool:
-        return self.P is not None
-
-    def start(self, P_main: np.ndarray, C_nb: np.ndarray, rate_body_rps: np.ndarray) -> None:
-        """Start from the main filter's covariance with the horizontal lever arm widened
-        (``widen_lever_arm``; not after an exclusion: the main filter no longer holds the
-        declaration) and no separation."""
-        self.P = (P_main.copy() if self.excluded else
-                  widen_lever_arm(P_main, self.lever_index, POS, VEL, C_nb, rate_body_rps, self.fault_sd_m))
-        self.w = np.zeros(self.P.shape[0])
-        self.protection_m = math.inf
-        self.t_last_test_s = -math.inf
-
-    def exclude(self, P_main: np.ndarray) -> None:
-        """The main filter took over this solution (the declared lever arm was rejected): from now
-        on both are the same estimate, with no declaration left to test (the separation stays 0 and
-        the protection level is that of the estimate itself)."""
-        self.excluded = True
-        self.P = P_main.copy()
-        self.w = np.zeros(P_main.shape[0])
-
-    def stop(self) -> None:
-        self.P = None
-        self.w = None
-        self.protection_m = math.inf
-
-    def propagate(self, Phi: np.ndarray, q_c: np.ndarray, dt_s: float) -> None:
-        """Time update with the main filter's transition ``Phi`` and process noise
-        (``ekf.propagate_with_transition``)."""
-        if self.P is None:
-            return
-        self.P = propagate_with_transition(self.P, Phi, q_c, max(dt_s, 0.0))
-        self.w = Phi @ self.w
-
-    def update(self, H: np.ndarray, d: np.ndarray, R: np.ndarray, dx_main: np.ndarray) -> None:
-        """Measurement update with the data the main filter accepted (see class docstring): the
-        filter's own ``ekf.kalman_update`` (ungated: the main filter gated it) on the innovation
-        of ``w``, ``d - H w``, with the same consider states as the main filter."""
-        if self.P is None:
-            return
-        dw, P, _, _, ok = kalman_update(self.P, H, np.asarray(d, float) - H @ self.w, R, None,
-                                        consider=self.consider)
-        if not ok:
-            return
-        self.w = self.w + dw - dx_main
-        self.P = P
-
-    def reset_states(self, index, P_main: np.ndarray) -> None:
-        """The main filter took these states from a measurement and reset their covariance
-        (position reset): the fault-tolerant one takes the same values."""
-        if self.P is None:
-            return
-        idx = np.asarray(index)
-        self.P[idx, :] = 0.0
-        self.P[:, idx] = 0.0
-        self.P[np.ix_(idx, idx)] = P_main[np.ix_(idx, idx)]
-        self.w[idx] = 0.0
-
-    def due(self, t_s: float) -> bool:
-        return self.P is not None and t_s - self.t_last_test_s >= self.test_every_s - 1e-9
-
-    def test(self, t_s: float, J_pos: np.ndarray, P_main: np.ndarray, yaw_rad: float) -> bool:
-        """Separation test and protection level of the reported position (rows ``J_pos`` of the
-        reported Jacobian, ``reported.reported_jacobian``) along the body x / y axes (heading
-        ``yaw_rad``). True when the separation exceeds its threshold on an axis."""
-        if self.P is None:
-            return False
-        self.t_last_test_s = float(t_s)
-        c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-        T = np.array([[c, s, 0.0], [-s, c, 0.0]]) @ J_pos          # body x / y <- error state
-        sep = T @ self.w
-        Pw = T @ self.P @ T.T
-        Pss = Pw - T @ P_main @ T.T
-        sd_ss = np.sqrt(np.maximum(np.diag(Pss), self.min_sd_m ** 2))
-        sd_w = np.sqrt(np.maximum(np.diag(Pw), 0.0))
-        pl = self.k_fa * sd_ss + self.k_md * sd_w
-        self.protection_m = float(math.hypot(pl[0], pl[1]))
-        self.separation_sd = (float(sd_ss[0]), float(sd_ss[1]))
-        z = np.abs(sep) / sd_ss
-        self.last = {"t_s": float(t_s), "separation_m": sep.tolist(), "sd_separation_m": sd_ss.tolist(),
-                     "sd_fault_tolerant_m": sd_w.tolist(), "protection_m": self.protection_m,
-                     "z": z.tolist(), "k_fa": self.k_fa}
-        alarm = bool(np.any(z > self.k_fa))
-        self.alarms += int(alarm)
-        return alarm

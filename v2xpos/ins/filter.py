@@ -32,7 +32,9 @@ from v2xpos.types import FixStatus
 from . import ekf, updates
 from .alignment import CoarseAligner, CourseTracker
 from .config import InsConfig
-from .consistency import ConsistencyMonitor, FaultTolerantSolution, widen_lever_arm
+from .consistency import ConsistencyMonitor
+from .effects import DEFAULT_INITIAL_SD
+from .integrity import FaultTolerantSolution
 from .ekf import ATT, BA, BG, EFFECT_SIZES, POS, VEL, StateLayout, kalman_update
 from .effects import EffectValues
 from .imu_path import ImuPath
@@ -65,7 +67,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
     what the updates did; ``on_update(result, filter)`` an optional hook after every update;
     ``recorder`` an optional ``smoother.StepRecorder`` told of every covariance propagation, every
     correction fed back, every reset that rewrites P and moves the state (a boundary) and every
-    reopening of effect states (P rewritten, the state kept): what a backward smoothing pass needs.
+    reset that replaces some states by fresh estimates decoupled from the rest (the gyro biases at
+    a refuted stop): what a backward smoothing pass needs.
     """
 
     def __init__(self, cfg: InsConfig | None = None):
@@ -91,7 +94,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
                                               detectable_m=c.verify_detectable_lever_arm_m)
         i_l = self.layout.at("lever_arm")
         self.separation = (FaultTolerantSolution(i_l, c.undeclared_lever_arm_sd_m, c.integrity_false_alarm_per_hour,
-                                                 c.integrity_missed_detection, consider=self.consider)
+                                                 self._setup_prior(), c.integrity_risk, consider=self.consider,
+                                                 widen=self._declared_effects())
                            if c.fault_tolerant_solution and i_l >= 0 and c.undeclared_lever_arm_sd_m > 0 else None)
         self._t_motion_s: float | None = None
         self.kidx = self.layout.kernel_index()
@@ -130,6 +134,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self.counts = {"gnss_pos_accepted": 0, "gnss_pos_rejected": 0, "gnss_vel_accepted": 0,
                        "gnss_vel_rejected": 0, "nhc": 0, "nhc_rejected": 0, "zupt": 0, "zaru": 0,
                        "odometer": 0, "odometer_rejected": 0, "gnss_forced": 0, "position_resets": 0, "static_calibrations": 0,
+                       "stops_not_level": 0, "static_calibration_resets": 0,
                        "malformed_inputs": 0}
         self.residuals: list[UpdateResult] = []
         self.stage_s = {"strapdown": 0.0, "covariance": 0.0, "kalman_updates": 0.0}
@@ -264,7 +269,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
                                           self.consider)
         if ok:
             if self.separation is not None:
-                self.separation.update(H, d, R, dx)
+                self.separation.update(H, d, R, dx, nis, S)
             self.P = P
             self._apply(dx)
             if self.recorder is not None:
@@ -282,61 +287,51 @@ class InsFilter(ImuPath, Initialization, Outputs):
             self.on_update(res, self)
         return res
 
+    def _setup_prior(self) -> float:
+        """P(the declared set-up is wrong) before this drive's data (``integrity``): the rate of a
+        set-up changing since it was verified on an earlier drive, or of a blunder in one never
+        verified."""
+        return self.cfg.setup_change_prior if self.cfg.setup_verified else self.cfg.setup_fault_prior
+
+    def _declared_effects(self) -> tuple:
+        """(index, sd) of the effect states a calibration declared tighter than the platform's
+        default prior (``effects.DEFAULT_INITIAL_SD``): the set-up hypothesis widens them back
+        (the lever arm is widened by ``undeclared_lever_arm_sd_m`` on its own)."""
+        out = []
+        for name in self.layout.effects:
+            if name == "lever_arm" or name not in DEFAULT_INITIAL_SD:
+                continue
+            k = EFFECT_SIZES[name]
+            declared = np.broadcast_to(np.asarray(self.cfg.effect_initial_sd.get(name, 0.0), float), (k,))
+            default = np.broadcast_to(np.asarray(DEFAULT_INITIAL_SD[name], float), (k,))
+            i = self.layout.at(name)
+            out += [(i + m, float(default[m])) for m in range(k) if declared[m] < default[m]]
+        return tuple(out)
+
     def _on_inconsistency(self) -> None:
-        """The consistency test failed: the declared model does not explain the innovations. The
-        effect whose declared prior is the tightest and whose error only turning reveals -- the
-        horizontal antenna lever arm, declared to a few cm (an undeclared 0.5 m offset is a
-        constant body-frame bias the filter cannot see on a straight road, Groves 2013 sec. 14.2.7)
-        -- is what the evidence rejects. With the fault-tolerant solution running
-        (``consistency.FaultTolerantSolution``) the filter *excludes* the declaration (RAIM fault
-        detection and exclusion): it takes that solution's state and covariance, the estimate that
-        never relied on the declared lever arm and is consistent under the fault. Otherwise (or
-        after an exclusion) the lever arm's variance is reopened to ``undeclared_lever_arm_sd_m``^2
-        together with what a wrong lever arm does to the IMU point the filter reports
-        (``consistency.widen_lever_arm``: the position error -C_nb dl of a filter that tracks its
-        antenna), so the reported sigma grows at once and the turns that follow estimate it, and
-        the other effect states go back to their priors. The windows of the test restart (their
-        innovations came from the filter before the change)."""
-        i = self.layout.at("lever_arm")
-        sd = self.cfg.undeclared_lever_arm_sd_m
-        if not self.cfg.reopen_on_inconsistency or i < 0 or not sd > 0:
-            return
-        P_before = self.P.copy() if self.recorder is not None else None
+        """The innovation tests failed: the filter's covariance does not describe its innovations.
+        No state is changed -- the reported sds are scaled by the windowed NIS ratio meanwhile
+        (``ConsistencyMonitor.variance_ratio``) and the result is INCONSISTENT until the evidence
+        has gone -- but a set-up verified on an earlier drive is verified no more: the set-up
+        hypothesis goes back to the prior of an unverified one (issue 27: a consistency alarm
+        re-opens the verification)."""
         sep = self.separation
-        if sep is not None and sep.active and not sep.excluded:
-            self._smoothing_boundary()
-            self._apply(sep.w)
-            self.P = sep.P.copy()
-            sep.exclude(self.P)
-            self.counts["lever_arm_excluded"] = self.counts.get("lever_arm_excluded", 0) + 1
-            self.consistency.clear_windows()
-            return
-        widened = False
-        if min(self.P[i, i], self.P[i + 1, i + 1]) < 0.25 * sd * sd:
-            self.P = widen_lever_arm(self.P, i, POS, VEL, self.C_nb, self.mem[MEM_W:MEM_W + 3], sd)
-            widened = True
-        reopen = []
-        if self.cfg.reopen_all_effects:
-            # the other effect states were estimated with the lever arm held at its declared value:
-            # what they absorbed of its signature (a velocity latency dt gives a x dt = v w dt
-            # sideways in a steady turn, as w x l does) is re-estimated jointly from their priors
-            for name in self.layout.effects:
-                if name == "lever_arm":
-                    continue
-                j, sd0 = self.layout.at(name), np.broadcast_to(self.cfg.effect_initial_sd.get(name, 0.0), (EFFECT_SIZES[name],))
-                reopen += [(j + m, float(sd0[m])) for m in range(EFFECT_SIZES[name])]
-        for k, s_k in reopen:
-            if s_k > 0 and self.P[k, k] < 0.25 * s_k * s_k:
-                self.P[k, :] = 0.0
-                self.P[:, k] = 0.0
-                self.P[k, k] = s_k * s_k
-                widened = True
-        if widened:
-            if self.recorder is not None:
-                self.recorder.reset(self, P_before)
-            self.counts["lever_arm_reopened"] = self.counts.get("lever_arm_reopened", 0) + 1
-            self.consistency.clear_windows()
-            self._restart_separation()
+        if sep is not None and sep.prior < self.cfg.setup_fault_prior:
+            sep.set_prior(self.cfg.setup_fault_prior)
+            self.counts["verification_reopened"] = self.counts.get("verification_reopened", 0) + 1
+
+    def _exclude_declaration(self) -> None:
+        """The separation test found the declared set-up wrong (``integrity``: RAIM fault
+        exclusion): take the twin's state and covariance -- the estimate that never relied on the
+        declaration and is consistent under the fault -- and restart the innovation tests, whose
+        windows hold the innovations of the filter before the change."""
+        self._smoothing_boundary()
+        sep = self.separation
+        self._apply(sep.w)
+        self.P = sep.P.copy()
+        sep.exclude(self.P)
+        self.counts["lever_arm_excluded"] = self.counts.get("lever_arm_excluded", 0) + 1
+        self.consistency.clear_windows()
 
     def _smoothing_boundary(self) -> None:
         """Called before a reset rewrites P and moves the state (start, position and heading
@@ -345,15 +340,15 @@ class InsFilter(ImuPath, Initialization, Outputs):
             self.recorder.boundary(self)
 
     def _restart_separation(self) -> None:
-        """(Re)start the fault-tolerant solution from the current covariance (heading set, filter
-        started, effects reopened): its evidence about the lever arm is gathered from here on."""
+        """(Re)start the twin from the current covariance (heading set, filter started): its
+        evidence about the set-up is gathered from here on."""
         if self.separation is not None:
             self.separation.start(self.P, self.C_nb, self.mem[MEM_W:MEM_W + 3])
-            self.consistency.set_protection(math.inf, self.cfg.protection_limit_m)
+            self.consistency.set_protection(math.inf, self.cfg.alert_limit_m)
 
     def _test_separation(self, t_s: float) -> None:
-        """Solution-separation test and protection level (``FaultTolerantSolution``), at most every
-        ``test_every_s``; a separation beyond its threshold is a failed consistency test."""
+        """Separation test and protection level (``integrity.FaultTolerantSolution``), at most every
+        ``test_every_s``; a separation beyond its threshold excludes the declared set-up."""
         sep = self.separation
         if sep is None or not sep.due(t_s):
             return
@@ -361,10 +356,9 @@ class InsFilter(ImuPath, Initialization, Outputs):
         J = reported_jacobian(self.layout, self.C_nb, self.fx.misalignment_rad, self.nav[3:6], a_n, w_nb_b)
         C_nv = self.C_nb @ self.misalignment_dcm().T
         alarm = sep.test(t_s, J[0:3], self.P, math.atan2(C_nv[1, 0], C_nv[0, 0]))
-        self.consistency.set_protection(sep.protection_m, self.cfg.protection_limit_m)
+        self.consistency.set_protection(sep.protection_m, self.cfg.alert_limit_m)
         if alarm and t_s >= self.consistency.t_settled_s:
-            self.consistency.fail(t_s)
-            self._on_inconsistency()
+            self._exclude_declaration()
 
     def _gap_s(self, t_meas_s: float) -> float:
         return t_meas_s - self.fx.gnss_latency_s - self.t_s
@@ -473,21 +467,45 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self.counts["nhc" if r.accepted else "nhc_rejected"] += 1
 
     def _update_zupt(self) -> None:
-        """ZUPT, then ZARU with the stop window's mean rate (both ungated: a stop is certain)."""
+        """ZUPT, then ZARU with the stop window's mean rate (both ungated: a stop is certain); no
+        ZARU while its window reaches into a stop calibration's (``_update_static_calibration``)."""
         c = self.cfg
         self._update("zupt", self.t_s, *updates.zupt(self.layout, self.nav[3:6], c.zupt_sd_mps), gate=False)
         self.counts["zupt"] += 1
+        if c.apply_static_calibration and self.calibrator.averaging(self.t_stamp_s, c.static_window_s):
+            return
         m = updates.zaru(self.layout, self.C_nb, self.nav[NAV_LAT], self.stops.mean_rate_rps(),
                          self.corr[COR_BG:COR_BG + 3], c.zaru_sd_rps)
         self._update("zaru", self.t_s, *m, gate=False)
         self.counts["zaru"] += 1
 
     def _update_static_calibration(self, est: StaticBiasEstimate) -> None:
-        """A stop calibration's estimate applied online as a direct measurement of the bias states."""
-        m = updates.stop_biases(self.layout, self.C_nb, self.nav[NAV_LAT], self.corr[COR_BG:COR_BG + 3],
-                                self.corr[COR_BA:COR_BA + 3], est.gyro_bias_rps, est.gyro_sem_rps,
-                                est.accel_bias_mps2, self.cfg.static_calibration.level_fx_max_mps2)
-        self._update("static_calibration", self.t_s, *m)
+        """A stop's gyro-bias estimate as the measurement of the gyro bias states for its window's
+        samples (R its covariance); ``est.applied`` says it was used. One estimate of each bias and
+        each sample counted once: the ZARU, which measures the same rate means, is held while the
+        window averages (``_update_zupt``), and an estimate published late (its stop shown level
+        only at a later stop, ``est.late``) is not applied, the ZARU having had those samples. The
+        accelerometer estimate is not applied: over the same samples the ZUPT measured the
+        specific force (a velocity that stays zero), the same information about tilt and bias; it
+        is the check that the two agree (``static_calibration``: ``accel_nis``). An update that
+        fails the gate means the bias states are refuted by a direct measurement of them (a bias
+        step the bias model does not allow, e.g. after a temperature change): they are reset to the
+        estimate, their covariance to its covariance and uncorrelated with the rest, in the
+        integrity twin too (counted in ``static_calibration_resets``). docs/ins.md, "Seed 001 stop calibration"."""
+        m = updates.stop_gyro_bias(self.layout, self.corr[COR_BG:COR_BG + 3], est.gyro_bias_rps, est.gyro_cov)
+        est.applied = True
+        if self._update("static_calibration", self.t_s, *m).accepted:
+            return
+        P_before = self.P.copy() if self.recorder is not None else None
+        self.corr[COR_BG:COR_BG + 3] = est.gyro_bias_rps
+        self.P[BG:BG + 3, :] = 0.0
+        self.P[:, BG:BG + 3] = 0.0
+        self.P[BG:BG + 3, BG:BG + 3] = est.gyro_cov
+        if self.recorder is not None:
+            self.recorder.reset(self, P_before, np.arange(BG, BG + 3))
+        self.counts["static_calibration_resets"] += 1
+        if self.separation is not None:
+            self.separation.reset_states(np.arange(BG, BG + 3), self.P)
 
     def update_heading(self, t_s: float, heading_rad: float, sd_rad: float,
                        baseline_vehicle_m: np.ndarray) -> UpdateResult:

@@ -18,8 +18,9 @@ import numpy as np
 from v2xpos import geo
 from v2xpos.rotation import orthonormalize
 
+from .ekf import ATT, BA, BG
 from .mechanization import COR_BA, COR_BG, MEM_W, NAV_H, NAV_LAT, strapdown_batch
-from .static_calibration import StaticBiasEstimate
+from .static_calibration import PRIOR_BA, PRIOR_BG, PRIOR_MIS, StaticBiasEstimate, StopPrior
 
 if TYPE_CHECKING:
     from .config import InsConfig
@@ -116,24 +117,24 @@ class ImuPath:
             return
         self._last_w_b = (self.mem[MEM_W:MEM_W + 3].copy() if self.initialized
                           else w[-1] - self.corr[COR_BG:COR_BG + 3])
-        if self.noise_meter is not None:
-            self.noise_meter.feed(t, w, f)
         self._detect_stop(f, w)
+        if self.noise_meter is not None:
+            self.noise_meter.feed(t, w, f, static=self.static)
         if self.initialized:
             self._smooth_acceleration(float(t[-1]))
         speed = math.sqrt(float(self.nav[3:6] @ self.nav[3:6])) if self.initialized else 0.0
-        est = self._feed_stop_calibration(t, f, w, speed)
+        ests, made = self._feed_stop_calibration(t, f, w, speed)
+        self.counts["static_calibrations"] += len(ests)
         if not self.initialized:
-            self._feed_alignment(t, f, w, est)
+            self._feed_alignment(t, f, w, made)
             return
         if np.abs(self.nav[NAV_LAT]) > DIVERGED_LATITUDE_RAD or not np.all(np.isfinite(self.nav)):
             self.initialized = False
             return
         self._flush_covariance()
         self._feed_consistency_motion(speed)
-        if est is not None:
-            self.counts["static_calibrations"] += 1
-            if self.cfg.apply_static_calibration:
+        for est in ests:
+            if self.cfg.apply_static_calibration and not (est.late or est.applied):
                 self._update_static_calibration(est)
         if (not self.cfg.constraints_on_request
                 and self.t_stamp_s - self._last_constraint_t >= 1.0 / self.cfg.constraint_rate_hz - TIME_TOLERANCE_S):
@@ -199,22 +200,58 @@ class ImuPath:
         self._dv_corrections_mps = np.zeros(3)
 
     def _feed_stop_calibration(self, t: np.ndarray, f: np.ndarray, w: np.ndarray,
-                               speed_mps: float) -> StaticBiasEstimate | None:
-        """The stop calibrator (``static_calibration``) with the chunk; below
-        ``calibration_moving_speed_mps`` it is given the normal gravity at the position."""
-        moving = self.initialized and speed_mps > self.cfg.calibration_moving_speed_mps
+                               speed_mps: float) -> tuple[list[StaticBiasEstimate], StaticBiasEstimate | None]:
+        """The stop calibrator (``static_calibration``) with the chunk: the vehicle is moving unless
+        the stop detector says static and the speed is below ``calibration_moving_speed_mps``. The
+        detector's rate test (mean rate less the gyro bias state) is left out while that state's sd
+        exceeds the test's limit: it cannot then tell a bias from a turn, and a large bias must not
+        keep the calibration that finds it from running. At a stop the calibrator is given the
+        normal gravity at the position and, when a window needs it, the filter's attitude,
+        mounting and bias states (``_stop_prior``). Returns the estimates published in this chunk
+        and the one made in it."""
+        bias_known = (self.initialized
+                      and float(np.max(np.diag(self.P)[BG:BG + 3])) < self.cfg.static_gyro_mean_max_rps ** 2)
+        still = self.static if bias_known else self.stops.is_static(
+            self.t_s, self.corr[COR_BG:COR_BG + 3], self.nav[3:6] if self.initialized else None, rate_test=False)
+        moving = not still or (self.initialized and speed_mps > self.cfg.calibration_moving_speed_mps)
         g = geo.normal_gravity_mps2(self.nav[NAV_LAT], self.nav[NAV_H]) if self.initialized and not moving else None
-        return self.calibrator.feed(t, f, w, moving=moving, gravity_mps2=g)
+        made = self.calibrator.made
+        ests = self.calibrator.feed(t, f, w, moving=moving, gravity_mps2=g, prior=self._stop_prior)
+        self.counts["stops_not_level"] = self.calibrator.stops_not_level
+        return ests, (self.calibrator.latest if self.calibrator.made != made else None)
+
+    def _stop_prior(self) -> StopPrior:
+        """What the filter knows for the stop calibrator: attitude, estimated mounting
+        (``misalignment``; its prior before alignment), bias states and the covariance of their
+        errors in the ``static_calibration.PRIOR_*`` blocks (zero where a state is absent)."""
+        c = self.cfg
+        cov = np.zeros((12, 12))
+        i_m = self.layout.at("misalignment")
+        if not self.initialized:
+            if i_m >= 0:
+                cov[PRIOR_MIS, PRIOR_MIS] = np.diag(np.broadcast_to(c.effect_initial_sd["misalignment"], 3) ** 2)
+            cov[PRIOR_BG, PRIOR_BG] = np.eye(3) * c.gyro_bias_init_sd_rps ** 2
+            cov[PRIOR_BA, PRIOR_BA] = np.eye(3) * c.accel_bias_init_sd_mps2 ** 2
+            return StopPrior(self.fx.misalignment_rad.copy(), self.corr[COR_BG:COR_BG + 3].copy(),
+                             self.corr[COR_BA:COR_BA + 3].copy(), cov)
+        idx = np.r_[ATT:ATT + 3, (np.arange(i_m, i_m + 3) if i_m >= 0 else np.full(3, -1)), BG:BG + 3, BA:BA + 3]
+        have = idx >= 0
+        cov[np.ix_(have, have)] = self.P[np.ix_(idx[have], idx[have])]
+        return StopPrior(self.fx.misalignment_rad.copy(), self.corr[COR_BG:COR_BG + 3].copy(),
+                         self.corr[COR_BA:COR_BA + 3].copy(), cov, self.C_nb.copy(),
+                         geo.earth_rate_ned_rps(self.nav[NAV_LAT]), self.heading_known)
 
     def _feed_alignment(self, t: np.ndarray, f: np.ndarray, w: np.ndarray, est: StaticBiasEstimate | None) -> None:
         """Before alignment: the coarse aligner gets the bias-compensated chunk, and a stop's
-        bias estimate goes straight into the compensation."""
+        estimate goes straight into the compensation, whatever its level verdict: nothing else
+        knows the biases yet, and the stop detector's rate test, hence the filter's static start,
+        needs the gyro bias. The filter's start takes its covariance as the bias prior
+        (``Initialization._start``); its publication waits for the verdict like any other."""
         self.aligner.feed(t, f - self.corr[COR_BA:COR_BA + 3], w - self.corr[COR_BG:COR_BG + 3], self.static)
-        if est is not None:
-            self.counts["static_calibrations"] += 1
-            if self.cfg.apply_static_calibration:
-                self.corr[COR_BG:COR_BG + 3] = est.gyro_bias_rps
-                self.corr[COR_BA:COR_BA + 3] = est.accel_bias_mps2
+        if est is not None and self.cfg.apply_static_calibration:
+            self.corr[COR_BG:COR_BG + 3] = est.gyro_bias_rps
+            self.corr[COR_BA:COR_BA + 3] = est.accel_bias_mps2
+            est.applied = True
 
     def _feed_consistency_motion(self, speed_mps: float) -> None:
         """Tell the consistency test (``consistency``) how far the vehicle turned since the last chunk."""

@@ -126,16 +126,17 @@ class Initialization:
         d[ATT:ATT + 3] = att_sd ** 2
         d[BG:BG + 3] = c.gyro_bias_init_sd_rps ** 2
         d[BA:BA + 3] = c.accel_bias_init_sd_mps2 ** 2
-        if self.calibrator.estimates and c.apply_static_calibration:
-            est = self.calibrator.estimates[-1]
+        est = self.calibrator.latest if c.apply_static_calibration else None
+        if est is not None:
             self.corr[COR_BG:COR_BG + 3] = est.gyro_bias_rps
             self.corr[COR_BA:COR_BA + 3] = est.accel_bias_mps2
-            d[BG:BG + 3] = np.maximum(est.gyro_sem_rps, STOP_GYRO_BIAS_INIT_SD_FLOOR_RPS) ** 2
-            d[BA:BA + 3] = c.static_calibration.level_fx_max_mps2 ** 2
+            d[BG:BG + 3] = np.maximum(est.gyro_sd_rps, STOP_GYRO_BIAS_INIT_SD_FLOOR_RPS) ** 2
         for name in self.layout.effects:
             i, k = self.layout.index[name], EFFECT_SIZES[name]
             d[i:i + k] = c.effect_initial_sd.get(name, 0.01) ** 2
         self.P[np.diag_indices(n)] = d
+        if est is not None:
+            self.P[BA:BA + 3, BA:BA + 3] = est.accel_cov
         if from_antenna:
             self.P = position_from_antenna_covariance(self.P, self._antenna_fix_jacobian(heading_known), pos_sd)
         self.A[:] = 0.0

@@ -65,8 +65,11 @@ class StopDetector:
         self.gnss_speed_mps = speed_mps
         self.gnss_speed_t_s = t_s
 
-    def is_static(self, t_s: float, gyro_bias_rps: np.ndarray, v_ned_mps: np.ndarray | None = None) -> bool:
-        """The static test at GPS time t_s; ``v_ned_mps`` None before the filter has a solution."""
+    def is_static(self, t_s: float, gyro_bias_rps: np.ndarray, v_ned_mps: np.ndarray | None = None,
+                  rate_test: bool = True) -> bool:
+        """The static test at GPS time t_s; ``v_ned_mps`` None before the filter has a solution;
+        ``rate_test`` False leaves out the one test that needs the gyro bias (the stop
+        calibration's veto, which must work before the bias is known)."""
         c = self.cfg
         if self.filled < len(self.window):
             return False
@@ -75,7 +78,7 @@ class StopDetector:
         acc_sd = math.sqrt(max(s2 / n - (s1 / n) ** 2, 0.0))
         dw = sw / n - gyro_bias_rps
         w_mean = math.sqrt(float(dw @ dw))
-        ok = acc_sd < c.static_acc_std_max_mps2 and w_mean < c.static_gyro_mean_max_rps
+        ok = acc_sd < c.static_acc_std_max_mps2 and (w_mean < c.static_gyro_mean_max_rps or not rate_test)
         if ok and v_ned_mps is not None:
             fh = tot[_SUM_FH:_SUM_FH + 2] / n
             ok = (float(v_ned_mps @ v_ned_mps) < c.static_max_speed_mps ** 2

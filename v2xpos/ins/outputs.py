@@ -13,7 +13,7 @@ import numpy as np
 
 from v2xpos import geo
 from v2xpos.rotation import euler_from_dcm
-from v2xpos.types import FixStatus, NavState
+from v2xpos.types import FilterReason, FixStatus, NavState
 
 from .consistency import INCONSISTENT, VERIFIED
 from .mechanization import COR_BA, COR_BG, COR_SA, COR_SG, MEM_F, MEM_W, NAV_H, NAV_LAT
@@ -85,7 +85,48 @@ class Outputs:
                         vel_sd_mps=sd[3:6].copy(), att_sd_rad=sd[6:9].copy(), fix=fix,
                         attitude_ok=bool(self.heading_known), pos_corr=correlations(cov[0:3, 0:3]),
                         consistent=self.consistency.state != INCONSISTENT,
-                        verified=self.consistency.state == VERIFIED)
+                        verified=self.consistency.state == VERIFIED,
+                        reason=self.integrity_reason(coasting), protection_m=self.protection_m())
+
+    def protection_m(self) -> float:
+        """Horizontal protection level of the last integrity test [m] (``integrity``; NaN without
+        the set-up hypothesis)."""
+        sep = getattr(self, "separation", None)
+        return float(sep.protection_m) if sep is not None and sep.active else math.nan
+
+    def integrity_reason(self, coasting: bool = False) -> FilterReason:
+        """Why the solution is not verified (``FilterReason``), the first that applies: not started,
+        heading pending, coasting, a failed innovation test (which kind), the set-up hypothesis
+        favoured by the data (a wrong set-up found, not yet excluded), the protection level above
+        the alert limit because of the set-up hypothesis (``integrity``: its share of the PL), of an
+        IMU time offset still converging (its share of the fault-free position variance, v^2 sd_dt^2),
+        of a receiver that is not RTK fixed, or of anything else."""
+        if not self.initialized:
+            return FilterReason.ALIGNING
+        if not self.heading_known:
+            return FilterReason.HEADING_PENDING
+        if coasting:
+            return FilterReason.COASTING
+        mon = self.consistency
+        if mon.failed:
+            return {"gnss_pos": FilterReason.TEST_POSITION, "gnss_vel": FilterReason.TEST_VELOCITY}.get(
+                mon.last_failed_kind, FilterReason.TEST_SEPARATION)
+        if mon.state == VERIFIED:
+            return FilterReason.OK
+        sep = getattr(self, "separation", None)
+        if sep is not None and sep.active and sep.fault_probability > 0.5:
+            return FilterReason.TEST_SEPARATION
+        if sep is not None and sep.active and sep.setup_share > 0.5:
+            return FilterReason.SETUP_UNVERIFIED
+        i_dt = self.layout.at("imu_time_offset")
+        sd_main = (sep.last.get("sd_main_m") if sep is not None else None) or []
+        if i_dt >= 0 and len(sd_main) == 2:
+            v2 = float(self.nav[3] ** 2 + self.nav[4] ** 2)
+            if v2 * float(self.P[i_dt, i_dt]) > 0.5 * (sd_main[0] ** 2 + sd_main[1] ** 2):
+                return FilterReason.TIME_OFFSET_CONVERGING
+        if self.last_fix < FixStatus.FIXED:
+            return FilterReason.RECEIVER_FLOAT
+        return FilterReason.PROTECTION_EXCEEDED
 
     def antenna_lla(self) -> np.ndarray:
         """Current antenna position (lat, lon rad; h m) from the IMU point and the lever arm."""

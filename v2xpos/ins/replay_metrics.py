@@ -172,6 +172,7 @@ class ReplayMetrics(ReplayHook):
         summary["outage_h_m"] = oh.tolist()
         summary["effects"] = f.effects_report()
         summary["static_calibration"] = [e.as_dict() for e in f.calibrator.estimates]
+        summary["static_calibration_not_level"] = [s.as_dict() for s in f.calibrator.not_level]
         summary["counts"] = dict(f.counts)
         series = {k: np.array(v) for k, v in self.S.items()}
         series["outages"] = self.outages

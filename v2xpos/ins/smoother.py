@@ -11,10 +11,10 @@ Forward pass (``StepRecorder``, attached as ``InsFilter.recorder``). The filter 
 * every reset that rewrites P and moves the nominal state (start, position and heading resets,
   lever-arm exclusion, ``_smoothing_boundary``) and every propagation while the heading is still
   open (``_decouple_yaw`` rewrites P then): the current segment ends there;
-* every reopening of effect states (``_on_inconsistency`` without an exclusion): P is rewritten,
-  the nominal state kept -- a transition ``P_after = T P_before T^T + Q`` (``reset_transition``:
-  the reopened states replaced by fresh errors of their prior variance, the lever arm's widening
-  as added noise), recorded as a node at the same time.
+* every reset that gives some states a fresh estimate decoupled from the rest
+  (``_update_static_calibration``: the gyro biases reset to a stop's estimate when it refutes
+  them): a transition ``P_after = T P_before T^T + Q`` (``reset_transition``: the decoupled rows of
+  T zero, Q their new covariance), recorded as a node at the same time.
 
 Error convention (``ekf``): ``dx = estimate - truth``. The filter is closed loop: after the updates
 of node i its nominal state is ``x_i+`` and its error estimate is 0 with covariance ``P_i+``; the
@@ -38,10 +38,12 @@ KF-GINS's post-processing: the predicted error is 0 because the feedback already
 nominal, and the corrections re-enter as the difference between the two nominals. The smoothed
 state at node i is ``x_i+`` corrected by ``e_i`` as the filter corrects (``InsFilter._apply``);
 its covariance is ``P_i^s``. Covariances do not depend on the nominal, so ``P^s`` needs no
-feedback term. A reopening is a step of the same recursion with ``Phi = T`` and ``P- = T P+ T^T
-+ Q``: what the reopened states were before it is not informed by what comes after, everything
-else is. A reset that moves the nominal state and replaces the covariance (a start, a position or
-heading reset taken from a fix, an exclusion that takes another solution) has no such transition:
+feedback term. A decoupling reset is a step of the same recursion with ``Phi = T`` and
+``P- = T P+ T^T + Q``: what the reset states were before it is not informed by what comes after,
+everything else is (their new error is independent of the old, so the jump of their nominal
+value does not enter). A reset that moves the whole state and replaces the covariance (a start, a
+position or heading reset taken from a fix, an exclusion that takes another solution) has no
+such transition:
 it is a segment boundary, each segment is smoothed on its own, and what comes before a boundary is
 not corrected by what comes after it.
 
@@ -214,22 +216,21 @@ RESET_PSD_TOLERANCE = 1e-9
 positive semi-definite (rounding of the rewritten covariance)."""
 
 
-def reset_transition(P_before: np.ndarray, P_after: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """(T, Q) with ``P_after = T P_before T^T + Q``, Q positive semi-definite, for a rewrite that
-    keeps the nominal state: T is the identity except the rows the rewrite decoupled (their
-    covariances with every other state 0 after, not before: the state replaced by a fresh error of
-    the variance it was given, e.g. an effect reopened to its prior); Q the rest (e.g. the lever
-    arm's widening ``G D G^T``, ``consistency.widen_lever_arm``). None when no such Q exists (the
-    rewrite is not a transition of the error: a boundary)."""
+def reset_transition(P_before: np.ndarray, P_after: np.ndarray,
+                     decoupled: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(T, Q) with ``P_after = T P_before T^T + Q``, Q positive semi-definite, for a rewrite of the
+    covariance that gives the states ``decoupled`` a fresh estimate and covariance of their own
+    (e.g. the gyro biases reset to a stop's estimate): T is the identity with those rows 0, Q the
+    rest (their new covariance, and any variance added elsewhere). None when no such Q exists (the
+    rewrite removed information from other states too: a boundary). The nominal value of a
+    decoupled state may change with the rewrite (its new error is independent of the old one);
+    any other must not."""
     n = P_after.shape[0]
-    off_a = P_after - np.diag(P_after.diagonal())
-    off_b = P_before - np.diag(P_before.diagonal())
-    dropped = ~np.any(off_a != 0.0, axis=1) & np.any(off_b != 0.0, axis=1)
     T = np.eye(n)
-    T[dropped, dropped] = 0.0
+    T[decoupled, decoupled] = 0.0
     TP = P_before.copy()
-    TP[dropped, :] = 0.0
-    TP[:, dropped] = 0.0
+    TP[decoupled, :] = 0.0
+    TP[:, decoupled] = 0.0
     Q = P_after - TP
     Q = 0.5 * (Q + Q.T)
     d = np.sqrt(np.maximum(P_after.diagonal(), 0.0))
@@ -359,19 +360,21 @@ class StepRecorder:
         self._pending = np.zeros(self.n)
         self._pending_taps = []
 
-    def reset(self, f, P_before: np.ndarray) -> None:
-        """After ``f`` rewrote its P from ``P_before`` without moving its state (effect states
-        reopened, ``InsFilter._on_inconsistency``): a transition when it has that form
-        (``reset_transition``), else a boundary."""
-        self.transition(f.t_stamp_s, P_before, f.P)
+    def reset(self, f, P_before: np.ndarray, decoupled: np.ndarray) -> None:
+        """After ``f`` rewrote its P from ``P_before``, giving the states ``decoupled`` fresh
+        estimates of their own (``InsFilter._update_static_calibration``: the gyro biases reset to
+        a stop's estimate): a transition when it has that form (``reset_transition``), else a
+        boundary."""
+        self.transition(f.t_stamp_s, P_before, f.P, decoupled)
 
-    def transition(self, t_s: float, P_before: np.ndarray, P_after: np.ndarray) -> None:
-        """A rewrite of the covariance at the current node with the nominal state unchanged:
-        recorded as a node at the same time with the transition (T, Q) of ``reset_transition``
-        when P_after = T P_before T^T + Q, else the segment ends with P_before."""
+    def transition(self, t_s: float, P_before: np.ndarray, P_after: np.ndarray, decoupled: np.ndarray) -> None:
+        """A rewrite of the covariance at the current node (the nominal state unchanged except in
+        the states ``decoupled``): recorded as a node at the same time with the transition (T, Q)
+        of ``reset_transition`` when P_after = T P_before T^T + Q, else the segment ends with
+        P_before."""
         if self._cur < 0:
             return
-        TQ = reset_transition(P_before, P_after)
+        TQ = reset_transition(P_before, P_after, decoupled)
         if TQ is None:
             self.close(P_before)
             return

@@ -28,7 +28,7 @@ v_b = C^T v.
   with the attitude error as the lever arm does, du = [u x] phi, so H_phi = g^T [u x] with
   g = (-u_E, u_N, 0) / (u_N^2 + u_E^2) (level: H_phi = (0, 0, -1)); H_mis = g^T C R_vb^T [b x].
 * ZUPT: h = v, H_v = I. ZARU: h = w - C^T w_ie, H_bg = -I (Groves 2013 sec. 15.3).
-* Stop calibration (``static_calibration``): the biases measured directly, h = b, H_b = I.
+* Stop calibration (``static_calibration``): the gyro bias measured directly, h = b_g, H_bg = I.
 
 The timing columns (H_dt, H_lat, H_vel_lat) are zero when the caller says the platform is too
 slow for timing to be observable (``InsConfig.timing_min_speed_mps``).
@@ -47,12 +47,6 @@ from v2xpos.rotation import skew
 from .ekf import ATT, BA, BG, POS, VEL, StateLayout
 from .mechanization import NAV_H, NAV_LAT, NAV_LON
 
-STOP_GYRO_BIAS_SD_FLOOR_RPS = 5e-4
-"""Least sd given to a stop's gyro-bias estimate, whatever the standard error of its mean."""
-STOP_ACCEL_BIAS_SD_FLOOR_MPS2 = 0.05
-"""Least sd given to a stop's accelerometer-bias estimate. The caller passes the stop's level
-threshold (``StaticCalibrationConfig.level_fx_max_mps2``): a bias below it cannot be told from a
-tilt of the ground."""
 TIMING_STATES_POSITION = ("imu_time_offset", "gnss_latency")
 """Effect states that shift the epoch a GNSS position describes (H = -v)."""
 TIMING_STATES_VELOCITY = ("imu_time_offset", "gnss_latency", "gnss_vel_latency")
@@ -221,17 +215,11 @@ def zaru(layout: StateLayout, C_nb: np.ndarray, lat_rad: float, mean_rate_body_r
     return Measurement(H, d, np.eye(3) * sd_rps ** 2)
 
 
-def stop_biases(layout: StateLayout, C_nb: np.ndarray, lat_rad: float, gyro_bias_rps: np.ndarray,
-                accel_bias_mps2: np.ndarray, est_gyro_bias_rps: np.ndarray, est_gyro_sem_rps: np.ndarray,
-                est_accel_bias_mps2: np.ndarray, accel_sd_mps2: float) -> Measurement:
-    """A stop calibration's bias estimate (``StaticBiasEstimate``) as a direct measurement of the
-    bias states; the Earth rate, known once the attitude is, is taken out of the gyro mean.
-    Sd: the gyro mean's standard error (floored), ``accel_sd_mps2`` (floored) per accelerometer axis."""
-    H = np.zeros((6, layout.n))
-    H[0:3, BG:BG + 3] = np.eye(3)
-    H[3:6, BA:BA + 3] = np.eye(3)
-    w_ie_b = C_nb.T @ geo.earth_rate_ned_rps(lat_rad)
-    d = np.concatenate([gyro_bias_rps - (est_gyro_bias_rps - w_ie_b), accel_bias_mps2 - est_accel_bias_mps2])
-    sd = np.concatenate([np.maximum(est_gyro_sem_rps, STOP_GYRO_BIAS_SD_FLOOR_RPS),
-                         np.full(3, max(accel_sd_mps2, STOP_ACCEL_BIAS_SD_FLOOR_MPS2))])
-    return Measurement(H, d, np.diag(sd ** 2))
+def stop_gyro_bias(layout: StateLayout, gyro_bias_rps: np.ndarray, est_gyro_bias_rps: np.ndarray,
+                   est_gyro_cov: np.ndarray) -> Measurement:
+    """A stop calibration's gyro-bias estimate (``static_calibration.StaticBiasEstimate``: the
+    window's mean rate less the Earth rate, R its covariance) as a direct measurement of the gyro
+    bias states."""
+    H = np.zeros((3, layout.n))
+    H[:, BG:BG + 3] = np.eye(3)
+    return Measurement(H, np.asarray(gyro_bias_rps, float) - est_gyro_bias_rps, np.asarray(est_gyro_cov, float))

@@ -24,7 +24,8 @@ import zenoh
 
 from v2xpos.link import Link, LinkConfig
 from v2xpos.monitor.state import MonitorState
-from v2xpos.wire import MAX_MESSAGE_BYTES, WireError, decode_state, relative_key, state_key, status_key
+from v2xpos.wire import (MAX_MESSAGE_BYTES, VEHICLE_STATUS_KEY_ALL, WireError, decode_state, relative_key, state_key,
+                         status_key)
 
 FIFO_CAPACITY = 65536
 GEOMETRY_RETRY_S = 10.0
@@ -70,6 +71,9 @@ class MasterMonitor:
                                          zenoh.handlers.FifoChannel(FIFO_CAPACITY))
         self._status = s.declare_subscriber(status_key(self.fleet, self.master_id or "*"),
                                             zenoh.handlers.FifoChannel(64))
+        self._vehicles = s.declare_subscriber(VEHICLE_STATUS_KEY_ALL(self.fleet), zenoh.handlers.FifoChannel(256))
+        self._alive = s.liveliness().declare_subscriber(f"v2xpos/{self.fleet}/*/*/alive",
+                                                       zenoh.handlers.FifoChannel(256), history=True)
         self._thread = threading.Thread(target=self._run, name="v2xpos-monitor", daemon=True)
         self._thread.start()
         return self
@@ -84,6 +88,8 @@ class MasterMonitor:
             self._geo_subs.clear()
             _undeclare(self._rel)
             _undeclare(self._status)
+            _undeclare(self._vehicles)
+            _undeclare(self._alive)
             self.link.close()
             self.link = None
 
@@ -132,13 +138,7 @@ class MasterMonitor:
                 st.malformed += 1
                 continue
             st.on_relative(body, tid, t_wall)
-        while True:
-            try:
-                sample = self._status.try_recv()
-            except Exception:
-                break
-            if sample is None:
-                break
+        for sample in _drain(self._status):
             if self._auto:
                 key = str(sample.key_expr)
                 if self.master_id is None:
@@ -146,12 +146,17 @@ class MasterMonitor:
                     self._rel_key = relative_key(self.fleet, self.master_id)
                 elif key != status_key(self.fleet, self.master_id):
                     continue
-            try:
-                doc = json.loads(sample.payload.to_bytes())
-            except ValueError:
-                continue
-            if isinstance(doc, dict):
+            doc = _json_map(sample)
+            if doc is not None:
                 st.on_status(doc, t_wall)
+        for sample in _drain(self._vehicles):
+            doc = _json_map(sample)
+            if doc is not None:
+                st.on_vehicle_status(doc, t_wall)
+        for sample in _drain(self._alive):
+            parts = str(sample.key_expr).split("/")    # v2xpos/<fleet>/<role>/<id>/alive
+            if len(parts) == 5:
+                st.on_alive(parts[2], parts[3], sample.kind == zenoh.SampleKind.PUT, t_wall)
         self._outlines(t_wall)
         return n
 
@@ -190,6 +195,28 @@ class MasterMonitor:
             except Exception:   # an id that is not a valid key expression
                 continue
             self._geo_subs[tid] = (sub, t_wall)
+
+
+def _json_map(sample) -> dict | None:
+    """A sample's JSON object payload, or None when it is not one."""
+    try:
+        doc = json.loads(sample.payload.to_bytes())
+    except ValueError:
+        return None
+    return doc if isinstance(doc, dict) else None
+
+
+def _drain(sub) -> list:
+    """Everything queued on a FIFO subscriber (nothing once its session closes)."""
+    out = []
+    while True:
+        try:
+            sample = sub.try_recv()
+        except Exception:   # session closing
+            return out
+        if sample is None:
+            return out
+        out.append(sample)
 
 
 def _undeclare(sub) -> None:

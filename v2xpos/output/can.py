@@ -33,7 +33,7 @@ from v2xpos.wire import KINEMATIC_STATUSES, RelativeResult
 
 from .can_dbc import (DBC_PATH, E2E_CRC, FRAMES_PER_KINEMATIC_UPDATE, FRAMES_PER_STATUS_UPDATE, ID_CHARS_PER_FRAME,
                       ID_ID, ID_LANE, ID_MASTER, ID_MASTER_SIGMA, ID_OBJECT, ID_PARTS, ID_STATUS, N_SLOTS,
-                      SCENE_MESSAGES, TARGET_MESSAGES, Sig, is_e2e_protected, load_dbc)
+                      REASON_OTHER_RAW, SCENE_MESSAGES, TARGET_MESSAGES, Sig, is_e2e_protected, load_dbc)
 from .can_dbc import data_id, e2e_crc, generate_dbc  # noqa: F401  (public API of this module, see above)
 
 # ----------------------------------------------------------------------------- slots
@@ -183,6 +183,12 @@ def _ttc_value(ttc_s: float | None) -> float | None:
     return ttc_s if ttc_s is not None and math.isfinite(ttc_s) else None
 
 
+def _reason_raw(code: int) -> int:
+    """A FilterReason code as the 4-bit CAN signal (codes beyond it: REASON_OTHER_RAW)."""
+    code = int(code)
+    return code if 0 <= code < REASON_OTHER_RAW else REASON_OTHER_RAW
+
+
 def _finite(x: float) -> float:
     return x if math.isfinite(x) else 0.0
 
@@ -298,7 +304,8 @@ class CanOutput:
         frames = [frame(st.frame_id, st.pack((c, int(res.status), int(res.fix_side), int(bool(res.degraded)),
                                                int(res.target_kind == "pedestrian"), int(res.master_fix),
                                                int(res.target_fix), _finite(res.latency_s * 1e3),
-                                               _ttc_value(res.ttc_s) if kin else None)))]
+                                               _ttc_value(res.ttc_s) if kin else None, int(res.reason_side),
+                                               _reason_raw(res.target_reason))))]
         if kin:
             r, v, a, att, sd = (res.rel_pos_body_m.tolist(), res.rel_vel_body_mps.tolist(),
                                 res.rel_acc_body_mps2.tolist(), res.rel_rpy_rad.tolist(), res.rel_pos_sd_m.tolist())
@@ -351,7 +358,8 @@ class CanOutput:
                     min(len(self.slots) if n is None else int(n), N_SLOTS),
                     0 if synced is None else 1 if synced else 2, float(status["t_gps_s"]) % 604800.0,
                     None if offset is None else offset * 1e3))),
-                self._frame(sg.frame_id, sg.pack((c, *sd, None if yaw_sd is None else math.degrees(yaw_sd))))]
+                self._frame(sg.frame_id, sg.pack((c, *sd, None if yaw_sd is None else math.degrees(yaw_sd),
+                                                  _reason_raw(status.get("reason") or 0))))]
 
     # -- sending -----------------------------------------------------------------------
     def _send(self, frames: list) -> int:
@@ -402,7 +410,7 @@ class CanOutput:
         ``status`` keys (all optional but ``t_gps_s``): ``t_gps_s`` [GPS s], ``master_fix``
         (FixStatus code), ``heading_valid`` (bool), ``pos_sd_m`` (N, E, D), ``yaw_sd_rad`` (or
         ``att_sd_rad``), ``clock_synced`` (bool), ``clock_offset_s``, ``n_targets`` (default: the
-        targets holding a slot). A missing value goes out as its "n/a"/"unknown" code.
+        targets holding a slot), ``reason`` (the master filter's FilterReason code). A missing value goes out as its "n/a"/"unknown" code.
         """
         n = self._send(self.master_frames(status, self._master_counter))
         self._master_counter = (self._master_counter + 1) & 0xF

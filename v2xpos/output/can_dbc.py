@@ -23,10 +23,11 @@ from pathlib import Path
 
 import cantools
 
+from v2xpos.types import FilterReason
 from v2xpos.wire import TargetStatus
 
 DBC_PATH = Path(__file__).with_name("v2xpos.dbc")
-DBC_VERSION = "v2xpos 2"
+DBC_VERSION = "v2xpos 3"
 N_SLOTS = 64
 NODE = "V2XPOS_MASTER"
 
@@ -43,6 +44,9 @@ part per update, cycling through its parts (a 5-character id: every ID frame is 
 OBJECT_KIND = {"point": 0, "polygon": 1}
 
 STATUS_CHOICES = {int(s): s.name.lower() for s in TargetStatus}
+REASON_CHOICES = {int(r): r.name.lower() for r in FilterReason}
+REASON_OTHER_RAW = 15
+"""A filter reason code above 14 (a newer filter) goes out as 15, "other"."""
 FIX_CHOICES = {0: "none", 1: "dead_reckoning", 2: "single", 3: "dgps", 4: "rtk_float", 5: "rtk_fixed"}
 
 
@@ -95,7 +99,7 @@ _SD_COMMENT = "1-sigma of the relative position along master body {}; 4095 = n/a
 TARGET_MESSAGES: dict[str, tuple[int, list[Sig]]] = {
     "STATUS": (ID_STATUS, [
         E2E_CRC, _SLOT_COUNTER,
-        Sig("Status", 12, 4, False, 1, "", "result status; only 0 (valid) may be used as a reference; 5-8 carry "
+        Sig("Status", 12, 4, False, 1, "", "result status; only 0 (valid) may be used as a reference; 5-9 carry "
             "kinematics that are not valid", 0, max(STATUS_CHOICES), tuple(STATUS_CHOICES.items())),
         Sig("FixSide", 16, 2, False, 1, "", "side whose fix failed the RTK gate: bit0 master, bit1 target", 0, 3,
             ((0, "none"), (1, "master"), (2, "target"), (3, "both"))),
@@ -106,7 +110,12 @@ TARGET_MESSAGES: dict[str, tuple[int, list[Sig]]] = {
         Sig("TargetFix", 23, 3, False, 1, "", _FIX_COMMENT.format("target"), 0, 5, tuple(FIX_CHOICES.items())),
         Sig("Latency", 32, 16, True, 0.1, "ms", "master time - target time of validity"),
         Sig("TTC", 48, 16, False, 0.01, "s", "time to collision; 65535 = none (not closing / no kinematics)",
-            choices=((TTC_NONE_RAW, "none"),), special=TTC_NONE_RAW)]),
+            choices=((TTC_NONE_RAW, "none"),), special=TTC_NONE_RAW),
+        Sig("ReasonSide", 26, 2, False, 1, "", "vehicle whose own state made a non-valid status (attitude, clock, "
+            "consistency, verification): bit0 master (its reason: MASTER_SIGMA MasterReason), bit1 target "
+            "(TargetReason); a clock alarm sets both", 0, 3, ((0, "none"), (1, "master"), (2, "target"), (3, "both"))),
+        Sig("TargetReason", 28, 4, False, 1, "", "the target filter's reason (v2xpos FilterReason); 15 = another "
+            "code", 0, REASON_OTHER_RAW, (*REASON_CHOICES.items(), (REASON_OTHER_RAW, "other")))]),
     "POS": (ID_POS, [
         E2E_CRC, _SLOT_COUNTER,
         Sig("PosX", 16, 24, True, 0.001, "m", "target reference point - master reference point, master body x (forward)"),
@@ -180,7 +189,9 @@ SCENE_MESSAGES: dict[str, tuple[int, str, list[Sig]]] = {
         Sig("PosSdD", 36, 12, False, 0.001, "m", "master position 1-sigma down; 4095 = n/a",
             choices=((SD_NA_RAW, "n/a"),), special=SD_NA_RAW),
         Sig("YawSd", 48, 12, False, 0.01, "deg", "master yaw 1-sigma; 4095 = n/a",
-            choices=((SD_NA_RAW, "n/a"),), special=SD_NA_RAW)]),
+            choices=((SD_NA_RAW, "n/a"),), special=SD_NA_RAW),
+        Sig("MasterReason", 60, 4, False, 1, "", "the master filter's reason (v2xpos FilterReason); 15 = another "
+            "code", 0, REASON_OTHER_RAW, (*REASON_CHOICES.items(), (REASON_OTHER_RAW, "other")))]),
     "LANE": (ID_LANE, "L_", [
         E2E_CRC, _counter("E2E counter: +1 mod 16 per scene update (all LANE frames of one update)"),
         Sig("LaneIndex", 12, 8, False, 1, "", "lane line index in the scene file"),

@@ -50,7 +50,8 @@ STATUS_RGBA: dict[str, tuple[float, float, float, float]] = {
     "valid": (0.10, 0.61, 0.23, 1.0), "fix_invalid": (0.94, 0.55, 0.0, 1.0), "timeout": (0.84, 0.15, 0.16, 1.0),
     "no_data": (0.55, 0.55, 0.55, 1.0), "future": (0.56, 0.27, 0.68, 1.0),
     "attitude_uncertain": (0.79, 0.63, 0.0, 1.0), "sigma_exceeded": (0.89, 0.36, 0.61, 1.0),
-    "clock_unsynced": (0.16, 0.48, 0.69, 1.0), "inconsistent": (0.50, 0.25, 0.0, 1.0)}
+    "clock_unsynced": (0.16, 0.48, 0.69, 1.0), "inconsistent": (0.50, 0.25, 0.0, 1.0),
+    "unverified": (0.69, 0.50, 0.25, 1.0)}
 """Status colours (the same as the monitor page)."""
 
 MESSAGE_CLASSES = {"foxglove.LocationFix": LocationFix, "foxglove.FrameTransforms": FrameTransforms,

@@ -90,7 +90,7 @@ _STATE_MESSAGE = {
     "required": ["fleet", "vehicle_id", "kind", "seq", "t_gps_s", "fix", "lat_deg", "lon_deg", "height_m",
                  "v_ned_mps", "roll_pitch_yaw_deg", "pos_sd_ned_m", "geometry"]}
 _STATUS_NAMES = ["valid", "fix_invalid", "timeout", "no_data", "future", "attitude_uncertain", "sigma_exceeded",
-                 "clock_unsynced", "inconsistent"]
+                 "clock_unsynced", "inconsistent", "unverified"]
 
 SCHEMAS: dict[str, tuple[str, dict]] = {
     TOPIC_RX: ("v2xpos.ReceivedState", {

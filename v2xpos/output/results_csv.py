@@ -7,7 +7,9 @@ Columns, in this order (``COLUMNS``; later columns may be added after these, nev
                    time the target was compensated to)
 ``target``         target (slave) id
 ``status``         ``VALID``, ``FIX_INVALID``, ``TIMEOUT``, ``NO_DATA``, ``FUTURE``,
-                   ``ATTITUDE_UNCERTAIN``, ``SIGMA_EXCEEDED``, ``CLOCK_UNSYNCED``, ``INCONSISTENT``
+                   ``ATTITUDE_UNCERTAIN``, ``SIGMA_EXCEEDED``, ``CLOCK_UNSYNCED``, ``INCONSISTENT`` (a
+                   filter's consistency test failed), ``UNVERIFIED`` (no test failed, the
+                   protection level is still above its limit)
 ``master_fix``     ``FIXED`` / ``FLOAT`` / ``SINGLE`` / ``DR`` / ``NONE`` (a DGPS solution is a
 ``target_fix``     code solution and written ``SINGLE``)
 ``x_m y_m z_m``    the target's reference point (its IMU point) relative to the master's, in the
@@ -19,9 +21,14 @@ Columns, in this order (``COLUMNS``; later columns may be added after these, nev
 =================  ==========================================================================
 
 then ``sd_rel_yaw_deg``, ``range_sd_m``, ``vx_mps vy_mps vz_mps`` (relative velocity, master body
-frame), ``bearing_deg``, ``ttc_s``, ``fix_side``, ``degraded``, ``seq``, ``source_seq``, and a
-writer's ``extra_columns`` (``v2xpos convoy --in-process --smooth``: ``smoothed``, 1 on a row
-formed from both vehicles' smoothed states).
+frame), ``bearing_deg``, ``ttc_s``, ``fix_side``, ``degraded``, ``seq``, ``source_seq``, and
+``reason`` -- which vehicle made a non-VALID status and why (``v2xpos.wire.reason_text``:
+``target:SETUP_UNVERIFIED``, ``master:TEST_POSITION``, ``master:COASTING;target:HEADING_PENDING``,
+``target:FIX``, ``both:CLOCK``; the status name when it is no vehicle's own, e.g. ``TIMEOUT``; empty
+for VALID) -- and ``protection_m`` (horizontal protection level of the relative position, the sum of
+both vehicles' [m]; empty when either filter computes none); then a writer's ``extra_columns``
+(``v2xpos convoy --in-process --smooth``: ``smoothed``, 1 on a row formed from both vehicles'
+smoothed states).
 Kinematic columns are empty when the status carries no kinematics (TIMEOUT, NO_DATA, ...).
 """
 from __future__ import annotations
@@ -30,12 +37,12 @@ import math
 from pathlib import Path
 
 from v2xpos.types import FixStatus
-from v2xpos.wire import RelativeResult
+from v2xpos.wire import RelativeResult, reason_text
 
 COLUMNS = ("t_gps_s", "target", "status", "master_fix", "target_fix", "x_m", "y_m", "z_m",
            "sd_x_m", "sd_y_m", "sd_z_m", "rel_roll_deg", "rel_pitch_deg", "rel_yaw_deg", "range_m", "age_ms",
            "sd_rel_yaw_deg", "range_sd_m", "vx_mps", "vy_mps", "vz_mps", "bearing_deg", "ttc_s", "fix_side",
-           "degraded", "seq", "source_seq")
+           "degraded", "seq", "source_seq", "reason", "protection_m")
 FIX_NAMES = {FixStatus.FIXED: "FIXED", FixStatus.FLOAT: "FLOAT", FixStatus.DGPS: "SINGLE",
              FixStatus.SINGLE: "SINGLE", FixStatus.DEAD_RECKONING: "DR", FixStatus.NONE: "NONE"}
 DEG = 180.0 / math.pi
@@ -67,7 +74,7 @@ def result_row(res: RelativeResult) -> list[str]:
             _num(res.latency_s * 1e3, ".2f"), k(res.rel_yaw_sd_rad * DEG, ".4f"), k(res.range_sd_m, ".4f"),
             k(v[0], ".4f"), k(v[1], ".4f"), k(v[2], ".4f"), k(res.bearing_deg, ".4f"),
             k(res.ttc_s, ".3f") if res.ttc_s is not None else "", str(int(res.fix_side)), str(int(res.degraded)),
-            str(res.seq), str(res.source_seq)]
+            str(res.seq), str(res.source_seq), reason_text(res), _num(res.protection_m, ".4f")]
 
 
 class ResultsCsvWriter:
@@ -102,7 +109,7 @@ class ResultsCsvWriter:
 
 def read_results_csv(path: str | Path):
     """Rows of a results.csv as a dict of numpy arrays (numeric columns as float, NaN where empty;
-    ``target``, ``status``, ``master_fix``, ``target_fix`` as string arrays)."""
+    ``target``, ``status``, ``master_fix``, ``target_fix``, ``reason`` as string arrays)."""
     import csv
 
     import numpy as np
@@ -110,7 +117,7 @@ def read_results_csv(path: str | Path):
         reader = csv.reader(f)
         header = next(reader)
         rows = list(reader)
-    text = {"target", "status", "master_fix", "target_fix"}
+    text = {"target", "status", "master_fix", "target_fix", "reason"}
     out = {}
     for j, name in enumerate(header):
         col = [r[j] if j < len(r) else "" for r in rows]

@@ -8,16 +8,22 @@ Public API (stable)
   unspecified addresses are refused (``check_destination(host)`` raises ValueError saying why).
 * ``build_datagram(results, seq, t_gps_s, lanes=None, objects=None) -> bytes`` and
   ``parse_datagram(data) -> UdpDatagram`` (raises ``UdpFormatError(reason, offset)``); the parser
-  also reads version-1 datagrams (one header time for every record, no fix states).
+  also reads version-1 datagrams (one header time for every record, no fix states) and version-2
+  ones (no reasons, no protection level).
 * ``LaneRecord``, ``ObjectRecord`` -- scene records; ``records_from_scene(scene_result)
   -> (lanes, objects)``.
 
-Layout version 2 (all little-endian; docs/protocol.md §6):
-header ``<4sBBHHHId`` (24 bytes): magic b"V2XR", version 2, flags 0, n_targets, n_lanes,
-n_objects, seq (u32), t_gps_s (f64, the master time of the datagram's last result); then n_targets
-target records (``TARGET_FMT``, 184 bytes: each with its own time of validity ``t_gps_s``, master
-output sequence number, master and target fix status and sigmas), n_lanes lane records, n_objects
-object records (``LANE_FMT``, ``OBJECT_FMT``).
+Layout version 3 (all little-endian; docs/protocol.md §6):
+header ``<4sBBHHHId`` (24 bytes): magic b"V2XR", version 3, flags, n_targets, n_lanes,
+n_objects, seq (u32), t_gps_s (f64, the master time of the datagram's last result, or of the
+heartbeat); then n_targets target records (``TARGET_FMT``, 184 bytes: each with its own time of
+validity ``t_gps_s``, master output sequence number, master and target fix status and sigmas,
+which vehicle made a non-VALID status and both filters' reasons, the relative protection level),
+n_lanes lane records, n_objects object records (``LANE_FMT``, ``OBJECT_FMT``). Version 3 uses the
+bytes version 2 left as padding: a record has the same size and offsets.
+Header flag ``HEADER_FLAG_HEARTBEAT``: the master's heartbeat (no records), sent at its status rate
+whatever it has to say, with its GPS time now: a consumer that gets no datagram for three periods
+knows the master is gone, not that there is nothing to report (``heartbeat``).
 Target kinematics are NaN unless the status carries kinematics (``wire.KINEMATIC_STATUSES``;
 only VALID may be used as a reference); TTC NaN = none.
 """
@@ -36,23 +42,28 @@ from v2xpos.types import FixStatus
 from v2xpos.wire import KINEMATIC_STATUSES, FixSide, RelativeResult, TargetStatus
 
 MAGIC = b"V2XR"
-VERSION = 2
-VERSIONS = (1, 2)
+VERSION = 3
+VERSIONS = (1, 2, 3)
 HEADER_FMT = "<4sBBHHHId"
-TARGET_FMT = "<32sBBBBB3xdQIf3d3f3f3f3fd9f4x"
-"""id, status, fix_side, flags, master_fix, target_fix, (pad), t_gps_s, source_seq, seq, latency_s,
-position (f64), position sd, velocity, acceleration, d_roll/d_pitch/d_yaw, range (f64), range sd,
-bearing, elevation, longitudinal, lateral, gap, closing speed, TTC, relative yaw sd, (pad)."""
+TARGET_FMT = "<32sBBBBBBBBdQIf3d3f3f3f3fd9ff"
+"""id, status, fix_side, flags, master_fix, target_fix, reason_side, master_reason, target_reason,
+t_gps_s, source_seq, seq, latency_s, position (f64), position sd, velocity, acceleration,
+d_roll/d_pitch/d_yaw, range (f64), range sd, bearing, elevation, longitudinal, lateral, gap,
+closing speed, TTC, relative yaw sd, protection level (NaN: none)."""
+TARGET_V2_FMT = "<32sBBBBB3xdQIf3d3f3f3f3fd9f4x"
 TARGET_V1_FMT = "<32sBBBBQf3d3f3f3f3fdffffffff"
 LANE_FMT = "<H2xff"
 OBJECT_FMT = "<HBxffff"
 HEADER = struct.Struct(HEADER_FMT)
 TARGET = struct.Struct(TARGET_FMT)
+TARGET_V2 = struct.Struct(TARGET_V2_FMT)
 TARGET_V1 = struct.Struct(TARGET_V1_FMT)
+assert TARGET.size == TARGET_V2.size
 LANE = struct.Struct(LANE_FMT)
 OBJECT = struct.Struct(OBJECT_FMT)
 MAX_DATAGRAM_BYTES = 65507
 FLAG_DEGRADED, FLAG_PEDESTRIAN = 1, 2
+HEADER_FLAG_HEARTBEAT = 1
 _FIX_BY_CODE = {int(f): f for f in FixStatus}
 
 
@@ -89,6 +100,7 @@ class UdpDatagram:
     seq: int
     t_gps_s: float
     version: int = VERSION
+    heartbeat: bool = False
     targets: list = field(default_factory=list)
     lanes: list = field(default_factory=list)
     objects: list = field(default_factory=list)
@@ -130,8 +142,15 @@ def _pack_target(r: RelativeResult) -> bytes:
         scal = _NAN9
         yaw_sd = math.nan
     return TARGET.pack(r.target_id.encode()[:32], int(r.status), int(r.fix_side), flags, int(r.master_fix),
-                       int(r.target_fix), float(r.t_gps_s), int(r.source_seq) & 0xFFFFFFFFFFFFFFFF,
-                       int(r.seq) & 0xFFFFFFFF, _nan(r.latency_s), *p, *ps, *v, *a, *att, *scal, yaw_sd)
+                       int(r.target_fix), int(r.reason_side), min(int(r.master_reason), 255),
+                       min(int(r.target_reason), 255), float(r.t_gps_s), int(r.source_seq) & 0xFFFFFFFFFFFFFFFF,
+                       int(r.seq) & 0xFFFFFFFF, _nan(r.latency_s), *p, *ps, *v, *a, *att, *scal, yaw_sd,
+                       r.protection_m)
+
+
+def heartbeat(seq: int, t_gps_s: float) -> bytes:
+    """The master's heartbeat datagram: a header with ``HEADER_FLAG_HEARTBEAT`` and no records."""
+    return HEADER.pack(MAGIC, VERSION, HEADER_FLAG_HEARTBEAT, 0, 0, 0, seq & 0xFFFFFFFF, t_gps_s)
 
 
 def build_datagram(results: Sequence[RelativeResult], seq: int, t_gps_s: float,
@@ -172,12 +191,19 @@ def _target_from_record(f: tuple, off: int, version: int, seq: int, t_header: fl
             raise UdpFormatError(f"status {f[1]} does not exist in version 1", off + 32)
         master_fix = target_fix = FixStatus.NONE
         t_rec, src_seq, rec_seq, latency, k, yaw_sd = t_header, f[5], seq, f[6], 7, math.nan
-    else:
+    elif version == 2:
+        if status > TargetStatus.INCONSISTENT:
+            raise UdpFormatError(f"status {f[1]} does not exist in version 2", off + 32)
         master_fix, target_fix = _fix(f[4], off + 35, "master"), _fix(f[5], off + 36, "target")
         t_rec, src_seq, rec_seq, latency, k, yaw_sd = f[6], f[7], f[8], f[9], 10, f[34]
+    else:
+        master_fix, target_fix = _fix(f[4], off + 35, "master"), _fix(f[5], off + 36, "target")
+        if f[6] > 3:
+            raise UdpFormatError(f"reason side {f[6]} outside 0..3", off + 37)
+        t_rec, src_seq, rec_seq, latency, k, yaw_sd = f[9], f[10], f[11], f[12], 13, f[37]
     vec = [np.array(f[k + 3 * i:k + 3 * i + 3], dtype=float) for i in range(5)]
     (rng, rng_sd, brg, elv, lon, lat, gap, cls, ttc) = f[k + 15:k + 24]
-    return RelativeResult(
+    res = RelativeResult(
         target_id=tid, target_kind="pedestrian" if f[3] & FLAG_PEDESTRIAN else "vehicle", status=status,
         fix_side=FixSide(f[2] & 3), degraded=bool(f[3] & FLAG_DEGRADED), seq=rec_seq, source_seq=src_seq,
         t_gps_s=t_rec, latency_s=latency, rel_pos_body_m=vec[0], rel_pos_sd_m=vec[1],
@@ -185,25 +211,28 @@ def _target_from_record(f: tuple, off: int, version: int, seq: int, t_header: fl
         range_sd_m=rng_sd, bearing_rad=brg, elevation_rad=elv, longitudinal_m=lon, lateral_m=lat,
         gap_m=gap, closing_speed_mps=cls, ttc_s=None if math.isnan(ttc) else ttc, schema=version,
         master_fix=master_fix, target_fix=target_fix, rel_yaw_sd_rad=yaw_sd)
+    if version >= 3:
+        res.reason_side, res.master_reason, res.target_reason, res.protection_m = FixSide(f[6]), f[7], f[8], f[38]
+    return res
 
 
 def parse_datagram(data: bytes) -> UdpDatagram:
-    """Parse a datagram (version 1 or 2) into RelativeResult / LaneRecord / ObjectRecord lists;
+    """Parse a datagram (a version of VERSIONS) into RelativeResult / LaneRecord / ObjectRecord lists;
     UdpFormatError if bad. Each target's ``t_gps_s`` is its record's time of validity (version 1:
     the header time), ``seq`` its master output sequence number (version 1: the header's)."""
     if len(data) < HEADER.size:
         raise UdpFormatError(f"shorter than the {HEADER.size}-byte header", 0)
-    magic, version, _flags, nt, nl, no, seq, t = HEADER.unpack_from(data, 0)
+    magic, version, flags, nt, nl, no, seq, t = HEADER.unpack_from(data, 0)
     if magic != MAGIC:
         raise UdpFormatError(f"bad magic {magic!r}", 0)
     if version not in VERSIONS:
         raise UdpFormatError(f"unknown version {version}", 4)
-    record = TARGET if version == 2 else TARGET_V1
+    record = {1: TARGET_V1, 2: TARGET_V2, 3: TARGET}[version]
     expect = HEADER.size + nt * record.size + nl * LANE.size + no * OBJECT.size
     if len(data) != expect:
         raise UdpFormatError(f"length {len(data)} != {expect} for {nt} targets, {nl} lanes, {no} objects "
                              f"(version {version})", 6)
-    out = UdpDatagram(seq=seq, t_gps_s=t, version=version)
+    out = UdpDatagram(seq=seq, t_gps_s=t, version=version, heartbeat=bool(flags & HEADER_FLAG_HEARTBEAT))
     off = HEADER.size
     for _ in range(nt):
         out.targets.append(_target_from_record(record.unpack_from(data, off), off, version, seq, t))
@@ -257,6 +286,13 @@ class UdpOutput:
         """Send one update; returns the number of bytes sent."""
         data = build_datagram(results, seq, t_gps_s, lanes, objects)
         n = self.sock.sendto(data, self.address)
+        self.datagrams_sent += 1
+        self.bytes_sent += n
+        return n
+
+    def send_heartbeat(self, seq: int, t_gps_s: float) -> int:
+        """Send the master's heartbeat (``heartbeat``); returns the number of bytes sent."""
+        n = self.sock.sendto(heartbeat(seq, t_gps_s), self.address)
         self.datagrams_sent += 1
         self.bytes_sent += n
         return n

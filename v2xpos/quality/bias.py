@@ -79,6 +79,7 @@ def calibrator_stop_biases(imu: ImuData, C_body_imu: np.ndarray | None = None,
     w = np.asarray(imu.gyro_rps, float) @ C.T
     for k in range(0, len(t), chunk):
         cal.feed(t[k:k + chunk], f[k:k + chunk], w[k:k + chunk])
+    cal.finish()
     biases = np.array([e.gyro_bias_rps @ C for e in cal.estimates]).reshape(-1, 3)
     return biases, [[e.t_start_s, e.t_end_s] for e in cal.estimates]
 

@@ -192,6 +192,10 @@ class ReplayClock(SessionClock):
         self._threads.append(th)
 
     # ---- status
+    def missing(self) -> list[str]:
+        """The vehicles a leader still waits for (empty once the session runs, or for a follower)."""
+        return [v for v in self.wait_for if v not in self._ready] if self.mode == "leader" else []
+
     def status(self) -> dict:
         return {"kind": "recording", "mode": self.mode, "speed": self.speed, "t_gps_s": self.now_gps_s(),
                 "started": self._offset_s is not None, "leader": self.leader_id,

@@ -8,8 +8,11 @@ Config (the ``[source]`` table; paths relative to the config file)::
     platform = "car"                       # car | pedestrian | generic
     gnss = { format = "ubx", port = "/dev/ttyACM0", baud = 115200 }   # or { format = "nmea", tcp = "127.0.0.1:5000" }
     imu = { format = "csv_g_dps_ms", port = "/dev/ttyUSB0", baud = 115200 }   # or imu = "receiver" (ESF of an F9R)
-    imu_to_body = [[-1, 0, 0], [0, 1, 0], [0, 0, -1]]   # v_body = imu_to_body @ v_imu (rotation)
+    imu_to_body = [[-1, 0, 0], [0, 1, 0], [0, 0, -1]]   # v_body = imu_to_body @ v_imu (rotation), or "identity"
     lever_arm_m = [0.0, 0.0, -0.3]         # antenna - IMU in body axes (x fwd, y right, z down) [m]
+
+``platform``, ``imu_to_body`` and ``lever_arm_m`` are required (``REQUIRED_KEYS``): a missing one is
+refused naming the key; the identity mounting is declared as ``imu_to_body = "identity"``.
     lever_arm_sd_m = 0.02
     reorder_window_s = 0.1                 # see "Time order" below
     clock = { max_offset_s = 0.02, latency_floor_s = 0.025 }   # v2xpos.sources.gnss_clock
@@ -64,6 +67,14 @@ from v2xpos.types import FixStatus, NavState
 SOURCE_KEYS = ("gnss", "imu", "platform", "imu_to_body", "lever_arm_m", "lever_arm_sd_m", "reorder_window_s",
                "clock", "calibration", "imu_clock_min_span_s", "heading_baseline_m")
 PLATFORMS = ("car", "pedestrian", "generic")
+REQUIRED_KEYS = (
+    ("platform", f"one of {list(PLATFORMS)} (the vehicle constraints the filter applies)"),
+    ("imu_to_body", "the IMU mounting, v_body = imu_to_body @ v_imu, e.g. [[-1, 0, 0], [0, 1, 0], [0, 0, -1]]; "
+                    "write imu_to_body = \"identity\" when the IMU axes are the body axes"),
+    ("lever_arm_m", "the antenna relative to the IMU in body axes [m] (x forward, y right, z down), surveyed; "
+                    "[0.0, 0.0, 0.0] only when they coincide"))
+"""Keys a ``device`` table must declare: a mounting or lever arm left out is not silently the
+identity or zero (a car with an undeclared x-backward IMU gives no VALID row at all)."""
 GNSS_WITHOUT_IMU_S = 1.0
 """A GNSS epoch still waiting for IMU samples this long after its time is applied anyway."""
 
@@ -288,14 +299,22 @@ def check_table(table: dict, where: str) -> dict:
         raise SourceError(f"{where}.gnss: missing; e.g. gnss = {{ format = \"ubx\", port = \"/dev/ttyACM0\" }}")
     if "imu" not in table:
         raise SourceError(f"{where}.imu: missing; a stream table, or \"receiver\" for a receiver's ESF IMU")
-    platform = table.get("platform", "car")
+    for key, how in REQUIRED_KEYS:
+        if key not in table:
+            raise SourceError(f"{where}.{key}: missing: {how}")
+    platform = table["platform"]
     if platform not in PLATFORMS:
         raise SourceError(f"{where}.platform: {platform!r} is not one of {list(PLATFORMS)}"
                           f"{did_you_mean(str(platform), PLATFORMS)}")
-    imu_to_body = _matrix(table.get("imu_to_body", np.eye(3).tolist()), (3, 3), f"{where}.imu_to_body")
+    mounting = table["imu_to_body"]
+    if isinstance(mounting, str):
+        if mounting != "identity":
+            raise SourceError(f"{where}.imu_to_body: {mounting!r}: a 3x3 rotation matrix, or \"identity\"")
+        mounting = np.eye(3).tolist()
+    imu_to_body = _matrix(mounting, (3, 3), f"{where}.imu_to_body")
     if not np.allclose(imu_to_body @ imu_to_body.T, np.eye(3), atol=1e-6) or np.linalg.det(imu_to_body) < 0:
         raise SourceError(f"{where}.imu_to_body: not a rotation matrix (orthonormal, determinant +1)")
-    lever = _matrix(table.get("lever_arm_m", [0.0, 0.0, 0.0]), (3,), f"{where}.lever_arm_m")
+    lever = _matrix(table["lever_arm_m"], (3,), f"{where}.lever_arm_m")
     lever_sd = table.get("lever_arm_sd_m", 0.1)
     window = table.get("reorder_window_s", 0.1)
     span = table.get("imu_clock_min_span_s", 5.0)

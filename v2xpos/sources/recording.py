@@ -71,11 +71,33 @@ def check_table(table: dict, where: str) -> dict:
             "outline_m": outline}
 
 
+DECLARED = (("imu", "imu_to_body"), ("gnss", "lever_arm_m"))
+"""What a recording a vehicle service runs on must declare in its descriptor (the loader's defaults,
+identity and zero, are for analysing a recording, not for a vehicle's reference)."""
+
+
+def check_declared(path, where: str) -> None:
+    """SourceError naming the descriptor, the table and the key when the recording does not declare
+    its IMU mounting or its antenna lever arm."""
+    from v2xpos.datasets.loader import read_descriptor
+    path = Path(path) / "dataset.toml" if Path(path).is_dir() else Path(path)
+    try:
+        desc = read_descriptor(path)
+    except (OSError, ValueError) as exc:
+        raise SourceError(f"{where}.dataset: {exc}") from None
+    for table, key in DECLARED:
+        if key not in (desc.get(table) or {}):
+            raise SourceError(f"{where}.dataset: {path}: [{table}] {key} missing: declare it (the identity "
+                              f"mounting as [[1, 0, 0], [0, 1, 0], [0, 0, 1]], a coincident antenna as [0, 0, 0])")
+
+
 def from_config(table: dict, where: str, ctx: SourceContext) -> "RecordingSource":
     """Build from a ``[source]`` table (without ``type``); errors name ``where`` and the key."""
     v = check_table(table, where)
+    path = ctx.resolve(v.pop("dataset"))
+    check_declared(path, where)
     try:
-        return RecordingSource(ctx.resolve(v.pop("dataset")), **v)
+        return RecordingSource(path, **v)
     except (OSError, ValueError) as exc:
         raise SourceError(f"{where}.dataset: {exc}") from None
 

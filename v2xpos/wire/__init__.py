@@ -43,7 +43,7 @@ acceleration (kinematic, gravity removed) and angular rate in the vehicle body f
 """
 from __future__ import annotations
 
-from .keys import (STATE_KEY_ALL, clock_key, corrections_key, grades_key, imu_key, ready_key, relative_key,
+from .keys import (STATE_KEY_ALL, VEHICLE_STATUS_KEY_ALL, alive_key, vehicle_status_key, clock_key, corrections_key, grades_key, imu_key, ready_key, relative_key,
                    state_key, status_key)
 from .envelope import (ENVELOPE_VERSION, MAX_MESSAGE_BYTES, Envelope, Signer, pack_envelope, unpack_envelope)
 from .fields import (KINDS, MAX_ACC_MPS2, MAX_GEOMETRY_M, MAX_GEOMETRY_POINTS, MAX_HEIGHT_M, MAX_ID_CHARS,
@@ -53,7 +53,7 @@ from .state import (GEOMETRY_KINDS, SCHEMA_VERSION, STATE_FLAG_ATTITUDE_UNDETERM
                     decode_state_body, encode_state, encode_state_body)
 from .relative import (KINEMATIC_STATUSES, RELATIVE_SCHEMA_VERSION, RELATIVE_SCHEMA_VERSIONS, FixSide,
                        RelativeResult, TargetStatus, decode_relative, decode_relative_body, encode_relative,
-                       encode_relative_body)
+                       encode_relative_body, reason_name, reason_text)
 from .imu_stream import (IMU_PAYLOAD_VERSION, MAX_IMU_ROWS, MAX_IMU_UNITS, ImuPayload, ImuPayloadError,
                          decode_imu_payload, encode_imu_payload)
 
@@ -67,4 +67,5 @@ __all__ = ["SCHEMA_VERSION", "RELATIVE_SCHEMA_VERSION", "RELATIVE_SCHEMA_VERSION
            "StateMessage", "RelativeResult", "Envelope", "pack_envelope", "encode_state_body", "encode_state",
            "encode_relative_body", "encode_relative", "unpack_envelope", "decode_state_body", "decode_state",
            "decode_relative_body", "decode_relative", "IMU_PAYLOAD_VERSION", "MAX_IMU_ROWS", "MAX_IMU_UNITS",
-           "ImuPayloadError", "ImuPayload", "encode_imu_payload", "decode_imu_payload"]
+           "ImuPayloadError", "ImuPayload", "encode_imu_payload", "decode_imu_payload",
+           "reason_name", "reason_text", "VEHICLE_STATUS_KEY_ALL", "vehicle_status_key", "alive_key"]

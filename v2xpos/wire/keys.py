@@ -17,6 +17,23 @@ def STATE_KEY_ALL(fleet: str) -> str:  # noqa: N802 (reads as a constant pattern
     return f"v2xpos/{fleet}/vehicle/*/state"
 
 
+def vehicle_status_key(fleet: str, vehicle_id: str) -> str:
+    """Key on which a vehicle service publishes its live status at 1 Hz (JSON,
+    ``v2xpos.sources.status``)."""
+    return f"v2xpos/{fleet}/vehicle/{vehicle_id}/status"
+
+
+def VEHICLE_STATUS_KEY_ALL(fleet: str) -> str:  # noqa: N802 (reads as a constant pattern)
+    """Key expression matching every vehicle's live status in a fleet."""
+    return f"v2xpos/{fleet}/vehicle/*/status"
+
+
+def alive_key(fleet: str, role: str, ident: str) -> str:
+    """Zenoh liveliness token of a running service: ``role`` "master" or "vehicle" (a slave); it
+    goes when the service's session closes, also when the process is killed."""
+    return f"v2xpos/{fleet}/{role}/{ident}/alive"
+
+
 def relative_key(fleet: str, master_id: str) -> str:
     """Zenoh key expression a master republishes its RelativeResult messages on."""
     return f"v2xpos/{fleet}/master/{master_id}/relative"

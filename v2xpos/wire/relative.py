@@ -3,7 +3,8 @@
 
 The encoder writes ``RELATIVE_SCHEMA_VERSION``; the decoder accepts ``RELATIVE_SCHEMA_VERSIONS``
 (1 = before the vehicles' fix states and the yaw sigma, decoded with ``master_fix``/``target_fix``
-NONE and ``rel_yaw_sd_rad`` NaN). Frames: the master's body frame (x forward, y right, z down).
+NONE and ``rel_yaw_sd_rad`` NaN; 2 = before the reasons and the protection level, decoded with
+reasons 0, ``reason_side`` NONE and ``protection_m`` NaN). Frames: the master's body frame (x forward, y right, z down).
 """
 from __future__ import annotations
 
@@ -14,16 +15,18 @@ from enum import IntEnum, IntFlag
 import msgpack
 import numpy as np
 
-from v2xpos.types import FixStatus
+from v2xpos.types import FilterReason, FixStatus
 
 from .envelope import Signer, seal, unpack_envelope
 from .fields import (KINDS, MAX_SD, MAX_SPEED_MPS, MAX_T_GPS_S, WireError, f3, fix_field, get_field, ident, num,
                      opt_num, uint, unpack_body, vec3)
 
-RELATIVE_SCHEMA_VERSION = 2
+RELATIVE_SCHEMA_VERSION = 3
 """Version of the RelativeResult body the encoder writes: 2 adds ``mfix``/``tfix`` (both vehicles'
-fix status), ``kin.ys`` (relative yaw sigma) and kinematics on every status of KINEMATIC_STATUSES."""
-RELATIVE_SCHEMA_VERSIONS = (1, 2)
+fix status), ``kin.ys`` (relative yaw sigma) and kinematics on every status of KINEMATIC_STATUSES;
+3 adds the status UNVERIFIED, the vehicles' filter reasons (``mrsn``/``trsn``), which vehicle made
+the status (``rside``) and the relative protection level (``pl``)."""
+RELATIVE_SCHEMA_VERSIONS = (1, 2, 3)
 """RelativeResult body versions the decoder accepts (docs/protocol.md §3)."""
 
 class TargetStatus(IntEnum):
@@ -37,11 +40,16 @@ class TargetStatus(IntEnum):
     ATTITUDE_UNCERTAIN = 5   # a vehicle's heading/attitude is not determined (e.g. pending at a standstill start)
     SIGMA_EXCEEDED = 6       # predicted relative sigma beyond the configured limit
     CLOCK_UNSYNCED = 7       # a service's clock is off GNSS time beyond the configured bound
-    INCONSISTENT = 8         # a filter's own consistency checks (NIS, whiteness) show an undeclared effect
+    INCONSISTENT = 8         # a filter's consistency test failed (NIS, innovation mean, solution separation)
+    UNVERIFIED = 9           # a filter passes its tests but is not verified yet (protection level above its limit)
 
 
 KINEMATIC_STATUSES = frozenset({TargetStatus.VALID, TargetStatus.ATTITUDE_UNCERTAIN, TargetStatus.SIGMA_EXCEEDED,
-                                TargetStatus.CLOCK_UNSYNCED, TargetStatus.INCONSISTENT})
+                                TargetStatus.CLOCK_UNSYNCED, TargetStatus.INCONSISTENT, TargetStatus.UNVERIFIED})
+LAST_STATUS_OF_SCHEMA = {1: TargetStatus.FUTURE, 2: TargetStatus.INCONSISTENT, 3: TargetStatus.UNVERIFIED}
+"""The highest status code each RelativeResult schema version defines."""
+MAX_REASON_CODE = 63
+"""Largest filter reason code on the wire (``v2xpos.types.FilterReason``; newer codes stay numbers)."""
 """Statuses whose results carry computed kinematics (only VALID may be used as a reference)."""
 
 
@@ -71,7 +79,12 @@ class RelativeResult:
     ``latency_s`` = master time - target time of validity. ``master_fix`` / ``target_fix``: fix
     status of the master state and of the target message the result was computed from (on every
     status; NONE when that side has no state yet). ``rel_yaw_sd_rad``: 1-sigma of the relative yaw
-    (``rel_rpy_rad[2]``), NaN without kinematics.
+    (``rel_rpy_rad[2]``), NaN without kinematics. ``reason_side``: which vehicle made a non-VALID
+    status (MASTER, SLAVE = the target, or both; NONE when the status is not a vehicle's own, e.g.
+    TIMEOUT or SIGMA_EXCEEDED; FIX_INVALID keeps using ``fix_side``); ``master_reason`` /
+    ``target_reason``: the ``v2xpos.types.FilterReason`` codes of the two filters (0: OK or not
+    given); ``protection_m``: horizontal protection level of the relative position, the sum of the
+    two vehicles' (NaN when either has none).
     """
     target_id: str = ""
     target_kind: str = "vehicle"
@@ -103,6 +116,10 @@ class RelativeResult:
     master_fix: FixStatus = FixStatus.NONE
     target_fix: FixStatus = FixStatus.NONE
     rel_yaw_sd_rad: float = math.nan
+    reason_side: FixSide = FixSide.NONE
+    master_reason: int = 0
+    target_reason: int = 0
+    protection_m: float = math.nan
 
     @property
     def bearing_deg(self) -> float:
@@ -131,6 +148,43 @@ class RelativeResult:
         return True
 
 
+def reason_name(code: int) -> str:
+    """Name of a filter reason code (``FilterReason``), or the number for a code this version lacks."""
+    try:
+        return FilterReason(int(code)).name
+    except ValueError:
+        return str(int(code))
+
+
+_SIDE_WORD = {FixSide.MASTER: "master", FixSide.SLAVE: "target", FixSide.MASTER | FixSide.SLAVE: "both"}
+
+
+def reason_text(res: RelativeResult) -> str:
+    """Which vehicle made a result's status and why, as ``results.csv`` writes it: empty for VALID;
+    ``target:SETUP_UNVERIFIED``, ``master:TEST_POSITION``, ``master:COASTING;target:OK``, ``both:CLOCK``
+    (a clock alarm or unsynchronised clocks), ``master:FIX``/``target:FIX`` (the RTK gate); for a
+    status that is no vehicle's own (TIMEOUT, NO_DATA, FUTURE, SIGMA_EXCEEDED) the status alone."""
+    status = res.status
+    if status == TargetStatus.VALID:
+        return ""
+    if status == TargetStatus.FIX_INVALID:
+        side = res.fix_side
+        return ";".join(f"{w}:FIX" for bit, w in ((FixSide.MASTER, "master"), (FixSide.SLAVE, "target"))
+                        if side & bit) or status.name
+    side = res.reason_side
+    if not side:
+        return status.name
+    if status == TargetStatus.CLOCK_UNSYNCED or status in (TargetStatus.TIMEOUT, TargetStatus.NO_DATA):
+        return f"{_SIDE_WORD[side]}:CLOCK"
+    parts = []
+    if side & FixSide.MASTER:
+        parts.append(f"master:{reason_name(res.master_reason) if res.master_reason else status.name}")
+    if side & FixSide.SLAVE:
+        parts.append(f"target:{reason_name(res.target_reason) if res.target_reason else status.name}")
+    return ";".join(parts)
+
+
+
 def encode_relative_body(res: RelativeResult) -> bytes:
     """The msgpack body of a RelativeResult (schema ``RELATIVE_SCHEMA_VERSION``)."""
     body = {"T": "relative", "ver": RELATIVE_SCHEMA_VERSION, "fleet": res.fleet, "master": res.master_id,
@@ -138,6 +192,14 @@ def encode_relative_body(res: RelativeResult) -> bytes:
             "src_seq": int(res.source_seq), "t": float(res.t_gps_s), "status": int(res.status),
             "fix_side": int(res.fix_side), "degraded": bool(res.degraded),
             "mfix": int(res.master_fix), "tfix": int(res.target_fix)}
+    if res.reason_side:
+        body["rside"] = int(res.reason_side)
+    if res.master_reason:
+        body["mrsn"] = int(res.master_reason)
+    if res.target_reason:
+        body["trsn"] = int(res.target_reason)
+    if math.isfinite(res.protection_m):
+        body["pl"] = float(res.protection_m)
     if math.isfinite(res.latency_s):
         body["lat_s"] = float(res.latency_s)
     if res.t_sent_wall_s is not None:
@@ -161,15 +223,15 @@ def encode_relative(res: RelativeResult, sign: Signer | None = None) -> bytes:
 
 
 def decode_relative_body(body: bytes) -> RelativeResult:
-    """Validated RelativeResult from its msgpack body (schema 1 or 2, see RELATIVE_SCHEMA_VERSIONS)."""
+    """Validated RelativeResult from its msgpack body (a schema of RELATIVE_SCHEMA_VERSIONS)."""
     m = unpack_body(body, "relative", RELATIVE_SCHEMA_VERSIONS)
     ver = m["ver"]
     try:
         status = TargetStatus(uint(m, "status", 255))
     except ValueError:
         raise WireError("unknown target status", "status") from None
-    if ver == 1 and status > TargetStatus.FUTURE:
-        raise WireError(f"status {int(status)} does not exist in schema 1", "status")
+    if status > LAST_STATUS_OF_SCHEMA[ver]:
+        raise WireError(f"status {int(status)} does not exist in schema {ver}", "status")
     side = uint(m, "fix_side", 3)
     degraded = m.get("degraded", False)
     if type(degraded) is not bool:
@@ -186,6 +248,11 @@ def decode_relative_body(body: bytes) -> RelativeResult:
     if ver >= 2:
         res.master_fix = fix_field(m, "mfix")
         res.target_fix = fix_field(m, "tfix")
+    if ver >= 3:
+        res.reason_side = FixSide(uint(m, "rside", 3)) if "rside" in m else FixSide.NONE
+        res.master_reason = uint(m, "mrsn", MAX_REASON_CODE) if "mrsn" in m else 0
+        res.target_reason = uint(m, "trsn", MAX_REASON_CODE) if "trsn" in m else 0
+        res.protection_m = num(m, "pl", 0.0, MAX_SD) if "pl" in m else math.nan
     kin = m.get("kin")
     if status in KINEMATIC_STATUSES:
         if type(kin) is not dict:

@@ -16,15 +16,22 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from v2xpos.types import FixStatus, NavState
+from v2xpos.types import FilterReason, FixStatus, NavState
 
 from .envelope import Signer, seal, unpack_envelope
 from .fields import (FIX_BY_CODE, KINDS, MAX_ACC_MPS2, MAX_GEOMETRY_M, MAX_GEOMETRY_POINTS, MAX_HEIGHT_M,
                      MAX_RATE_RPS, MAX_SD, MAX_SPEED_MPS, MAX_T_GPS_S, MIN_HEIGHT_M, WireError, f3, get_field,
                      ident, num, opt_num, uint, unpack_body, vec3_list)
 
-SCHEMA_VERSION = 1
-"""Version of the StateMessage body (``ver``)."""
+SCHEMA_VERSION = 2
+"""Version of the StateMessage body the encoder writes (``ver``): 2 adds the sender's filter reason
+(``rsn``, ``v2xpos.types.FilterReason``), its horizontal protection level (``pl``) and its session
+GPS time at publishing (``ts``)."""
+SCHEMA_VERSIONS = (1, 2)
+"""StateMessage body versions the decoder accepts; a version-1 body decodes with reason 0 (none
+given), protection level NaN and no send time (docs/protocol.md)."""
+MAX_REASON_CODE = 63
+"""Largest filter reason code on the wire (codes a newer sender adds decode as numbers)."""
 STATE_FLAG_ATTITUDE_UNDETERMINED = 1
 """State flag bit: the sender's attitude (heading) is not determined yet (e.g. pending at a stop)."""
 STATE_FLAG_TIME_UNSYNCED = 2
@@ -107,6 +114,13 @@ class StateMessage:
     pos_corr: np.ndarray = field(default_factory=lambda: np.zeros(3))
     consistent: bool = True
     verified: bool = True
+    reason: int = 0
+    """``v2xpos.types.FilterReason`` code of the sender's filter (0: OK or not given)."""
+    protection_m: float = math.nan
+    """Sender's horizontal protection level [m] (NaN: none computed or not given)."""
+    t_sent_gps_s: float | None = None
+    """Sender's session GPS time when it published the message [s] (the master compares it with
+    its own clock: ``master.clock_check``)."""
 
     @property
     def lla(self) -> np.ndarray:
@@ -123,10 +137,12 @@ class StateMessage:
             return NotImplemented
         scalars = ("fleet", "vehicle_id", "seq", "t_gps_s", "fix", "lat_rad", "lon_rad", "height_m",
                    "geometry", "kind", "schema", "t_sent_wall_s", "imu_quality", "sig", "key_id",
-                   "attitude_ok", "time_ok", "consistent", "verified")
+                   "attitude_ok", "time_ok", "consistent", "verified", "reason", "t_sent_gps_s")
         arrays = ("v_ned_mps", "acc_body_mps2", "rate_body_rps", "rpy_rad", "pos_sd_m",
                   "vel_sd_mps", "att_sd_rad", "pos_corr")
+        pl_a, pl_b = self.protection_m, other.protection_m
         return (all(getattr(self, k) == getattr(other, k) for k in scalars)
+                and (pl_a == pl_b or (math.isnan(pl_a) and math.isnan(pl_b)))
                 and all(np.array_equal(getattr(self, k), getattr(other, k)) for k in arrays))
 
     @classmethod
@@ -144,7 +160,8 @@ class StateMessage:
                    geometry=geometry if geometry is not None else Geometry(), kind=kind,
                    t_sent_wall_s=t_sent_wall_s, attitude_ok=bool(getattr(nav, "attitude_ok", True)),
                    time_ok=bool(time_ok), pos_corr=_vec(getattr(nav, "pos_corr", (0.0, 0.0, 0.0))),
-                   consistent=bool(getattr(nav, "consistent", True)), verified=bool(getattr(nav, "verified", True)))
+                   consistent=bool(getattr(nav, "consistent", True)), verified=bool(getattr(nav, "verified", True)),
+                   reason=int(getattr(nav, "reason", 0)), protection_m=float(getattr(nav, "protection_m", math.nan)))
 
     def to_nav_state(self) -> NavState:
         """The kinematic content as a NavState."""
@@ -153,7 +170,16 @@ class StateMessage:
                         rpy_rad=self.rpy_rad.copy(), pos_sd_m=self.pos_sd_m.copy(),
                         vel_sd_mps=self.vel_sd_mps.copy(), att_sd_rad=self.att_sd_rad.copy(),
                         fix=FixStatus(self.fix), attitude_ok=self.attitude_ok, pos_corr=self.pos_corr.copy(),
-                        consistent=self.consistent, verified=self.verified)
+                        consistent=self.consistent, verified=self.verified, reason=_filter_reason(self.reason),
+                        protection_m=self.protection_m)
+
+
+def _filter_reason(code: int) -> "FilterReason | int":
+    """The FilterReason of a wire code (a code this version does not know stays a number)."""
+    try:
+        return FilterReason(code)
+    except ValueError:
+        return code
 
 
 def _geometry_map(g: Geometry) -> dict:
@@ -180,6 +206,13 @@ def encode_state_body(msg: StateMessage) -> bytes:
     pc = msg.pos_corr
     if pc[0] != 0.0 or pc[1] != 0.0 or pc[2] != 0.0:
         body["pc"] = f3(pc)
+    if msg.schema >= 2:
+        if msg.reason:
+            body["rsn"] = int(msg.reason)
+        if math.isfinite(msg.protection_m):
+            body["pl"] = float(msg.protection_m)
+        if msg.t_sent_gps_s is not None:
+            body["ts"] = float(msg.t_sent_gps_s)
     return msgpack.packb(body, use_bin_type=True)
 
 
@@ -245,7 +278,7 @@ def _validate_geometry(g: dict) -> Geometry:
 
 def decode_state_body(body: bytes) -> StateMessage:
     """Validated StateMessage from its msgpack body (no envelope)."""
-    m = unpack_body(body, "state", (SCHEMA_VERSION,))
+    m = unpack_body(body, "state", SCHEMA_VERSIONS)
     fix_code = uint(m, "fix", 255)
     fix = FIX_BY_CODE.get(fix_code)
     if fix is None:
@@ -276,6 +309,11 @@ def decode_state_body(body: bytes) -> StateMessage:
     t_sent = opt_num(m, "tw", 0.0, MAX_T_GPS_S)
     flags = uint(m, "fl", 255) if "fl" in m else 0
     pos_corr = np.array(vec3_list(m, "pc", 1.0), dtype=float) if "pc" in m else np.zeros(3)
+    reason, protection, t_sent_gps = 0, math.nan, None
+    if m["ver"] >= 2:
+        reason = uint(m, "rsn", MAX_REASON_CODE) if "rsn" in m else 0
+        protection = num(m, "pl", 0.0, MAX_SD) if "pl" in m else math.nan
+        t_sent_gps = opt_num(m, "ts", 0.0, MAX_T_GPS_S)
     msg = StateMessage.__new__(StateMessage)
     msg.__dict__.update(
         fleet=fleet, vehicle_id=vehicle_id, seq=seq, t_gps_s=t_gps_s, fix=fix, lat_rad=lat, lon_rad=lon,
@@ -283,7 +321,8 @@ def decode_state_body(body: bytes) -> StateMessage:
         pos_sd_m=vecs[4], vel_sd_mps=vecs[5], att_sd_rad=vecs[6], geometry=geometry, kind=kind,
         schema=m["ver"], t_sent_wall_s=t_sent, imu_quality=iq, sig=None, key_id=None, signed_payload=None,
         attitude_ok=not flags & STATE_FLAG_ATTITUDE_UNDETERMINED, time_ok=not flags & STATE_FLAG_TIME_UNSYNCED,
-        pos_corr=pos_corr, consistent=not flags & STATE_FLAG_INCONSISTENT, verified=not flags & STATE_FLAG_UNVERIFIED)
+        pos_corr=pos_corr, consistent=not flags & STATE_FLAG_INCONSISTENT, verified=not flags & STATE_FLAG_UNVERIFIED,
+        reason=reason, protection_m=protection, t_sent_gps_s=t_sent_gps)
     return msg
 
 

@@ -1,0 +1,101 @@
+"""The ``[verification]`` table of a dataset descriptor or a vehicle config: a set-up (antenna lever
+arm, IMU mounting, and the effects of a ``[calibration]`` table) verified on an earlier drive.
+
+A vehicle's filter carries the hypothesis that its declared set-up is wrong (``v2xpos.ins.integrity``)
+with a prior probability: that of a blunder for a set-up never checked, that of a change since for
+one verified before (``InsConfig.setup_fault_prior`` / ``setup_change_prior``). A lever-arm error
+shows only when the vehicle turns, so an unverified vehicle is vouched for only after its first
+turns; a verified one from its first metres. The record says what was verified, on which drive,
+to which protection level::
+
+    [verification]
+    verified = true
+    drive = "convoy_dev/B/dataset.toml"        # the recording (or session) that verified it
+    date = "2026-11-27"                         # when (ISO 8601)
+    protection_m = 0.11                         # the horizontal protection level at the end of it
+    alert_limit_m = 0.30                        # against this alert limit
+    software = "v2xpos 0.1.0 (git 1a2b3c4)"     # optional
+
+Written by ``v2xpos calibrate --write-dataset`` (the calibrated set-up replayed through the
+services' filter) and by a service at the end of a session when its config asks for it; read by
+``v2xpos.ins.calibrated.ins_config``. A failed consistency test re-opens it for the rest of the
+drive (``InsFilter._on_inconsistency``). Unknown keys are rejected with the table and the key named.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+KEYS = ("verified", "drive", "date", "protection_m", "alert_limit_m", "software")
+
+
+class VerificationError(ValueError):
+    """A ``[verification]`` table that cannot be used; the message names where and the key."""
+
+
+@dataclass
+class VerificationRecord:
+    """A parsed ``[verification]`` table (see the module docstring)."""
+    verified: bool
+    drive: str = ""
+    date: str = ""
+    protection_m: float = math.nan
+    alert_limit_m: float = math.nan
+    software: str | None = None
+
+    def to_toml(self) -> str:
+        """The table as TOML text (``[verification]`` header included), parseable by
+        :func:`parse_verification`."""
+        import tomli_w
+        body = {"verified": bool(self.verified), "drive": self.drive, "date": self.date}
+        for key in ("protection_m", "alert_limit_m"):
+            v = getattr(self, key)
+            if math.isfinite(v):
+                body[key] = round(float(v), 4)
+        if self.software:
+            body["software"] = self.software
+        return tomli_w.dumps({"verification": body})
+
+
+def parse_verification(table: Any, where: str) -> VerificationRecord:
+    """A ``VerificationRecord`` from the TOML table ``table``; VerificationError naming ``where``."""
+    from v2xpos.datasets.calibration import did_you_mean
+    if not isinstance(table, dict):
+        raise VerificationError(f"{where}: expected a table")
+    for key in table:
+        if key not in KEYS:
+            raise VerificationError(f"{where}: unknown key {key!r}{did_you_mean(key, KEYS)}; allowed {list(KEYS)}")
+    if not isinstance(table.get("verified"), bool):
+        raise VerificationError(f"{where}.verified: required: true or false")
+    out = VerificationRecord(verified=table["verified"])
+    for key in ("drive", "date", "software"):
+        v = table.get(key)
+        if v is not None and not isinstance(v, str):
+            raise VerificationError(f"{where}.{key}: expected a string, got {v!r}")
+        if v is not None:
+            setattr(out, key, v)
+    for key in ("protection_m", "alert_limit_m"):
+        v = table.get(key)
+        if v is None:
+            continue
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)) or float(v) < 0:
+            raise VerificationError(f"{where}.{key}: expected a number >= 0 [m], got {v!r}")
+        setattr(out, key, float(v))
+    return out
+
+
+def record_from_filter(flt: Any, drive: str, software: str | None = None) -> VerificationRecord:
+    """What a filter at the end of a drive can vouch for: verified when its set-up hypothesis ran,
+    its protection level is within the alert limit and no consistency test is failed (an excluded
+    declaration is not a verified one: the set-up that drive found is in the calibration it
+    calls for, not in the declaration)."""
+    import datetime
+    sep = getattr(flt, "separation", None)
+    pl = float(sep.protection_m) if sep is not None and sep.active else math.nan
+    limit = float(flt.cfg.alert_limit_m)
+    ok = (sep is not None and sep.active and not sep.excluded and math.isfinite(pl) and pl <= limit
+          and not flt.consistency.failed)
+    return VerificationRecord(verified=bool(ok), drive=str(drive),
+                              date=datetime.datetime.now(datetime.timezone.utc).date().isoformat(),
+                              protection_m=pl, alert_limit_m=limit, software=software)
