@@ -12,8 +12,19 @@ in-process loop (``in_process.feed_pipeline``): ``results.csv`` from the smoothe
 column ``smoothed`` (1 when both the master's and the target's state are smoothed), and
 ``results_forward.csv`` from the forward states (what ``convoy --in-process`` writes). The
 pipeline forms each result's status from these states as from live ones: fix gate, attitude,
-clock, the filter's own consistency and verification flags (the forward filter's: smoothing does
-not repair a model the data rejected), and the smoothed sigma against the validity limits.
+clock, the filter's own consistency and verification flags, and the smoothed sigma against the
+validity limits.
+
+Flags: a forward state's consistency and verification flags vouch for the data up to it; a
+smoothed state also uses the data after it -- above all, in a GNSS gap, the fixes that close the
+gap. So a smoothed state is consistent (verified) only while the forward filter was, from it
+until one consistency-test window (``InsConfig.consistency_window_s``, the time the test takes to
+judge an innovation) after the first GNSS position used after it; its reason is the first failing
+state's (``smoothed_flags``). The smoother computes no protection level of its own: a smoothed
+state carries none (NaN). Without
+it, on drive_0708 re-stamped 1.5 s later with B's default outages, four smoothed rows at the end
+of one outage were VALID 0.3 m off with sds of 5-7 cm: the first fix after that gap was accepted,
+the next eight rejected (NIS 35-107), and the forward test failed only then.
 
 Time labels: a forward state is labelled with the filter's running estimate of the IMU time offset,
 which differs between two filters of the same drive by the tens of milliseconds it has still to
@@ -29,11 +40,12 @@ the gap (dead reckoning when no fix follows).
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from v2xpos.types import FixStatus, NavState
+from v2xpos.types import FilterReason, FixStatus, NavState
 
 
 class StoredStates:
@@ -81,6 +93,7 @@ class SmoothedVehicle:
         self.t_begin_gps_s, self.t_end_gps_s = src.t_begin_gps_s, src.t_end_gps_s
         self.forward: list[NavState] = []
         release, last_fix, last_gnss, timing = [], [], [], []
+        window_s = f.cfg.consistency_window_s
         i_dt = f.layout.at("imu_time_offset")
         for t_k in np.asarray(src.ds.imu.t_s, float):
             for st in src.advance(float(t_k)):
@@ -100,6 +113,7 @@ class SmoothedVehicle:
         self.dt_error_s = sm.dx[:, i_dt].astype(float) if i_dt >= 0 else None
         self.fix = smoothed_fix(np.array([int(s.fix) for s in self.forward], int), np.asarray(last_fix, int),
                                 np.asarray(last_gnss, float))
+        self.flags = smoothed_flags(self.forward, np.asarray(last_gnss, float), window_s)
         self.nodes, self.segments, self.stored_mib = rec.nodes, len(rec.segments), rec.stored_bytes / 2 ** 20
         self.segment_times = rec.segment_times()
 
@@ -108,10 +122,14 @@ class SmoothedVehicle:
         if not self.is_smoothed[k]:
             return self.forward[k]
         from v2xpos.ins.smoother import smoothed_nav_state
+        consistent, verified, reason = (x[k] for x in self.flags)
         if self.timing is None:
-            return smoothed_nav_state(self.forward[k], self.y[k], self.cov[k], FixStatus(int(self.fix[k])))
-        return smoothed_nav_state(self.forward[k], self.y[k], self.cov[k], FixStatus(int(self.fix[k])),
-                                  self.dt_error_s[k], self.timing[k])
+            st = smoothed_nav_state(self.forward[k], self.y[k], self.cov[k], FixStatus(int(self.fix[k])))
+        else:
+            st = smoothed_nav_state(self.forward[k], self.y[k], self.cov[k], FixStatus(int(self.fix[k])),
+                                    self.dt_error_s[k], self.timing[k])
+        return replace(st, consistent=bool(consistent), verified=bool(verified), reason=FilterReason(int(reason)),
+                       protection_m=float("nan"))
 
 
 def smoothed_fix(forward_fix: np.ndarray, last_fix: np.ndarray, last_gnss_t_s: np.ndarray) -> np.ndarray:
@@ -126,6 +144,40 @@ def smoothed_fix(forward_fix: np.ndarray, last_fix: np.ndarray, last_gnss_t_s: n
                         int(FixStatus.DEAD_RECKONING))
     gap = forward_fix == int(FixStatus.DEAD_RECKONING)
     return np.where(gap, np.minimum(last_fix, next_fix), forward_fix)
+
+
+def _next_change_time(last_gnss_t_s: np.ndarray) -> np.ndarray:
+    """Per state (time order): the time of the first GNSS position used after it (inf if none)."""
+    n = len(last_gnss_t_s)
+    change = np.flatnonzero(np.diff(last_gnss_t_s) != 0) + 1
+    j = np.searchsorted(change, np.arange(n), side="right")
+    return np.where(j < len(change), last_gnss_t_s[change[np.minimum(j, max(len(change) - 1, 0))]]
+                    if len(change) else np.inf, np.inf)
+
+
+def _first_bad_from(bad: np.ndarray) -> np.ndarray:
+    """For each index k the first index >= k where ``bad`` holds (len(bad) if none)."""
+    n = len(bad)
+    idx = np.where(bad, np.arange(n), n)
+    return np.minimum.accumulate(idx[::-1])[::-1]
+
+
+def smoothed_flags(states: list[NavState], last_gnss_t_s: np.ndarray, window_s: float) -> tuple:
+    """(consistent, verified, reason) of each smoothed state (module docstring, "Flags"): the forward
+    flags over [t, first GNSS position used after t + ``window_s``]."""
+    n = len(states)
+    if not n:
+        return np.zeros(0, bool), np.zeros(0, bool), np.zeros(0, int)
+    t = np.array([s.t_s for s in states], float)
+    cons = np.array([s.consistent for s in states], bool)
+    ver = np.array([s.verified for s in states], bool)
+    reason = np.array([int(s.reason) for s in states], int)
+    end = np.maximum(t, _next_change_time(np.asarray(last_gnss_t_s, float))) + window_s
+    j = np.searchsorted(t, end, side="right")
+    first_c, first_v, first_any = _first_bad_from(~cons), _first_bad_from(~ver), _first_bad_from(~(cons & ver))
+    consistent, verified = first_c >= j, first_v >= j
+    bad_at = np.minimum(first_any, n - 1)
+    return consistent, verified, np.where(first_any < j, reason[bad_at], reason)
 
 
 def run_in_process_smoothed(out: Path, master: tuple, slaves: list[tuple], rate_hz: float = 100.0,

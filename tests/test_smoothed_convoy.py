@@ -122,3 +122,21 @@ def test_smooth_needs_in_process(tmp_path, capsys):
     assert main(["bench", "real-pair", str(DEV / "A" / "dataset.toml"), "--smooth", "--link"]) == 2
     assert main(["bench", "real-pair", str(DEV / "A" / "dataset.toml"), "--smooth", "--outage", "10"]) == 2
     assert "START:LENGTH" in capsys.readouterr().err
+
+
+def test_smoothed_flags_cover_the_data_after_the_state():
+    """A smoothed state is consistent only if the forward filter stayed consistent from it until one
+    test window after the first fix that follows it: in a gap, after the gap's end."""
+    from master.smoothed_convoy import smoothed_flags
+    from v2xpos.types import FilterReason, NavState
+    t = np.arange(0.0, 20.0, 1.0)
+    bad = t == 12.0                        # the forward test fails at 12 s
+    states = [NavState(t_s=float(x), lla=np.zeros(3), v_ned_mps=np.zeros(3), acc_body_mps2=np.zeros(3),
+                       rate_body_rps=np.zeros(3), rpy_rad=np.zeros(3), consistent=not b,
+                       reason=FilterReason.TEST_POSITION if b else FilterReason.OK) for x, b in zip(t, bad)]
+    last_gnss = np.where(t < 3, t, np.where(t < 10, 2.0, t))   # a gap from 3 s to 10 s, fixes after it
+    cons, ver, reason = smoothed_flags(states, last_gnss, window_s=2.0)
+    # from the last fix before the gap (2 s) the next fix is the gap's end (10 s): the horizon reaches
+    # 10 + 2 = 12 s, the failure; aided (from 10 s) it is the next fix + 2 s
+    assert cons.tolist() == [True] * 2 + [False] * 11 + [True] * 7
+    assert ver.all() and reason[5] == FilterReason.TEST_POSITION and reason[15] == FilterReason.OK
