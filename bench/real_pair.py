@@ -396,7 +396,7 @@ def parse_outages(values: list[str] | None, smooth: bool) -> tuple:
 
 def compare_smoothed(forward: dict, smoothed: dict, t0_s: float, outages: tuple) -> dict:
     """Forward against smoothed results of one delay (``score_pair`` of each, with their series):
-    over the epochs both computed, and at the scored epochs inside B's outages (``t0_s``: B's first
+    over the epochs both computed, over those VALID in both, and at the scored epochs inside B's outages (``t0_s``: B's first
     epoch, where the outages' starts count from), where the forward pipeline gives no kinematics
     (B dead reckoning: FIX_INVALID)."""
     fs, ss = forward.get("series"), smoothed.get("series")
@@ -406,8 +406,10 @@ def compare_smoothed(forward: dict, smoothed: dict, t0_s: float, outages: tuple)
     common, i_f, i_s = np.intersect1d(tf, ts, return_indices=True)
     ef, es = np.asarray(fs["err_m"])[i_f], np.asarray(ss["err_m"])[i_s]
     both = np.isfinite(ef) & np.isfinite(es)
-    out = {"both_computed": {"forward": _figures(ef[both], np.asarray(fs["sd_m"])[i_f][both]),
-                             "smoothed": _figures(es[both], np.asarray(ss["sd_m"])[i_s][both])}}
+    sdf, sds = np.asarray(fs["sd_m"])[i_f], np.asarray(ss["sd_m"])[i_s]
+    valid = both & (np.asarray(fs["status"])[i_f] == "VALID") & (np.asarray(ss["status"])[i_s] == "VALID")
+    out = {"both_computed": {"forward": _figures(ef[both], sdf[both]), "smoothed": _figures(es[both], sds[both])},
+           "both_valid": {"forward": _figures(ef[valid], sdf[valid]), "smoothed": _figures(es[valid], sds[valid])}}
     inside = np.zeros(len(ts), bool)
     for a, n in outages:
         inside |= (ts - t0_s >= a) & (ts - t0_s < a + n)
@@ -519,9 +521,12 @@ def run_bench(args: argparse.Namespace) -> int:
             cmp = score["smoothing"]
             if cmp:
                 bf, bs = cmp["both_computed"]["forward"], cmp["both_computed"]["smoothed"]
+                vf, vs = cmp["both_valid"]["forward"], cmp["both_valid"]["smoothed"]
                 ins = cmp["inside_outages"]
                 print(f"  epochs both computed: n {bf['n']}  RMS forward {_fmt(bf['rms_m'])} m, smoothed "
                       f"{_fmt(bs['rms_m'])} m; max forward {_fmt(bf['max_m'])} m, smoothed {_fmt(bs['max_m'])} m\n"
+                      f"  epochs VALID in both: n {vf['n']}  RMS forward {_fmt(vf['rms_m'])} m, smoothed "
+                      f"{_fmt(vs['rms_m'])} m; max forward {_fmt(vf['max_m'])} m, smoothed {_fmt(vs['max_m'])} m\n"
                       f"  inside B's outages: {ins['scored']} scored epochs, forward computed {ins['forward_computed']}, "
                       f"smoothed n {ins['smoothed']['n']}  RMS {_fmt(ins['smoothed']['rms_m'])} m  max "
                       f"{_fmt(ins['smoothed']['max_m'])} m  within 3 sd {_fmt(ins['smoothed']['within_3sd'], 3)}  "

@@ -93,8 +93,9 @@ def test_smoothed_convoy_on_a_generated_pair_with_outages(tmp_path):
 @needs_shared(DRIVE)
 def test_real_pair_smoothed_at_least_as_accurate_as_forward(tmp_path):
     """drive_0708 and itself 1.5 s later, B without GNSS for 15 s: over the epochs both runs computed
-    the smoothed range error is not worse than the forward one (RMS and max), and inside B's outage
-    the smoothed pair gives results where the forward one gives none."""
+    the smoothed range error is not worse than the forward one (RMS and max), nor over those VALID in
+    both; inside B's outage the smoothed pair gives results where the forward one gives none; no
+    smoothed VALID row beyond max(0.3 m, 4 sd)."""
     out = tmp_path / "rp.json"
     assert main(["bench", "real-pair", str(DRIVE), "--delay", "1.5", "--smooth", "--outage", "100:15",
                  "--json", str(out)]) == 0
@@ -103,6 +104,8 @@ def test_real_pair_smoothed_at_least_as_accurate_as_forward(tmp_path):
     assert both["forward"]["n"] > 300
     assert both["smoothed"]["rms_m"] <= both["forward"]["rms_m"]
     assert both["smoothed"]["max_m"] <= both["forward"]["max_m"]
+    valid = d["smoothing"]["both_valid"]
+    assert valid["forward"]["n"] > 100 and valid["smoothed"]["rms_m"] <= valid["forward"]["rms_m"]
     ins = d["smoothing"]["inside_outages"]
     assert ins["smoothed"]["n"] > ins["forward_computed"]
     assert d["smoothed"]["violations"] == 0
