@@ -24,6 +24,11 @@ reference may ever be), and a plot of the range error and the status over time.
 The pair goes through the master pipeline in one process (``master.convoy.run_in_process``, the
 default) or, with ``--link``, as a master and a slave process over zenoh on loopback
 (``master.convoy.run_processes``, at ``--speed`` times real time).
+
+``--smooth`` (in process): B gets GNSS outages (``--outage``; by default the replay's schedule), the
+pair runs once forward and once from both vehicles' smoothed states (``master.smoothed_convoy``),
+and both are scored: every computed and VALID row of each, the epochs both computed, and the
+smoothed rows inside B's outages (where the forward pipeline has none: B is dead reckoning).
 """
 from __future__ import annotations
 
@@ -84,11 +89,26 @@ def _shift_pos_line(line: str, delay_s: float) -> str:
     return line[:i] + new + line[i + len(head):]
 
 
-def restamp_dataset(toml_path: str | Path, delay_s: float, out_dir: Path, name: str) -> Path:
+def _pos_line_time_s(line: str) -> float:
+    """Time of an RTKLIB solution line [s] (calendar: POSIX seconds of the stamp as written; week/tow:
+    GPS seconds) -- only differences of it are used."""
+    import datetime
+    tok = line.split()
+    if "/" in tok[0]:
+        fmt = "%Y/%m/%d %H:%M:%S" + (".%f" if "." in tok[1] else "")
+        t = datetime.datetime.strptime(f"{tok[0]} {tok[1]}", fmt).replace(tzinfo=datetime.timezone.utc)
+        return t.timestamp()
+    return int(tok[0]) * 604800.0 + float(tok[1])
+
+
+def restamp_dataset(toml_path: str | Path, delay_s: float, out_dir: Path, name: str,
+                    outages: tuple = ()) -> Path:
     """A copy of the recording ``toml_path`` re-stamped ``delay_s`` later, as ``out_dir/dataset.toml``
     named ``name``: the ``.pos`` epochs and the IMU TIMETAG's file-open time + delay (the IMU csv
     and its counter are the original's, read in place). A raw receiver stream is left out (its
-    own times would need re-stamping too; the recording source does not read it)."""
+    own times would need re-stamping too; the recording source does not read it). ``outages``:
+    (start, length) pairs [s from the first epoch]: the epochs inside [start, start + length) are
+    left out of the copy (a GNSS outage of this vehicle)."""
     import tomli_w
     from v2xpos.compat import tomllib
     src = Path(toml_path)
@@ -117,8 +137,14 @@ def restamp_dataset(toml_path: str | Path, delay_s: float, out_dir: Path, name: 
     struct.pack_into("<d", tag, TIMETAG_OPEN_OFFSET + 4, part)
     (out_dir / "imu.csv.tag").write_bytes(bytes(tag))
     lines = []
+    t_first = None
     for line in (base / gnss["file"]).read_text().splitlines(keepends=True):
         body = line.strip()
+        if body and not body.startswith("%") and outages:
+            t = _pos_line_time_s(line)
+            t_first = t if t_first is None else t_first
+            if any(a <= t - t_first < a + n for a, n in outages):
+                continue
         lines.append(line if not body or body.startswith("%") else _shift_pos_line(line, delay_s))
     (out_dir / "gnss.pos").write_text("".join(lines))
     imu["file"] = str(base / imu["file"])
@@ -274,18 +300,20 @@ def score_pair(results_csv: Path, target: str, truth: PairTruth) -> dict:
 
 # ---------------------------------------------------------------------------------------- running
 def run_pair(dataset: Path, delay_s: float, work: Path, link: bool = False, speed: float = 5.0,
-             log=sys.stderr) -> tuple[Path, str, dict]:
-    """Build the pair at ``delay_s`` in ``work`` and run it through the master pipeline; returns
-    (results.csv, B's id, the run's facts)."""
+             log=sys.stderr, smooth: bool = False, outages: tuple = ()) -> tuple[Path, str, dict]:
+    """Build the pair at ``delay_s`` in ``work`` (B without GNSS in ``outages``, ``restamp_dataset``)
+    and run it through the master pipeline; returns (results.csv, B's id, the run's facts). With
+    ``smooth`` the in-process run is the smoothed one (``master.smoothed_convoy``): results.csv from
+    the smoothed states, results_forward.csv beside it from the forward ones."""
     from master.convoy import dataset_identity, run_in_process, run_processes
     from v2xpos.datasets.loader import read_descriptor
     name = str(read_descriptor(dataset).get("name") or "A")
     b_name = f"{name}_plus{int(round(delay_s * 1000))}ms"
-    b_toml = restamp_dataset(dataset, delay_s, work / "B", b_name)
+    b_toml = restamp_dataset(dataset, delay_s, work / "B", b_name, outages)
     master, slave = dataset_identity(dataset), dataset_identity(b_toml)
     out = work / "run"
     facts = (run_processes(out, master, [slave], speed, log=log) if link
-             else run_in_process(out, master, [slave], log=log))
+             else run_in_process(out, master, [slave], log=log, smooth=smooth))
     return out / "results.csv", b_name, facts
 
 
@@ -334,6 +362,82 @@ def add_bench_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", help="write the figures to this JSON file")
     parser.add_argument("--plots", help="write one plot per delay into this directory")
     parser.add_argument("--keep", help="keep the pair and its results in this directory (default: a temporary one)")
+    parser.add_argument("--smooth", action="store_true",
+                        help="in process: also the results from both vehicles' smoothed states (master.smoothed_convoy), "
+                             "scored beside the forward ones, with GNSS outages in B (--outage)")
+    parser.add_argument("--outage", action="append", metavar="START:LENGTH",
+                        help="a GNSS outage of B [s from its first epoch] (repeatable; 'none' for none; default with "
+                             "--smooth: the replay's schedule, 15 s every 45 s from 40 s)")
+
+
+def parse_outages(values: list[str] | None, smooth: bool) -> tuple:
+    """(start, length) pairs from ``--outage`` values; without any, the replay's default schedule
+    (``OutageSchedule``) over a day when smoothing (only those inside the recording matter), else
+    none. ValueError naming a bad value."""
+    if not values:
+        if not smooth:
+            return ()
+        from v2xpos.ins.replay_engine import OutageSchedule
+        sched = OutageSchedule()
+        return tuple((a, sched.length_s) for a, _ in sched.intervals(0.0, 86400.0))
+    out = []
+    for v in values:
+        if v == "none":
+            continue
+        try:
+            a, n = (float(x) for x in v.split(":"))
+        except ValueError:
+            raise ValueError(f"--outage {v!r}: expected START:LENGTH in seconds, e.g. 100:15") from None
+        if not (a >= 0 and n > 0):
+            raise ValueError(f"--outage {v!r}: START must be >= 0 and LENGTH > 0")
+        out.append((a, n))
+    return tuple(out)
+
+
+def compare_smoothed(forward: dict, smoothed: dict, t0_s: float, outages: tuple) -> dict:
+    """Forward against smoothed results of one delay (``score_pair`` of each, with their series):
+    over the epochs both computed, over those VALID in both, and at the scored epochs inside B's outages (``t0_s``: B's first
+    epoch, where the outages' starts count from), where the forward pipeline gives no kinematics
+    (B dead reckoning: FIX_INVALID)."""
+    fs, ss = forward.get("series"), smoothed.get("series")
+    if fs is None or ss is None:
+        return {}
+    tf, ts = np.asarray(fs["t_s"]), np.asarray(ss["t_s"])
+    common, i_f, i_s = np.intersect1d(tf, ts, return_indices=True)
+    ef, es = np.asarray(fs["err_m"])[i_f], np.asarray(ss["err_m"])[i_s]
+    both = np.isfinite(ef) & np.isfinite(es)
+    sdf, sds = np.asarray(fs["sd_m"])[i_f], np.asarray(ss["sd_m"])[i_s]
+    valid = both & (np.asarray(fs["status"])[i_f] == "VALID") & (np.asarray(ss["status"])[i_s] == "VALID")
+    out = {"both_computed": {"forward": _figures(ef[both], sdf[both]), "smoothed": _figures(es[both], sds[both])},
+           "both_valid": {"forward": _figures(ef[valid], sdf[valid]), "smoothed": _figures(es[valid], sds[valid])}}
+    inside = np.zeros(len(ts), bool)
+    for a, n in outages:
+        inside |= (ts - t0_s >= a) & (ts - t0_s < a + n)
+    e_in, sd_in = np.asarray(ss["err_m"])[inside], np.asarray(ss["sd_m"])[inside]
+    ok = np.isfinite(e_in)
+    f_in = np.isin(tf, ts[inside]) & np.isfinite(np.asarray(fs["err_m"]))
+    out["inside_outages"] = {"scored": int(inside.sum()), "forward_computed": int(f_in.sum()),
+                             "smoothed": _figures(e_in[ok], sd_in[ok]),
+                             "smoothed_valid": int(np.sum(np.asarray(ss["status"])[inside][ok] == "VALID"))}
+    return out
+
+
+def _outages_within(outages: tuple, span_s: float) -> int:
+    return sum(1 for a, _ in outages if a < span_s)
+
+
+def _print_score(label: str, score: dict) -> None:
+    c, v = score["computed"], score["valid"]
+    print(f"  {label}every computed row: n {c['n']}  RMS {_fmt(c['rms_m'])} m  max {_fmt(c['max_m'])} m  "
+          f"bias {_fmt(c['bias_m'])} m  within 3 sd {_fmt(c['within_3sd'], 3)}\n"
+          f"  {label}VALID rows:         n {v['n']}  RMS {_fmt(v['rms_m'])} m  max {_fmt(v['max_m'])} m  "
+          f"bias {_fmt(v['bias_m'])} m  within 3 sd {_fmt(v['within_3sd'], 3)}  "
+          f"worst / max(0.3 m, 4 sd) {_fmt(v['worst_bound_ratio'], 3)}\n"
+          f"  {label}across A's course (heading check, RTK course as truth): every computed row RMS "
+          f"{_fmt((score.get('cross_range') or {}).get('computed', {}).get('rms_m'))} m, within 3 sd_y "
+          f"{_fmt((score.get('cross_range') or {}).get('computed', {}).get('within_3sd'), 3)}\n"
+          f"  {label}VALID share {100 * score['valid_share']:.1f} %  violations {score.get('violations', 0)}  "
+          f"statuses {score['status_counts']}", flush=True)
 
 
 def run_bench(args: argparse.Namespace) -> int:
@@ -355,9 +459,19 @@ def run_bench(args: argparse.Namespace) -> int:
     if not np.any(np.asarray(ds.gnss.fix) == FixStatus.FIXED):
         print(f"v2xpos bench real-pair: {gnss_file}: no RTK fixed epoch: nothing to score against", file=sys.stderr)
         return 2
+    if args.smooth and args.link:
+        print("v2xpos bench real-pair: --smooth runs in process (the smoother needs each whole recording); "
+              "leave out --link", file=sys.stderr)
+        return 2
+    try:
+        outages = parse_outages(args.outage, args.smooth)
+    except ValueError as exc:
+        print(f"v2xpos bench real-pair: {exc}", file=sys.stderr)
+        return 2
     keep = Path(args.keep).resolve() if args.keep else None
     report = {"dataset": str(dataset), "name": ds.name, "mode": "link" if args.link else "in_process",
-              "min_speed_mps": args.min_speed, "max_turn_deg": args.max_turn_deg, "delays": {}}
+              "min_speed_mps": args.min_speed, "max_turn_deg": args.max_turn_deg, "smoothed": bool(args.smooth),
+              "outages_b": [list(o) for o in outages], "delays": {}}
     plots = Path(args.plots) if args.plots else None
     if plots:
         plots.mkdir(parents=True, exist_ok=True)
@@ -374,33 +488,49 @@ def run_bench(args: argparse.Namespace) -> int:
             shutil.rmtree(work)
         t0 = time.time()
         try:
-            results, b_name, facts = run_pair(dataset, d, work, link=args.link, speed=args.speed)
-            score = score_pair(results, b_name, truth)
+            results, b_name, facts = run_pair(dataset, d, work, link=args.link, speed=args.speed, smooth=args.smooth,
+                                              outages=outages)
+            score = score_pair(results.with_name("results_forward.csv") if args.smooth else results, b_name, truth)
+            smoothed = score_pair(results, b_name, truth) if args.smooth else None
         except (OSError, ValueError) as exc:
             print(f"v2xpos bench real-pair: {exc}", file=sys.stderr)
             return 2
         finally:
             if not keep:
                 shutil.rmtree(work, ignore_errors=True)
+        if smoothed is not None:
+            t0_b = float(np.min(ds.gnss.t_s)) + d
+            score["smoothing"] = compare_smoothed(score, smoothed, t0_b, outages)
+            score["smoothing"]["pipeline"] = facts.get("smoothing")
+            sm_series = smoothed.pop("series")
+            score["smoothed"] = smoothed
+            if plots and sm_series is not None and len(sm_series["t_s"]):
+                plot_pair(sm_series, d, f"{ds.name} smoothed", plots / f"real_pair_{ds.name}_{d:g}s_smoothed.png")
         series = score.pop("series")
         if plots and series is not None and len(series["t_s"]):
             plot_pair(series, d, ds.name, plots / f"real_pair_{ds.name}_{d:g}s.png")
         score["wall_s"] = time.time() - t0
-        score["pipeline"] = {k: v for k, v in facts.items() if k in ("processed", "rejected", "exit_codes")}
+        score["pipeline"] = {k: v for k, v in facts.items() if k in ("processed", "rejected", "exit_codes", "forward")}
         report["delays"][f"{d:g}"] = score
-        c, v = score["computed"], score["valid"]
         print(f"delay {d:g} s: {score['scored_epochs']} epochs scored (left out {score['skipped']}, "
-              f"no result row {score['no_result_row']})\n"
-              f"  every computed row: n {c['n']}  RMS {_fmt(c['rms_m'])} m  max {_fmt(c['max_m'])} m  "
-              f"bias {_fmt(c['bias_m'])} m  within 3 sd {_fmt(c['within_3sd'], 3)}\n"
-              f"  VALID rows:         n {v['n']}  RMS {_fmt(v['rms_m'])} m  max {_fmt(v['max_m'])} m  "
-              f"bias {_fmt(v['bias_m'])} m  within 3 sd {_fmt(v['within_3sd'], 3)}  "
-              f"worst / max(0.3 m, 4 sd) {_fmt(v['worst_bound_ratio'], 3)}\n"
-              f"  across A's course (heading check, RTK course as truth): every computed row RMS "
-              f"{_fmt((score.get('cross_range') or {}).get('computed', {}).get('rms_m'))} m, within 3 sd_y "
-              f"{_fmt((score.get('cross_range') or {}).get('computed', {}).get('within_3sd'), 3)}\n"
-              f"  VALID share {100 * score['valid_share']:.1f} %  violations {score.get('violations', 0)}  "
-              f"statuses {score['status_counts']}  ({score['wall_s']:.0f} s)", flush=True)
+              f"no result row {score['no_result_row']}; {score['wall_s']:.0f} s)"
+              + (f", B without GNSS in {_outages_within(outages, span)} outage(s)" if outages else ""), flush=True)
+        _print_score("forward:  " if smoothed is not None else "", score)
+        if smoothed is not None:
+            _print_score("smoothed: ", smoothed)
+            cmp = score["smoothing"]
+            if cmp:
+                bf, bs = cmp["both_computed"]["forward"], cmp["both_computed"]["smoothed"]
+                vf, vs = cmp["both_valid"]["forward"], cmp["both_valid"]["smoothed"]
+                ins = cmp["inside_outages"]
+                print(f"  epochs both computed: n {bf['n']}  RMS forward {_fmt(bf['rms_m'])} m, smoothed "
+                      f"{_fmt(bs['rms_m'])} m; max forward {_fmt(bf['max_m'])} m, smoothed {_fmt(bs['max_m'])} m\n"
+                      f"  epochs VALID in both: n {vf['n']}  RMS forward {_fmt(vf['rms_m'])} m, smoothed "
+                      f"{_fmt(vs['rms_m'])} m; max forward {_fmt(vf['max_m'])} m, smoothed {_fmt(vs['max_m'])} m\n"
+                      f"  inside B's outages: {ins['scored']} scored epochs, forward computed {ins['forward_computed']}, "
+                      f"smoothed n {ins['smoothed']['n']}  RMS {_fmt(ins['smoothed']['rms_m'])} m  max "
+                      f"{_fmt(ins['smoothed']['max_m'])} m  within 3 sd {_fmt(ins['smoothed']['within_3sd'], 3)}  "
+                      f"VALID {ins['smoothed_valid']}", flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=1))
     return 0

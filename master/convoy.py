@@ -10,7 +10,10 @@ and ``DIR/logs``, the master's summary in ``DIR/master_summary.json``.
 
 ``--in-process`` runs the same recordings through the same master pipeline in one process
 without a link (each slave state evaluated against the master's state at the same session time):
-the reference that shows what processes, link and time handling cost.
+the reference that shows what processes, link and time handling cost. ``--in-process --smooth``
+forms the results from every vehicle's smoothed states instead (``master.smoothed_convoy``,
+docs/smoothing.md): ``results.csv`` with a trailing column ``smoothed``, the forward results in
+``results_forward.csv``.
 
 ``--truth truth_rel.csv`` scores the results (``v2xpos.diagnose.truth``); the vehicles'
 ``truth.csv`` are taken from beside their datasets when present. The score goes into
@@ -27,7 +30,7 @@ from pathlib import Path
 from v2xpos.launch import ServiceProcesses, free_tcp_port, free_udp_port, to_toml
 from v2xpos.stop_signals import interrupt_on_stop_signals
 
-STATUS_PERIOD_S = 5.0
+from master.in_process import STATUS_PERIOD_S, feed_pipeline
 
 
 class ConvoyError(RuntimeError):
@@ -172,49 +175,24 @@ def _watch_until_done(procs: ServiceProcesses, master: tuple, mcfg: dict, port: 
             watch.close()
 
 
-def run_in_process(out: Path, master: tuple, slaves: list[tuple], rate_hz: float = 100.0, log=sys.stderr) -> dict:
+def run_in_process(out: Path, master: tuple, slaves: list[tuple], rate_hz: float = 100.0, log=sys.stderr,
+                   smooth: bool = False) -> dict:
     """The same recordings through the same pipeline in one process, no link: every slave state is
-    evaluated against the master's state at the same session time (latency 0). Writes results.csv."""
-    from master.pipeline import MasterPipeline, PipelineConfig
+    evaluated against the master's state at the same session time (latency 0). Writes results.csv.
+    ``smooth``: from every vehicle's smoothed states instead (``master.smoothed_convoy``)."""
+    if smooth:
+        from master.smoothed_convoy import run_in_process_smoothed
+        return run_in_process_smoothed(out, master, slaves, rate_hz, log)
     from v2xpos.output.results_csv import ResultsCsvWriter
     from v2xpos.sources.recording import RecordingSource
-    from v2xpos.wire import StateMessage, encode_state, state_key
     out.mkdir(parents=True, exist_ok=True)
     msrc = RecordingSource(master[0], sync="none")
     ssrc = {s[1]: RecordingSource(s[0], sync="none") for s in slaves}
     sink = ResultsCsvWriter(out / "results.csv")
-    pipe = MasterPipeline(PipelineConfig(fleet="convoy", master_id=master[1], known_vehicles=tuple(ssrc)), [sink])
-    t = max(msrc.t_begin_gps_s, min(s.t_begin_gps_s for s in ssrc.values()))
-    t_end = msrc.t_end_gps_s
-    step = 0.01
-    nav = None
-    seq = {k: 0 for k in ssrc}
-    next_pub = {k: -1e300 for k in ssrc}
-    period = 1.0 / rate_hz
-    n_steps = 0
-    t_print = time.time() + STATUS_PERIOD_S
-    while t <= t_end:
-        states = msrc.advance(t)
-        if states:
-            nav = states[-1]
-        for sid, src in ssrc.items():
-            for st in src.advance(t):
-                if st.t_s + 1e-6 < next_pub[sid]:
-                    continue
-                next_pub[sid] = st.t_s + period
-                seq[sid] += 1
-                if nav is None:
-                    continue
-                msg = StateMessage.from_nav_state(st, "convoy", sid, seq[sid], geometry=src.geometry, kind=src.kind)
-                pipe.handle(encode_state(msg), state_key("convoy", sid), nav, float(nav.t_s), time.time())
-        t += step
-        n_steps += 1
-        if time.time() > t_print:
-            t_print += STATUS_PERIOD_S
-            print(f"convoy (in process): {100 * (t - msrc.t_begin_gps_s) / (t_end - msrc.t_begin_gps_s):5.1f} %",
-                  file=log, flush=True)
-    sink.close()
-    return {"processed": pipe.processed, "rejected": dict(pipe.rejected)}
+    try:
+        return feed_pipeline(sink, master[1], msrc, ssrc, rate_hz, log)
+    finally:
+        sink.close()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -225,6 +203,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--truth", help="truth_rel.csv of the recordings: score the results against it")
     parser.add_argument("--in-process", action="store_true",
                         help="run the recordings through the pipeline in one process (reference, no link)")
+    parser.add_argument("--smooth", action="store_true",
+                        help="with --in-process: relative results from every vehicle's smoothed states "
+                             "(results.csv with a trailing column smoothed; the forward ones in results_forward.csv)")
     parser.add_argument("--mcap", action="store_true", help="also record the session (DIR/session.mcap)")
 
 
@@ -247,15 +228,17 @@ def run(args: argparse.Namespace) -> int:
         print(f"convoy: master {master[1]} ({master[0]}), slaves {[s[1] for s in slaves]}, speed {args.speed}",
               file=sys.stderr, flush=True)
         t0 = time.time()
+        if args.smooth and not args.in_process:
+            raise ConvoyError("--smooth needs --in-process (the smoother runs after each whole recording)")
         if args.in_process:
-            facts = run_in_process(out, master, slaves)
+            facts = run_in_process(out, master, slaves, smooth=args.smooth)
         else:
             facts = run_processes(out, master, slaves, args.speed, mcap=args.mcap)
     except ConvoyError as exc:
         print(f"v2xpos convoy: {exc}", file=sys.stderr)
         return 2
     report = {"master": master[1], "slaves": [s[1] for s in slaves], "speed": args.speed,
-              "in_process": bool(args.in_process), "wall_s": time.time() - t0,
+              "in_process": bool(args.in_process), "smoothed": bool(args.smooth), "wall_s": time.time() - t0,
               "results_csv": str(out / "results.csv"), **facts}
     rc = 0
     codes = facts.get("exit_codes", {})

@@ -110,6 +110,12 @@ def command_provenance(command: str, args: argparse.Namespace) -> dict:
     return provenance(command, {"dataset": descriptor, "options": options})
 
 
+SMOOTHED_KEYS = ("inside_outage_epochs", "inside_outage_h_rms_m", "inside_outage_h_max_m", "inside_outage_within_3sd",
+                 "smoothed_outage_h_rms_m", "smoothed_outage_h_max_m", "smoothed_inside_outage_h_rms_m",
+                 "smoothed_inside_outage_h_max_m", "smoothed_inside_outage_v_rms_m", "smoothed_inside_outage_within_3sd")
+"""The summary lines ``--smooth`` adds (``v2xpos.ins.replay_smoothing``)."""
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``v2xpos replay``."""
     parser.add_argument("dataset", help="dataset.toml (or a dataset directory, e.g. a comma2k19 segment)")
@@ -123,6 +129,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "effect states) to FILE: .csv or .mcap")
     parser.add_argument("--solution-hz", type=float, default=None,
                         help="solution output rate [Hz] (default: every GNSS epoch, the filter's own epochs)")
+    parser.add_argument("--smooth", action="store_true",
+                        help="also smooth the whole recording (Rauch-Tung-Striebel backward pass, docs/smoothing.md): "
+                             "the outages scored forward and smoothed, at their ends and at every RTK-fixed epoch "
+                             "inside them; --solution writes the smoothed solution (column smoothed)")
     add_profile_argument(parser)
 
 
@@ -151,13 +161,13 @@ def run(args: argparse.Namespace) -> int:
             print("v2xpos replay: --solution-hz must be > 0", file=sys.stderr)
             return 2
         try:
-            writer = SolutionWriter(args.solution)
+            writer = SolutionWriter(args.solution, ("smoothed",) if args.smooth else ())
         except (OSError, ValueError) as exc:
             print(f"v2xpos replay: {exc}", file=sys.stderr)
             return 2
     try:
         res = replay(ds, sched, progress=not args.no_progress, solution=writer, solution_hz=args.solution_hz,
-                     profile=args.profile)
+                     profile=args.profile, smooth=args.smooth)
     finally:
         if writer is not None:
             writer.close()
@@ -172,12 +182,16 @@ def run(args: argparse.Namespace) -> int:
             "outages_skipped_no_imu", "outage_h_rms_m",
             "outage_h_max_m", "outage_v_rms_m", "aided_h_rms_m", "aided_h_rms_steady_m", "wall_s",
             "imu_samples_per_s",
-            "reference_h_rms_m")
+            "reference_h_rms_m") + (SMOOTHED_KEYS if args.smooth else ())
     for k in keys:
         if k in res.summary:
             v = res.summary[k]
             print(f"{k:>20}: {v:.4g}" if isinstance(v, float) else
                   f"{k:>20}: {'n/a' if v is None else v}")
+    if args.smooth:
+        sm = res.summary["smoothing"]
+        print(f"{'smoothing':>20}: {sm['nodes']} nodes in {sm['segments']} segment(s), {sm['stored_mib']:.1f} MiB "
+              f"stored, backward pass {sm['backward_s']:.2f} s after the forward {sm['forward_s']:.2f} s")
     eff = res.summary["effects"]
     print(f"{'effects':>20}: time offset {eff['imu_time_offset_s'] * 1e3:.1f} ms, lever arm "
           f"{np.round(eff['lever_arm_m'], 3).tolist()} m, misalignment "

@@ -64,7 +64,11 @@ class InsFilter(ImuPath, Initialization, Outputs):
     acceleration of the measurement models and ``acc_strapdown_ned_mps2`` the strapdown's own (the
     IMU time offset's column); ``static`` the stop detector's (``stops``) verdict;
     ``initialized`` / ``heading_known`` the alignment's progress; ``counts`` / ``residuals``
-    what the updates did; ``on_update(result, filter)`` an optional hook after every update.
+    what the updates did; ``on_update(result, filter)`` an optional hook after every update;
+    ``recorder`` an optional ``smoother.StepRecorder`` told of every covariance propagation, every
+    correction fed back, every reset that rewrites P and moves the state (a boundary) and every
+    reset that replaces some states by fresh estimates decoupled from the rest (the gyro biases at
+    a refuted stop): what a backward smoothing pass needs.
     """
 
     def __init__(self, cfg: InsConfig | None = None):
@@ -135,6 +139,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self.residuals: list[UpdateResult] = []
         self.stage_s = {"strapdown": 0.0, "covariance": 0.0, "kalman_updates": 0.0}
         self.on_update = None
+        self.recorder = None
         self._last_w_b = np.zeros(3)
         self._last_sample_t: float | None = None
         self.acc_ned_mps2 = np.zeros(3)
@@ -201,6 +206,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
             t0 = perf_counter()
             Phi = ekf.transition_matrix(self.A)
             self.A[:] = 0.0
+            if self.recorder is not None:
+                self.recorder.propagate(self, Phi, max(dt, 0.0))
             if self.separation is not None:
                 self.separation.propagate(Phi, self.q_c, max(dt, 0.0))
             self.P = ekf.propagate_with_transition(self.P, Phi, self.q_c, max(dt, 0.0))
@@ -265,6 +272,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
                 self.separation.update(H, d, R, dx, nis, S)
             self.P = P
             self._apply(dx)
+            if self.recorder is not None:
+                self.recorder.correct(dx)
         self.stage_s["kalman_updates"] += perf_counter() - t0
         res = UpdateResult(kind=kind, t_s=t_s, accepted=ok, nis=nis, innovation=-d,
                            innovation_sd=np.sqrt(np.abs(np.diag(S))), innovation_cov=S)
@@ -316,12 +325,19 @@ class InsFilter(ImuPath, Initialization, Outputs):
         exclusion): take the twin's state and covariance -- the estimate that never relied on the
         declaration and is consistent under the fault -- and restart the innovation tests, whose
         windows hold the innovations of the filter before the change."""
+        self._smoothing_boundary()
         sep = self.separation
         self._apply(sep.w)
         self.P = sep.P.copy()
         sep.exclude(self.P)
         self.counts["lever_arm_excluded"] = self.counts.get("lever_arm_excluded", 0) + 1
         self.consistency.clear_windows()
+
+    def _smoothing_boundary(self) -> None:
+        """Called before a reset rewrites P and moves the state (start, position and heading
+        resets, lever-arm exclusion): the smoother's backward pass does not cross it."""
+        if self.recorder is not None:
+            self.recorder.boundary(self)
 
     def _restart_separation(self) -> None:
         """(Re)start the twin from the current covariance (heading set, filter started): its
@@ -480,10 +496,13 @@ class InsFilter(ImuPath, Initialization, Outputs):
         est.applied = True
         if self._update("static_calibration", self.t_s, *m).accepted:
             return
+        P_before = self.P.copy() if self.recorder is not None else None
         self.corr[COR_BG:COR_BG + 3] = est.gyro_bias_rps
         self.P[BG:BG + 3, :] = 0.0
         self.P[:, BG:BG + 3] = 0.0
         self.P[BG:BG + 3, BG:BG + 3] = est.gyro_cov
+        if self.recorder is not None:
+            self.recorder.reset(self, P_before, np.arange(BG, BG + 3))
         self.counts["static_calibration_resets"] += 1
         if self.separation is not None:
             self.separation.reset_states(np.arange(BG, BG + 3), self.P)

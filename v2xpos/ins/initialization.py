@@ -113,6 +113,7 @@ class Initialization:
         """Diagonal covariance (the given sds, bias and effect priors) at the given state; with
         ``from_antenna`` the position was taken from an antenna fix with sd ``pos_sd`` and its rows
         follow that fix (``position_from_antenna_covariance``)."""
+        self._smoothing_boundary()
         c = self.cfg
         n = self.layout.n
         self.nav[:3] = lla
@@ -216,6 +217,7 @@ class Initialization:
         """The filter has drifted beyond linear reach (consecutive rejections and an innovation over
         ``gnss_reset_distance_m``): take position (and velocity when given) from GNSS and reset
         their covariance; attitude, biases and effects are kept."""
+        self._smoothing_boundary()
         c = self.cfg
         v = self.nav[3:6].copy() if vel is None else np.asarray(vel, float)
         self.nav[:3] = self._imu_point_at_label(t_s, lla, v, self.C_nb)
@@ -282,6 +284,7 @@ class Initialization:
         measurement's variance together with its correlation to the misalignment states, since the
         baseline fixes the vehicle's heading, not the IMU's. Level, biases and velocity keep what
         the stop taught."""
+        self._smoothing_boundary()
         R_vb = self.misalignment_dcm()
         u = self.C_nb @ R_vb.T @ baseline_vehicle_m
         turn_rad = math.remainder(heading_rad - math.atan2(u[1], u[0]), 2.0 * math.pi)
@@ -300,6 +303,7 @@ class Initialization:
         """First epoch fast enough for a course: turn the attitude about down so that the body x axis
         points along the course, take position and velocity from GNSS, and reset their covariance
         (biases and level keep what the stop taught them)."""
+        self._smoothing_boundary()
         c = self.cfg
         yaw_now = float(euler_from_dcm(self.C_nb)[2])
         self._turn_about_down(rot_z(float(np.arctan2(vel[1], vel[0])) - yaw_now))

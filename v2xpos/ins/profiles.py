@@ -6,11 +6,11 @@ top of that, a profile, chosen by name:
 
 * ``service`` (the default everywhere): the filter the services run -- ``ins_config(...,
   integrity=True)``: the IMU white noise measured online unless the calibration carries it, the
-  gyro-scale state, reopening on a failed consistency test, the fault-tolerant solution
+  gyro-scale state, the fault-tolerant twin, the multiple-hypothesis protection level
   (docs/integrity.md). ``v2xpos replay`` and ``v2xpos calibrate`` report it by default, the
   ``recording`` and ``device`` sources run it.
 * ``plain``: the same vehicle without the integrity machinery (``integrity=False``: the
-  configured IMU noise, no reopening, no fault-tolerant solution, no gyro-scale state) -- what
+  configured IMU noise, no fault-tolerant solution or protection level, no gyro-scale state) -- what
   ``v2xpos replay`` ran before there was one profile (``replay --profile plain``).
 * ``fit``: the declared model exactly, without effect states and without the calibration table
   (``effects=()``): calibrate's fit replays (``diagnose.runner``), whose effects are applied to

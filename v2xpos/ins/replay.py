@@ -46,7 +46,8 @@ class SolutionHook(ReplayHook):
 
 def replay(dataset: Dataset, schedule: OutageSchedule | None = None, cfg: InsConfig | None = None,
            progress: bool = True, keep_series: bool = True, solution=None,
-           solution_hz: float | None = None, profile: str = DEFAULT_PROFILE) -> ReplayResult:
+           solution_hz: float | None = None, profile: str = DEFAULT_PROFILE, smooth: bool = False,
+           smooth_precision: str = "float32") -> ReplayResult:
     """``v2xpos replay``: the filter over the whole dataset with the outage schedule (default
     ``OutageSchedule()``), scored by ``replay_metrics.ReplayMetrics`` (its docstring defines the
     metrics). The filter is ``cfg``, else the vehicle's configuration in ``profile``
@@ -58,7 +59,14 @@ def replay(dataset: Dataset, schedule: OutageSchedule | None = None, cfg: InsCon
     it), which leaves the filter exactly as without output; with ``solution_hz`` every
     1 / solution_hz s from the first GNSS epoch (after a GNSS update at the same instant) -- the IMU
     batches are then also split at those times, which moves the result by numerical noise
-    (drive_0708 outage RMS 2.482 -> 2.480 m at 10 Hz)."""
+    (drive_0708 outage RMS 2.482 -> 2.480 m at 10 Hz).
+
+    ``smooth``: the filter records what the backward pass needs (``smoother.StepRecorder``, stored
+    in ``smooth_precision``), and after the forward pass a Rauch-Tung-Striebel pass smooths it:
+    the summary gets ``replay_smoothing.SmoothingHook``'s figures (``"smoothed": true``, the
+    inside-outage errors forward and smoothed, their share within 3 sd, ``smoothing`` with the
+    forward and backward times), and ``solution`` gets the smoothed rows. The forward figures are
+    those of the same filter (recording does not change it)."""
     cfg_given = cfg
     t_wall0 = time.perf_counter()
     t_cpu0 = time.process_time()
@@ -68,8 +76,16 @@ def replay(dataset: Dataset, schedule: OutageSchedule | None = None, cfg: InsCon
     metrics = ReplayMetrics(dataset, outages, keep_series)
     hooks: list[ReplayHook] = [metrics]
     output_times = None
-    if solution is not None:
+    smoothing = None
+    if smooth:
+        from .replay_smoothing import TAP_ROWS, SmoothingHook
+        from .smoother import StepRecorder
+        f.recorder = StepRecorder.for_filter(f, TAP_ROWS, smooth_precision)
+        smoothing = SmoothingHook(f.recorder, dataset, metrics, solution, bool(solution_hz))
+        hooks.append(smoothing)
+    elif solution is not None:
         hooks.append(SolutionHook(solution, bool(solution_hz)))
+    if solution is not None:
         gn, t_imu = dataset.gnss, dataset.imu.t_s
         if solution_hz and len(gn):
             output_times = np.arange(float(gn.t_s[0]), float(max(gn.t_s[-1], t_imu[-1])), 1.0 / solution_hz)
@@ -79,4 +95,9 @@ def replay(dataset: Dataset, schedule: OutageSchedule | None = None, cfg: InsCon
     cpu = time.process_time() - t_cpu0
     summary, series = metrics.summary(f, n_scheduled, wall, cpu)
     summary["profile"] = profile if cfg_given is None else "custom"
+    if smoothing is not None:
+        t0, c0 = time.perf_counter(), time.process_time()
+        summary.update(smoothing.finish(f))
+        summary["smoothing"].update(forward_s=wall, forward_cpu_s=cpu, backward_s=time.perf_counter() - t0,
+                                    backward_cpu_s=time.process_time() - c0)
     return ReplayResult(summary=summary, series=series, filter=f)

@@ -126,11 +126,13 @@ def row(f: Any, gnss_used: bool) -> dict:
 
 
 class SolutionWriter:
-    """Writes rows to ``path`` (.csv or .mcap); ``write(f, gnss_used)`` per epoch, ``close()``.
-    The columns follow the first filter written (its estimated effects)."""
+    """Writes rows to ``path`` (.csv or .mcap); ``write(f, gnss_used)`` per epoch (or ``write_row``
+    with a ``row`` already made), ``close()``. The columns follow the first filter written (its
+    estimated effects), then ``extra_columns`` (integers, e.g. ``smoothed``)."""
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, extra_columns: tuple[str, ...] = ()):
         self.path = Path(path)
+        self.extra_columns = tuple(extra_columns)
         self.kind = self.path.suffix.lower()
         if self.kind not in (".csv", ".mcap"):
             raise ValueError(f"--solution {self.path}: the extension must be .csv or .mcap")
@@ -145,12 +147,13 @@ class SolutionWriter:
             self._writer.start(profile="", library="v2xpos")
 
     def _start(self, effects: tuple[str, ...]) -> None:
-        self.columns = columns(tuple(effects))
+        self.columns = columns(tuple(effects)) + list(self.extra_columns)
         if self.kind == ".csv":
             self._fh.write(",".join(self.columns) + "\n")
         else:
             from v2xpos.output.foxglove import schema_data
-            props = {c: ({"type": "string"} if c == "fix" else {"type": "integer"} if c in ("gps_week", "gnss_used")
+            ints = ("gps_week", "gnss_used") + self.extra_columns
+            props = {c: ({"type": "string"} if c == "fix" else {"type": "integer"} if c in ints
                          else {"type": "number"}) for c in self.columns}
             schema = {"type": "object", "description": __doc__.split("\n\n")[1], "properties": props,
                       "required": self.columns}
@@ -160,9 +163,12 @@ class SolutionWriter:
             self._loc = self._writer.register_channel("/location/solution", "protobuf", fid)
 
     def write(self, f: Any, gnss_used: bool) -> None:
+        self.write_row(row(f, gnss_used), f.layout.effects)
+
+    def write_row(self, r: dict, effects: tuple[str, ...]) -> None:
+        """One row (``row``'s keys, plus ``extra_columns``) of a filter estimating ``effects``."""
         if not self.columns:
-            self._start(f.layout.effects)
-        r = row(f, gnss_used)
+            self._start(effects)
         self.rows += 1
         if self.kind == ".csv":
             self._fh.write(",".join(r[c] if isinstance(r[c], str) else f"{r[c]:.12g}" for c in self.columns) + "\n")

@@ -26,7 +26,9 @@ frame), ``bearing_deg``, ``ttc_s``, ``fix_side``, ``degraded``, ``seq``, ``sourc
 ``target:SETUP_UNVERIFIED``, ``master:TEST_POSITION``, ``master:COASTING;target:HEADING_PENDING``,
 ``target:FIX``, ``both:CLOCK``; the status name when it is no vehicle's own, e.g. ``TIMEOUT``; empty
 for VALID) -- and ``protection_m`` (horizontal protection level of the relative position, the sum of
-both vehicles' [m]; empty when either filter computes none).
+both vehicles' [m]; empty when either filter computes none); then a writer's ``extra_columns``
+(``v2xpos convoy --in-process --smooth``: ``smoothed``, 1 on a row formed from both vehicles'
+smoothed states).
 Kinematic columns are empty when the status carries no kinematics (TIMEOUT, NO_DATA, ...).
 """
 from __future__ import annotations
@@ -78,17 +80,20 @@ def result_row(res: RelativeResult) -> list[str]:
 class ResultsCsvWriter:
     """A master output sink (``write``/``flush``/``close``) appending rows to ``path``; the header is
     written on open, rows are flushed to the file at every pipeline flush so a stopped master
-    leaves a complete file."""
+    leaves a complete file. ``extra_columns`` follow ``COLUMNS``; each row takes their values from
+    ``extra`` (column -> value) as it is when the row is written."""
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, extra_columns: tuple[str, ...] = ()):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.extra_columns = tuple(extra_columns)
+        self.extra: dict = {c: "" for c in self.extra_columns}
         self._f = open(self.path, "w", newline="")
-        self._f.write(",".join(COLUMNS) + "\n")
+        self._f.write(",".join(COLUMNS + self.extra_columns) + "\n")
         self.rows = 0
 
     def write(self, res: RelativeResult) -> None:
-        self._f.write(",".join(result_row(res)) + "\n")
+        self._f.write(",".join(result_row(res) + [str(self.extra[c]) for c in self.extra_columns]) + "\n")
         self.rows += 1
 
     def write_scene(self, scene_result, t_gps_s: float, seq: int) -> None:
