@@ -286,7 +286,8 @@ def test_relay_from_stand_in_caster_to_two_slave_receivers():
         for k in range(2):
             m, path = _pty_receiver()
             ptys.append(m)
-            src = make_source({"type": "device", "gnss": {"format": "ubx", "port": path}, "imu": "receiver"},
+            src = make_source({"type": "device", "gnss": {"format": "ubx", "port": path}, "imu": "receiver", "platform": "car",
+                               "imu_to_body": "identity", "lever_arm_m": [0.0, 0.0, 0.0]},
                               f"slave{k}.[source]", SourceContext(f"s{k}"))
             sources.append(src)
             link = Link(LinkConfig(mode="client", connect=[loopback_endpoint(port)]))

@@ -42,7 +42,7 @@ def test_fast_path_equals_predict_then_transform():
             if isinstance(value, np.ndarray):
                 np.testing.assert_allclose(value, other, rtol=1e-12, atol=1e-11, err_msg=name)
             elif isinstance(value, float) and isinstance(other, float):
-                assert value == pytest.approx(other, rel=1e-12, abs=1e-11), name
+                assert value == pytest.approx(other, rel=1e-12, abs=1e-11, nan_ok=True), name
             else:
                 assert value == other, name
         assert res.target_id == "s" and res.target_kind == target.kind
