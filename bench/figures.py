@@ -358,7 +358,7 @@ def render(rows: dict[str, dict[str, str]]) -> str:
             "on which commit (`-dirty`: with uncommitted changes) and on which machine (cores, CPU, 1-minute\n"
             "load average when the command started; the machine is shared, so times vary with the load).\n"
             "`carried` rows were not re-run by the last invocation and keep their own date and commit.\n"
-            "A target in the issue column's issue is what the figure is judged against.\n\n"
+            "`target` is what the issue in the `issue` column asks of the figure.\n\n"
             "The README and `docs/*.md` cite a figure as a link to its key, e.g.\n"
             "`[2.69 m](figures.md#replay.drive_0708.outage_h_rms_m)`; `tests/test_figures.py` fails when a\n"
             "cited key is missing here or the value differs from the one stated.\n\n")
