@@ -151,6 +151,29 @@ def _evaluate_count(kind: str) -> Callable[[list], int]:
     return pick
 
 
+def _demo_target(target_id: str, key: str) -> Callable[[dict], float | None]:
+    def pick(report: dict):
+        t = next((t for t in report.get("targets", []) if t.get("id") == target_id), None)
+        return None if t is None else t.get(key)
+    return pick
+
+
+def _demo_figures() -> tuple[Figure, ...]:
+    out = []
+    for tid, what in (("t1", "t1 (cut-in, 10–15 m)"), ("t2", "t2 (19–30 m)"), ("t3", "t3 (40–60 m, fix degraded)"),
+                      ("p1", "p1 (pedestrian)")):
+        vehicle = tid != "p1"
+        out += [Figure(f"demo.seed0.{tid}.rel_pos_err_rms_m", f"demo seed 0, {what}: relative position RMS", "m",
+                       _demo_target(tid, "rel_pos_err_rms_m"), 3, "≤ 0.03" if vehicle else "", "#4" if vehicle else ""),
+                Figure(f"demo.seed0.{tid}.gnss_floor_m", f"demo seed 0, {what}: GNSS floor gnss_rel_err_rms_1s_m", "m",
+                       _demo_target(tid, "gnss_rel_err_rms_1s_m"), 3),
+                Figure(f"demo.seed0.{tid}.uncompensated_m", f"demo seed 0, {what}: uncompensated RMS", "m",
+                       _demo_target(tid, "uncompensated_rel_pos_err_rms_m"), 2)]
+    out.append(Figure("demo.seed0.master_pipeline_ms_p99", "demo seed 0: master pipeline p99 (arrival -> outputs)", "ms",
+                      _get("master_pipeline_ms_p99"), 2, "≤ 2", "#4"))
+    return tuple(out)
+
+
 # ------------------------------------------------------------------------------------ the jobs
 def _integrity_figures(preset: str, targets: bool) -> tuple[Figure, ...]:
     k = f"integrity_mc.{preset}"
@@ -269,6 +292,27 @@ JOBS: tuple[Job, ...] = (
     Job("evaluate-speed", ("v2xpos", "bench", "evaluate", "--speed", "--json", "{json}"), _json, (
         Figure("evaluate.speed.cpu_s", "30 min of a 20 Hz 32-object sensor: CPU time, no plots", "s",
                _get("no_plots", "cpu_s"), 1, "< 60", "#28"),
+    )),
+    Job("demo", ("v2xpos", "demo", "--seed", "0", "--no-live", "--out", "{out}"), _report, _demo_figures()),
+    Job("bench-monitor", ("v2xpos", "bench", "monitor", "--json", "{json}"), _json, (
+        Figure("monitor.cpu_pct", "monitor on 64 targets x 100 Hz: CPU of one core", "%",
+               _get("monitor_cpu_percent_of_one_core"), 1, "< 10", "#18"),
+        Figure("monitor.change_to_snapshot_max_s", "status change -> monitor snapshot, max", "s",
+               _get("change_to_snapshot_s_max"), 2, "< 0.5", "#18"),
+        Figure("monitor.missed_changes", "status changes not shown", "", _get("missed_changes"), 0, "0", "#18"),
+    )),
+    Job("bench-corpus", ("v2xpos", "bench", "corpus", "--json", "{json}"), _json, (
+        Figure("corpus.cases", "broken inputs run through the commands", "", _get("cases"), 0, "≥ 500", "#17"),
+        Figure("corpus.tracebacks", "runs that ended in a traceback", "", _get("tracebacks"), 0, "0", "#17"),
+        Figure("corpus.silent", "runs that exited 0 without saying anything", "", _get("silent"), 0, "0", "#17"),
+    )),
+    Job("bench-trust", ("v2xpos", "bench", "trust", "--skip-soak", "--json", "{json}"), _json, (
+        Figure("trust.forged_accepted", "forged messages accepted", "", _get("forged_accepted"), 0, "0", "#6"),
+        Figure("trust.replayed_accepted", "replayed messages accepted", "", _get("replayed_accepted"), 0, "0", "#6"),
+        Figure("trust.fuzz_crashes", "fuzzed inputs that crashed a decoder", "", _get("fuzz_crashes"), 0, "0", "#6"),
+        Figure("trust.faults_passed", "fault scenarios passed", "",
+               lambda r: sum(1 for f in r.get("faults", []) if f.get("passed")), 0),
+        Figure("trust.faults", "fault scenarios run", "", lambda r: len(r.get("faults", [])), 0),
     )),
     Job("integrity-mc", ("python", "-m", "bench.integrity_mc", "--presets", "clean,dev_like", "--seeds", "0-9",
                          "--real", CONVOY, "--work", "{out}", "--json", "{json}"), _json,
