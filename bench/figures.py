@@ -314,6 +314,18 @@ JOBS: tuple[Job, ...] = (
                lambda r: sum(1 for f in r.get("faults", []) if f.get("passed")), 0),
         Figure("trust.faults", "fault scenarios run", "", lambda r: len(r.get("faults", [])), 0),
     )),
+    Job("grading-faults", ("v2xpos", "bench", "grading", "faults", "--seeds", "20", "--json", "{json}"), _json, (
+        Figure("grading.faults.faulty_missed", "simulated faulty IMU units (5 faults x 20 seeds) not graded fail", "",
+               lambda r: sum(v["runs"] - v["detected"] for k, v in r["faults"].items() if k != "none"), 0, "0", "#5"),
+        Figure("grading.faults.healthy_failed", "healthy units graded fail, all runs", "",
+               lambda r: sum(v["healthy_fail"] for v in r["faults"].values()), 0, "0", "#5"),
+    )),
+    Job("grading-lidar", ("v2xpos", "bench", "grading", "lidar", "--json", "{json}"), _json, (
+        Figure("grading.lidar.yaw_rate_rel_error_pct", "KISS-ICP yaw rate against the truth", "%",
+               _get("yaw_rate_rel_error", scale=100.0), 2),
+        Figure("grading.lidar.scale_fault_flagged", "3 % gyro scale flagged by the pose-aided rate check (1 yes)", "",
+               lambda r: int(bool(r["scale_fault"]["anomaly"])), 0, "1", "#5"),
+    )),
     Job("integrity-mc", ("python", "-m", "bench.integrity_mc", "--presets", "clean,dev_like", "--seeds", "0-9",
                          "--real", CONVOY, "--work", "{out}", "--json", "{json}"), _json,
         _integrity_figures("clean", True) + _integrity_figures("dev_like", False) + (
