@@ -6,7 +6,7 @@ cite a figure as a Markdown link to its key, ``[2.69 m](figures.md#replay.drive_
 and ``tests/test_figures.py`` checks that each cited key is in ``docs/figures.md`` and that the
 value agrees to the digits stated. One row per figure: the value, its unit, the target and the
 issue that set it, the command that produced it, the date, the commit (``git rev-parse``, ``-dirty``
-when tracked files differ from it) and the machine (cores, CPU model, 1-minute load average when
+when a tracked file other than Markdown differs from it) and the machine (cores, CPU model, 1-minute load average when
 the command started).
 
 Each command runs as its own process from the project root (the relative ``../shared/data`` paths
