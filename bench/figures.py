@@ -39,6 +39,7 @@ FIGURES_MD = ROOT / "docs" / "figures.md"
 DATA = "../shared/data"
 DRIVE = f"{DATA}/drive_0708/dataset.toml"
 CONVOY = f"{DATA}/convoy_dev"
+NOT_MEASURED = "not measured"
 COLUMNS = ("key", "value", "unit", "target", "issue", "what", "command", "date (UTC)", "commit", "machine", "run")
 
 
@@ -413,7 +414,8 @@ def render(rows: dict[str, dict[str, str]]) -> str:
             "edit by hand: run the command. Each row is one figure with the command that measured it, when,\n"
             "on which commit (`-dirty`: with uncommitted changes) and on which machine (cores, CPU, 1-minute\n"
             "load average when the command started; the machine is shared, so times vary with the load).\n"
-            "`carried` rows were not re-run by the last invocation and keep their own date and commit.\n"
+            "`carried` rows were not re-run by the last invocation and keep their own date and commit;\n"
+            "`not measured` rows are figures whose command has not completed in any run yet.\n"
             "`target` is what the issue in the `issue` column asks of the figure.\n\n"
             "The README and `docs/*.md` cite a figure as a link to its key, e.g.\n"
             "`[2.69 m](figures.md#replay.drive_0708.outage_h_rms_m)`; `tests/test_figures.py` fails when a\n"
@@ -478,11 +480,27 @@ def run_job(job: Job, quick: bool, log=print) -> tuple[dict[str, dict[str, str]]
                   + (f"; absent: {', '.join(missing)}" if missing else ""))
 
 
+def not_measured(job: Job, figure: Figure) -> dict[str, str]:
+    """The row of a figure no run has measured yet: its definition, no value."""
+    return {"value": "-", "unit": figure.unit, "target": figure.target, "issue": figure.issue, "what": figure.what,
+            "command": _command_text(job.argv), "date (UTC)": "-", "commit": "-", "machine": "-", "run": NOT_MEASURED}
+
+
+def _write(path: Path, rows: dict[str, dict[str, str]]) -> None:
+    """Write the figures file; a defined figure without a row gets a ``not measured`` row."""
+    for job in JOBS:
+        for f in job.figures:
+            rows.setdefault(f.key, not_measured(job, f))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(render(rows))
+
+
 def add_bench_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``v2xpos bench figures``."""
     parser.add_argument("--quick", action="store_true",
                         help="only the jobs cheap enough for CI (a few minutes); carry the other rows")
-    parser.add_argument("--only", help="comma-separated job names to run (see --list); carry the other rows")
+    parser.add_argument("--only", help="comma-separated job names to run (see --list; '' runs none and only "
+                                       "rewrites the file); carry the other rows")
     parser.add_argument("--list", action="store_true", help="list the jobs and their figures, run nothing")
     parser.add_argument("--out", default=str(FIGURES_MD), help="the figures file to write (default docs/figures.md)")
 
@@ -497,7 +515,7 @@ def run_bench(args: argparse.Namespace) -> int:
         return 0
     names = {j.name for j in JOBS}
     chosen = [j for j in JOBS if (j.quick or not args.quick)]
-    if args.only:
+    if args.only is not None:
         wanted = [w.strip() for w in args.only.split(",") if w.strip()]
         unknown = [w for w in wanted if w not in names]
         if unknown:
@@ -506,7 +524,8 @@ def run_bench(args: argparse.Namespace) -> int:
         chosen = [j for j in chosen if j.name in wanted]
     path = Path(args.out)
     previous = read_rows(path)
-    rows = {k: {**r, "run": "carried"} for k, r in previous.items()}
+    rows = {k: {**r, "run": "carried" if r.get("run") != NOT_MEASURED else NOT_MEASURED}
+            for k, r in previous.items()}
     failed = 0
     t_start = time.time()
     for job in chosen:
@@ -516,9 +535,11 @@ def run_bench(args: argparse.Namespace) -> int:
         failed += not new
         rows.update(new)
         print(f"    {account}", flush=True)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(render(rows))
+        _write(path, rows)
+    if not chosen:
+        _write(path, rows)
     print(f"figures: {len(chosen)} job(s) in {time.time() - t_start:.0f} s, {failed} failed; "
           f"{sum(r['run'] == 'measured' for r in rows.values())} measured, "
-          f"{sum(r['run'] == 'carried' for r in rows.values())} carried -> {path}")
+          f"{sum(r['run'] == 'carried' for r in rows.values())} carried, "
+          f"{sum(r['run'] == NOT_MEASURED for r in rows.values())} not measured -> {path}")
     return 1 if failed else 0
