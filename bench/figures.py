@@ -220,8 +220,8 @@ def _convoy_figures(prefix: str, what: str) -> tuple[Figure, ...]:
         Figure(f"{prefix}.valid_pct", f"{what}: VALID share of B's rows", "%", lambda r: _get("valid_fraction", scale=100.0)(_target_of(r)), 1),
         Figure(f"{prefix}.valid_moving_pct", f"{what}: VALID share while both move", "%",
                lambda r: _get("moving_valid_fraction", scale=100.0)(_target_of(r)), 1),
-        Figure(f"{prefix}.h_rms_m", f"{what}: h RMS over VALID rows while both move", "m",
-               lambda r: _get("moving", "h_rms_m")(_target_of(r)), 3, "≤ 0.03", "#16"),
+        Figure(f"{prefix}.h_rms_m", f"{what}: h RMS over VALID rows while both move (B's 0.8 m antenna offset undeclared)",
+               "m", lambda r: _get("moving", "h_rms_m")(_target_of(r)), 3),
         Figure(f"{prefix}.within_3sd_min", f"{what}: VALID rows within 3 sd (lower of x, y)", "",
                lambda r: _within_3sd(_target_of(r)), 3, "≥ 0.98", "#15"),
         Figure(f"{prefix}.violations", f"{what}: VALID rows beyond max(0.3 m, 4 sigma)", "",
@@ -426,6 +426,9 @@ def render(rows: dict[str, dict[str, str]]) -> str:
         r = rows.get(key)
         if r is None:
             continue
+        f = FIGURES.get(key)
+        if f is not None:   # the definition (unit, target, issue, what) is the code's; the value the run's
+            r = {**r, "unit": f.unit, "target": f.target, "issue": f.issue, "what": f.what}
         cells = [f'<a id="{key}"></a>`{key}`'] + [r.get(c, "") for c in COLUMNS[1:]]
         cells[COLUMNS.index("command")] = f"`{r.get('command', '')}`"
         lines.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
