@@ -4,8 +4,8 @@
 A document cites a figure as a Markdown link to its key in docs/figures.md,
 ``[2.38 m](figures.md#replay.drive_0708.outage_h_rms_m)`` (from the README
 ``docs/figures.md#...``). The check: every cited key has a row in docs/figures.md, and when the
-link text states a number, it equals the row's value to the digits stated (2.38 for 2.382 holds,
-2.39 does not). It reads files only; it runs no benchmark.
+link text starts with a number, it equals the row's value to the digits stated (2.38 for 2.382
+holds, 2.39 does not); a text that does not start with a number (``[h RMS](...)``) only names it. It reads files only; it runs no benchmark.
 """
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from bench.figures import COLUMNS, FIGURES, NOT_MEASURED, read_rows
 ROOT = Path(__file__).resolve().parents[1]
 FIGURES_MD = ROOT / "docs" / "figures.md"
 CITATION = re.compile(r"\[([^\[\]]+)\]\((?:docs/)?figures\.md#([A-Za-z0-9_.\-]+)\)")
-NUMBER = re.compile(r"[-+−]?\d[\d,]*(?:\.\d+)?")
+NUMBER = re.compile(r"\s*([-+−]?\d[\d,]*(?:\.\d+)?)")
 
 
 def documents(root: Path = ROOT) -> list[Path]:
@@ -36,11 +36,12 @@ def citations(paths: list[Path]) -> list[tuple[Path, int, str, str]]:
 
 
 def stated_number(text: str) -> tuple[float, int] | None:
-    """The first number in a link text and its decimals (``−1,234.5`` -> (-1234.5, 1))."""
-    m = NUMBER.search(text)
+    """The number a link text starts with and its decimals (``−1,234.5 m`` -> (-1234.5, 1)); None
+    when the text does not start with one (``[within 3 sd](...)`` names the figure, states none)."""
+    m = NUMBER.match(text)
     if not m:
         return None
-    s = m.group(0).replace(",", "").replace("−", "-")
+    s = m.group(1).replace(",", "").replace("−", "-")
     return float(s), len(s.split(".")[1]) if "." in s else 0
 
 
@@ -101,6 +102,7 @@ def test_stated_number_reads_the_digits_stated():
     assert stated_number("39,575 samples/s") == (39575.0, 0)
     assert stated_number("−0.5 %") == (-0.5, 1)
     assert stated_number("after calibration") is None
+    assert stated_number("within 3 sd") is None
 
 
 def test_figures_md_holds_every_figure_with_its_provenance():
