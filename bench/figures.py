@@ -418,8 +418,9 @@ def render(rows: dict[str, dict[str, str]]) -> str:
             "`not measured` rows are figures whose command has not completed in any run yet.\n"
             "`target` is what the issue in the `issue` column asks of the figure.\n\n"
             "The README and `docs/*.md` cite a figure as a link to its key, e.g.\n"
-            "`[2.69 m](figures.md#replay.drive_0708.outage_h_rms_m)`; `tests/test_figures.py` fails when a\n"
-            "cited key is missing here or the value differs from the one stated.\n\n")
+            "`[VALUE UNIT](figures.md#KEY)` (from the README `docs/figures.md#KEY`), or `[words](figures.md#KEY)`\n"
+            "to name it without stating it; `tests/test_figures.py` fails when a cited key is missing here or a\n"
+            "stated value differs from this file's at the digits stated.\n\n")
     lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
     order = list(FIGURES) + [k for k in rows if k not in FIGURES]
     for key in order:
