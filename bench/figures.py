@@ -528,7 +528,8 @@ def run_bench(args: argparse.Namespace) -> int:
         chosen = [j for j in chosen if j.name in wanted]
     path = Path(args.out)
     previous = read_rows(path)
-    rows = {k: {**r, "run": "carried" if r.get("run") != NOT_MEASURED else NOT_MEASURED}
+    # rows not re-run by this invocation are carried; a rewrite alone (--only '') keeps the marks
+    rows = {k: {**r, "run": "carried" if r.get("run") != NOT_MEASURED and chosen else r.get("run", "carried")}
             for k, r in previous.items()}
     failed = 0
     t_start = time.time()
