@@ -94,7 +94,8 @@ class MasterService:
     def __init__(self, cfg: MasterConfig):
         self.cfg = cfg
         self.ctx = SourceContext(vehicle_id=cfg.master_id, fleet=cfg.fleet, role="master",
-                                 config_dir=config_dir(cfg.path), stop=self._stopping)
+                                 config_dir=config_dir(cfg.path), stop=self._stopping,
+                                 filter_overrides=dict(cfg.filter_integrity))
         self.source = None
         from v2xpos.security import TrustList, load_trust_list
         try:

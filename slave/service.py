@@ -72,7 +72,7 @@ def run_slave(cfg: SlaveConfig, stop: _Stop | None = None, quiet: bool = False) 
     stopped = lambda: stop.flag  # noqa: E731
     say = _say(cfg.vehicle_id)
     ctx = SourceContext(vehicle_id=cfg.vehicle_id, fleet=cfg.fleet, role="slave", config_dir=config_dir(cfg.path),
-                        stop=stopped)
+                        stop=stopped, filter_overrides=dict(cfg.filter_integrity))
     try:
         source = run_until_stopped(make_source, stopped, cfg.source.table, f"{cfg.path}: [source]", ctx)
     except SourceError as exc:

@@ -114,3 +114,26 @@ def corrections_from_table(d: dict, path: str):
         return parse_corrections(d["corrections"], f"{path}: [corrections]")
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
+
+
+INTEGRITY_KEYS = ("alert_limit_m", "integrity_risk")
+"""The ``[validity]`` keys that configure the vehicle's own filter (``InsConfig``): its horizontal
+protection level is held against ``alert_limit_m`` at ``integrity_risk`` (docs/integrity.md)."""
+
+
+def integrity_from_table(table: dict, where: str) -> dict:
+    """``InsConfig`` overrides from a service's ``[validity]`` table: ``alert_limit_m`` (0, 10] m and
+    ``integrity_risk`` (0, 0.1]; only the keys given (the filter's defaults otherwise). ConfigError
+    naming ``where`` and the key."""
+    out = {}
+    limit = take(table, "alert_limit_m", float, None, where)
+    if limit is not None:
+        if not 0 < limit <= 10.0:
+            raise ConfigError(f"{where}.alert_limit_m: {limit} outside (0, 10] m")
+        out["alert_limit_m"] = float(limit)
+    risk = take(table, "integrity_risk", float, None, where)
+    if risk is not None:
+        if not 0 < risk <= 0.1:
+            raise ConfigError(f"{where}.integrity_risk: {risk} outside (0, 0.1]")
+        out["integrity_risk"] = float(risk)
+    return out
