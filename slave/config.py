@@ -39,7 +39,7 @@ from pathlib import Path
 
 from v2xpos.config import (ConfigError, LinkImpairment, SourceConfig, check_keys, config_dir,  # noqa: F401
                            INTEGRITY_KEYS, corrections_from_table, impairment_from_table, integrity_from_table,
-                           link_from_table, load_toml, take)
+                           link_from_table, load_toml, take, verification_path)
 from v2xpos.link import LinkConfig
 
 
@@ -57,6 +57,7 @@ class SlaveConfig:
     publish_imu: bool = False
     corrections: object | None = None
     filter_integrity: dict = field(default_factory=dict)   # [validity]: the filter's alert limit / integrity risk
+    verification_out: Path | None = None                    # [validity]: write the set-up's record here at the end
     path: str = "<defaults>"
 
     @classmethod
@@ -86,7 +87,10 @@ class SlaveConfig:
                   key_file=take(sec, "key_file", str, None, f"{path}: [security]"),
                   publish_imu=take(s, "publish_imu", bool, False, w),
                   corrections=corrections_from_table(d, path),
-                  filter_integrity=integrity_from_table(va, f"{path}: [validity]"), path=path)
+                  filter_integrity=integrity_from_table(va, f"{path}: [validity]", config_dir(path)),
+                  verification_out=(verification_path(va, f"{path}: [validity]", config_dir(path))
+                                    if take(va, "write_verification", bool, False, f"{path}: [validity]") else None),
+                  path=path)
         if cfg.key_file:                      # relative to the config file, as every path in it
             cfg.key_file = str(config_dir(path) / Path(cfg.key_file).expanduser())
         return cfg

@@ -39,3 +39,35 @@ def test_the_recording_source_builds_its_filter_with_the_services_limits():
     plain = make_source(dict(SOURCE), "[source]", SourceContext("A", config_dir=Path(".")))
     assert (plain.filter.cfg.alert_limit_m, plain.filter.cfg.integrity_risk) == (InsConfig.alert_limit_m,
                                                                                   InsConfig.integrity_risk)
+
+
+def test_a_session_writes_its_verification_record_and_the_next_one_starts_from_it(tmp_path):
+    """Issue 27 item 2: ``[validity] write_verification`` writes what the filter vouches for at the
+    end of a session to ``verification_file``; the next session's filter reads it (a verified
+    set-up starts with the prior of a change); a malformed file is refused naming it."""
+    require_shared(DEV_A)
+    from v2xpos.datasets.verification import read_verification_file, session_verification
+    from v2xpos.sources import SourceContext, make_source
+    table = {"verification_file": "B.verification.toml", "write_verification": True}
+    cfg = SlaveConfig.from_dict({"validity": table, "source": SOURCE}, str(tmp_path / "slave.toml"))
+    assert cfg.verification_out == tmp_path / "B.verification.toml"
+    assert "setup_verified" not in cfg.filter_integrity            # no record yet: not verified
+    with pytest.raises(ConfigError, match=r"write_verification: needs verification_file"):
+        SlaveConfig.from_dict({"validity": {"write_verification": True}, "source": SOURCE}, "s.toml")
+    src = make_source(dict(SOURCE), "[source]", SourceContext("B", config_dir=tmp_path))
+    assert session_verification(src, cfg.verification_out, "test") is None   # filter not started: nothing
+    t0 = src.t_begin_gps_s
+    src.advance(t0 + 150.0)                                        # through the first turns
+    record = session_verification(src, cfg.verification_out, "test drive")
+    assert record is not None and record.verified, record
+    assert record.protection_m <= record.alert_limit_m
+    again = read_verification_file(cfg.verification_out)
+    assert again.verified and again.drive == "test drive" and again.protection_m == round(record.protection_m, 4)
+    nxt = SlaveConfig.from_dict({"validity": table, "source": SOURCE}, str(tmp_path / "slave.toml"))
+    assert nxt.filter_integrity.get("setup_verified") is True
+    verified = make_source(dict(SOURCE), "[source]", SourceContext("B", config_dir=tmp_path,
+                                                                   filter_overrides=nxt.filter_integrity))
+    assert verified.filter.cfg.setup_verified
+    (tmp_path / "B.verification.toml").write_text("[verification]\nverifed = true\n")
+    with pytest.raises(ConfigError, match=r"B.verification.toml.*'verifed'.*did you mean 'verified'"):
+        SlaveConfig.from_dict({"validity": table, "source": SOURCE}, str(tmp_path / "slave.toml"))
