@@ -106,7 +106,7 @@ def read_verification_file(path: str | Path) -> VerificationRecord | None:
     """The ``[verification]`` record kept in a file of its own (a service's ``[validity]
     verification_file``): None when the file does not exist yet (nothing verified); a file without
     the table, or a malformed one, is a VerificationError naming the file."""
-    import tomllib
+    from v2xpos.compat import tomllib
     p = Path(path)
     if not p.exists():
         return None
