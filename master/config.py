@@ -85,6 +85,7 @@ from pathlib import Path
 from v2xpos.config import (ConfigError, SourceConfig, check_keys, config_dir, corrections_from_table,
                            link_from_table, load_toml, take)
 from v2xpos.link import LinkConfig
+from v2xpos.schema import check_choice
 
 
 @dataclass
@@ -266,11 +267,7 @@ def output_from_table(out: dict, path: str) -> dict:
         raise ConfigError(f"{wc}.status_hz: {status_hz} outside (0, 100]")
     interface = take(can_t, "interface", str, "virtual", wc)
     from can.interfaces import VALID_INTERFACES
-    if interface not in VALID_INTERFACES:
-        from difflib import get_close_matches
-        near = get_close_matches(interface, sorted(VALID_INTERFACES), n=1)
-        hint = f"; did you mean {near[0]!r}?" if near else f" (python-can interfaces: {sorted(VALID_INTERFACES)})"
-        raise ConfigError(f"{wc}.interface: {interface!r} is not a python-can interface{hint}")
+    check_choice(interface, sorted(VALID_INTERFACES), f"{wc}.interface (python-can interfaces)", ConfigError)
     channel = take(can_t, "channel", str, "v2xpos", wc)
     if not channel:
         raise ConfigError(f"{wc}.channel: empty")

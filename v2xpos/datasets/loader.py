@@ -42,6 +42,7 @@ import numpy as np
 from v2xpos.types import Dataset, GnssData, MultiImuRecording
 
 from v2xpos.compat import tomllib
+from v2xpos.schema import check_keys
 
 IMU_FORMATS = ("csv_g_dps_ms",)
 TOP_KEYS = ("name", "platform", "imu", "gnss", "calibration", "verification")
@@ -67,16 +68,6 @@ def _field(table: dict, key: str, where: str, toml_path: Path, kind: type | tupl
         raise ValueError(f"{toml_path}: field {where}{key} has type {type(value).__name__}, "
                          f"expected {getattr(kind, '__name__', kind)}")
     return value
-
-
-def check_keys(table: dict, allowed: tuple[str, ...], where: str) -> None:
-    """ValueError naming ``where`` (file and table) and the first unknown key, with a "did you
-    mean" for a near miss."""
-    from v2xpos.datasets.calibration import did_you_mean
-    for key in table:
-        if key not in allowed:
-            raise ValueError(f"{where}: unknown key {key!r}{did_you_mean(str(key), allowed)}; "
-                             f"allowed {list(allowed)}")
 
 
 def _all_numbers(value: Any) -> bool:

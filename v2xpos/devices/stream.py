@@ -100,15 +100,12 @@ def open_stream(table: dict, name: str, where: str, now_gps: Callable[[], float]
                 sink: Callable[[object], None], resolve: Callable[[str], object] = lambda p: p) -> DeviceStream:
     """A DeviceStream from a stream table (keys in ``STREAM_KEYS``); ValueError naming ``where`` and
     the key. The transport is created but not started (``stream.start()``)."""
-    from v2xpos.datasets.calibration import did_you_mean
+    from v2xpos.schema import check_choice, check_keys
     if not isinstance(table, dict):
         raise ValueError(f"{where}: expected a table like {{ format = \"ubx\", port = \"/dev/ttyACM0\" }}")
-    for key in table:
-        if key not in STREAM_KEYS:
-            raise ValueError(f"{where}: unknown key {key!r}{did_you_mean(key, STREAM_KEYS)}; allowed {list(STREAM_KEYS)}")
+    check_keys(table, STREAM_KEYS, where)
     fmt = table.get("format")
-    if fmt not in FORMATS:
-        raise ValueError(f"{where}.format: {fmt!r} is not one of {list(FORMATS)}{did_you_mean(str(fmt), FORMATS)}")
+    check_choice(fmt, FORMATS, f"{where}.format")
     if ("port" in table) == ("tcp" in table):
         raise ValueError(f"{where}: give exactly one of 'port' (serial device) or 'tcp' (\"host:port\")")
     baud = table.get("baud", DEFAULT_BAUD)

@@ -51,8 +51,8 @@ def _factory_ref(table: dict, where: str) -> str:
             raise SourceError(f"{where}.factory: expected 'module:function', got {factory_ref!r}")
         kinds = {**kinds, kind: factory_ref}
     elif kind not in kinds:
-        from v2xpos.datasets.calibration import did_you_mean
-        raise SourceError(f"{where}.type: {kind!r} is not one of {sorted(kinds)}{did_you_mean(str(kind), kinds)}")
+        from v2xpos.schema import check_choice
+        check_choice(kind, sorted(kinds), f"{where}.type", SourceError)
     return kinds[kind]
 
 

@@ -214,14 +214,13 @@ class HostGnssClock(SessionClock):
 def clock_from_config(table: dict | None, where: str) -> HostGnssClock:
     """HostGnssClock from a ``clock = { ... }`` table (keys ``CLOCK_KEYS``); ValueError naming
     ``where`` and the key."""
-    from v2xpos.datasets.calibration import did_you_mean
+    from v2xpos.schema import check_keys
     table = {} if table is None else table
     if not isinstance(table, dict):
         raise ValueError(f"{where}: expected a table")
+    check_keys(table, CLOCK_KEYS, where)
     kw = {}
     for key, value in table.items():
-        if key not in CLOCK_KEYS:
-            raise ValueError(f"{where}: unknown key {key!r}{did_you_mean(key, CLOCK_KEYS)}; allowed {list(CLOCK_KEYS)}")
         if key == "require_kernel_sync":
             if not isinstance(value, bool):
                 raise ValueError(f"{where}.{key}: expected true or false")

@@ -24,6 +24,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from v2xpos.schema import check_keys
 from v2xpos.types import NavState
 
 from .base import SessionClock, SourceContext, SourceError, VehicleSource
@@ -31,13 +32,6 @@ from .clock import ReplayClock
 
 
 KEYS = ("dataset", "speed", "sync", "wait_for", "wait_timeout_s", "outline_m")
-
-
-def _check_keys(table: dict, where: str) -> None:
-    from v2xpos.datasets.calibration import did_you_mean
-    for key in table:
-        if key not in KEYS:
-            raise SourceError(f"{where}: unknown key {key!r}{did_you_mean(key, KEYS)}; allowed {list(KEYS)}")
 
 
 def _number(table: dict, key: str, default: float, where: str, lo: float, hi: float) -> float:
@@ -50,7 +44,7 @@ def _number(table: dict, key: str, default: float, where: str, lo: float, hi: fl
 def check_table(table: dict, where: str) -> dict:
     """Validate a ``recording`` ``[source]`` table (without ``type``) without loading anything; the
     parsed values. SourceError naming ``where`` and the key."""
-    _check_keys(table, where)
+    check_keys(table, KEYS, where, SourceError)
     path = table.get("dataset")
     if not isinstance(path, str) or not path:
         raise SourceError(f"{where}.dataset: required: the recording's dataset.toml (or its folder)")
