@@ -59,13 +59,18 @@ def check_choice(value: Any, choices: Iterable[Any], where: str, error: type[Exc
 @dataclass(frozen=True)
 class Key:
     """One key of a flat table: its name, the type of its value (``float`` accepts integers; ``bool``
-    is never a number), the closed range ``[low, high]`` of a number, and its default (``REQUIRED``:
-    it must be present)."""
+    is never a number), its default (``REQUIRED``: it must be present) and the range of a number:
+    ``above`` (exclusive) or ``low`` (inclusive) below, ``high`` (inclusive) above."""
     name: str
     kind: type | tuple[type, ...]
     default: Any = REQUIRED
+    above: float | None = None
     low: float | None = None
     high: float | None = None
+
+    def range_text(self) -> str:
+        lower = f"({self.above}" if self.above is not None else f"[{self.low}" if self.low is not None else "(-inf"
+        return f"{lower}, {'inf)' if self.high is None else f'{self.high}]'}"
 
 
 def _value(key: Key, v: Any, where: str, error: type[Exception]) -> Any:
@@ -77,8 +82,9 @@ def _value(key: Key, v: Any, where: str, error: type[Exception]) -> Any:
         raise error(f"{where}.{key.name}: expected {names}, got {type(v).__name__} {v!r}")
     if isinstance(v, float) and not math.isfinite(v):
         raise error(f"{where}.{key.name}: expected a finite number, got {v!r}")
-    if (key.low is not None and v < key.low) or (key.high is not None and v > key.high):
-        raise error(f"{where}.{key.name}: {v!r} outside [{key.low}, {key.high}]")
+    if ((key.above is not None and not v > key.above) or (key.low is not None and not v >= key.low)
+            or (key.high is not None and not v <= key.high)):
+        raise error(f"{where}.{key.name}: expected a number in {key.range_text()}, got {v!r}")
     return v
 
 
