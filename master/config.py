@@ -117,6 +117,8 @@ class MasterConfig:
     udp_port: int = 47001
     udp_status_hz: float = 10.0
     zenoh_enabled: bool = True
+    output_plugins: dict = field(default_factory=dict)
+    """Plug-in outputs: name -> its ``[output.NAME]`` table (``master.outputs``)."""
     geojson: str | None = None
     scene_hz: float = 10.0
     results_npz: str | None = None
@@ -231,6 +233,14 @@ class MasterConfig:
                 setattr(self, name, str(base / Path(value).expanduser()))
         return self
 
+    def enabled_outputs(self) -> list[tuple[str, dict]]:
+        """(name, table) of every output to open, in this order: ``can``, ``udp``, ``zenoh``,
+        ``results_csv`` when enabled (their settings are this config's fields), then the plug-ins."""
+        builtin = (("can", self.can_enabled), ("udp", self.udp_enabled), ("zenoh", self.zenoh_enabled),
+                   ("results_csv", bool(self.results_csv)))
+        return [(name, {}) for name, on in builtin if on] + [
+            (name, t) for name, t in self.output_plugins.items() if t.get("enabled", True)]
+
     def can_bus_kwargs(self) -> dict:
         """python-can ``Bus`` options of ``[output.can]`` (besides interface and channel)."""
         kw = {"receive_own_messages": self.can_receive_own_messages}
@@ -249,8 +259,19 @@ CAN_INTERFACES_HINT = ("socketcan", "virtual")
 
 def output_from_table(out: dict, path: str) -> dict:
     """The MasterConfig fields of the ``[output]`` table (``[output.can]``, ``[output.udp]``,
-    ``[output.zenoh]``), validated; ConfigError naming the file and key otherwise."""
-    check_keys(out, {"can", "udp", "zenoh"}, f"{path}: [output]")
+    ``[output.zenoh]``, and a table per plug-in output: ``master.outputs``), validated; ConfigError
+    naming the file and key otherwise."""
+    from master.outputs import check_output_table, output_kinds
+    builtin = {"can", "udp", "zenoh"}
+    known = set(output_kinds()) - {"results_csv"}     # results_csv is a path of [record]
+    plugins = {k: v for k, v in out.items() if k not in builtin and (k in known or isinstance(v, dict) and "factory" in v)}
+    check_keys(out, known | set(plugins), f"{path}: [output]")
+    for name, t in plugins.items():
+        wp = f"{path}: [output.{name}]"
+        if not isinstance(t, dict):
+            raise ConfigError(f"{wp}: expected a table, got {type(t).__name__}")
+        take(t, "enabled", bool, True, wp)
+        check_output_table(name, t, wp)
     wc, wu, wz = f"{path}: [output.can]", f"{path}: [output.udp]", f"{path}: [output.zenoh]"
     can_t = take(out, "can", dict, {}, f"{path}: [output]")
     udp_t = take(out, "udp", dict, {}, f"{path}: [output]")
@@ -309,4 +330,4 @@ def output_from_table(out: dict, path: str) -> dict:
                 can_receive_own_messages=take(can_t, "receive_own_messages", bool, False, wc), can_slots=dict(slots),
                 udp_enabled=take(udp_t, "enabled", bool, False, wu), udp_host=host, udp_port=port,
                 udp_status_hz=udp_status_hz,
-                zenoh_enabled=take(zen_t, "enabled", bool, True, wz))
+                zenoh_enabled=take(zen_t, "enabled", bool, True, wz), output_plugins=plugins)

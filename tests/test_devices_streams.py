@@ -271,8 +271,8 @@ def test_csv_imu_decoder_and_clock_match_the_recorded_reader():
     recs: list[ImuRecord] = []
     for t, c in zip(times, chunks):
         st.feed(c, t)
-    recs += st.imu.flush()
-    assert len(recs) == len(ref.imu) and st.imu.issues.count == ref.issues.count - 1   # the cut last line stays in the buffer
+    recs += st.decoder.imu.flush()
+    assert len(recs) == len(ref.imu) and st.decoder.imu.issues.count == ref.issues.count - 1   # the cut last line stays in the buffer
     np.testing.assert_allclose([r.counter_s for r in recs], ref.imu.counter_ms * 1e-3)
     np.testing.assert_allclose(np.array([r.acc_mps2 for r in recs]), ref.imu.acc_mps2)
     m = OnlineLowerEnvelope()
