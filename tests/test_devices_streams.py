@@ -65,7 +65,7 @@ def test_emulator_chunks_are_the_file_and_its_arrival_times(ubx_chunks):
     assert np.all(np.diff(times) >= 0) and times[0] >= tag.t_s[0] and times[-1] <= tag.t_s[-1]
 
 
-@pytest.mark.parametrize("max_chunk", [1, 13, 4096])
+@pytest.mark.parametrize("max_chunk", [pytest.param(1, marks=pytest.mark.slow), 13, 4096])
 def test_framer_finds_every_frame_whatever_the_chunking(max_chunk):
     raw = UBX_FILE.read_bytes()
     ref, _ = scan_frames(raw, ParseIssues("ref"))
