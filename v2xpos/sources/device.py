@@ -131,10 +131,6 @@ class DeviceSource(VehicleSource):
         self._started = False
 
     # ------------------------------------------------------------------ plumbing
-    def sink_for(self, stream_name: str):
-        """The callable a stream hands its records to (runs on the stream's thread)."""
-        append = self.inbox.append
-        return lambda rec: append((stream_name, rec))
 
     def start(self) -> None:
         """Open the ports and start the reader threads (idempotent; ``from_config`` calls it)."""
