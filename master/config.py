@@ -171,8 +171,7 @@ class MasterConfig:
         if not 0 <= rt <= 99:
             raise ConfigError(f"{w}.realtime_priority: {rt} outside 0..99")
         dispatch = take(s, "dispatch", str, "inline", w)
-        if dispatch not in ("inline", "asyncio"):
-            raise ConfigError(f"{w}.dispatch: {dispatch!r} is not one of ['inline', 'asyncio']")
+        check_choice(dispatch, ("inline", "asyncio"), f"{w}.dispatch", ConfigError)
         timeout = take(s, "timeout_ms", float, 200.0, w)
         if not 0 < timeout <= 60000:
             raise ConfigError(f"{w}.timeout_ms: {timeout} outside (0, 60000]")

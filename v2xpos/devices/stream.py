@@ -183,10 +183,9 @@ def open_stream(table: dict, name: str, where: str, now_gps: Callable[[], float]
         from v2xpos.types import FixStatus
         if not isinstance(sd_by_fix, dict):
             raise ValueError(f"{where}.nmea_sd_by_fix_m: expected a table like {{ FIXED = 0.02, FLOAT = 0.3 }}")
+        check_keys(sd_by_fix, tuple(FixStatus.__members__), f"{where}.nmea_sd_by_fix_m")
         sd_map = {}
         for k, v in sd_by_fix.items():
-            if k not in FixStatus.__members__:
-                raise ValueError(f"{where}.nmea_sd_by_fix_m: unknown fix {k!r}; one of {list(FixStatus.__members__)}")
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
                 raise ValueError(f"{where}.nmea_sd_by_fix_m.{k}: expected a positive number [m]")
             sd_map[FixStatus[k]] = float(v)
