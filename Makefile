@@ -26,10 +26,12 @@ browser-deps:
 demo: $(STAMP)
 	$(BIN)/v2xpos demo --out out/demo
 
+# tests run on every core (pytest-xdist), a test file per worker at a time so that a module's
+# expensive fixtures (recordings replayed once, shared by its tests) are built once
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto --dist loadfile
 
 test-fast: $(STAMP)
-	$(BIN)/python -m pytest -q -m "not slow"
+	$(BIN)/python -m pytest -q -n auto --dist loadfile -m "not slow"
 
 .PHONY: install demo test test-fast browser-deps

@@ -18,6 +18,10 @@
     max_sigma_yaw_deg = 1.0           # predicted 1-sigma relative yaw above it: SIGMA_EXCEEDED
     require_consistency = true        # both filters consistent (else INCONSISTENT) and verified (else UNVERIFIED)
     max_clock_disagreement_ms = 50    # a target's clock this far from the master's: clock alarm (CLOCK_UNSYNCED)
+    alert_limit_m = 0.30              # the own filter is verified only while its protection level is within it
+    integrity_risk = 1e-5             # the protection level's risk budget (docs/integrity.md)
+    verification_file = "A.verification.toml"   # optional: the set-up's [verification] record, read at the start
+    write_verification = false        # ... and written at the end of the session (what the filter vouches for then)
 
     [link]                            # the master embeds the router by default
     mode = "router"
@@ -82,8 +86,8 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from v2xpos.config import (ConfigError, SourceConfig, check_keys, config_dir, corrections_from_table,
-                           link_from_table, load_toml, take)
+from v2xpos.config import (INTEGRITY_KEYS, ConfigError, SourceConfig, check_keys, config_dir, corrections_from_table,
+                           integrity_from_table, link_from_table, load_toml, take, verification_path)
 from v2xpos.link import LinkConfig
 from v2xpos.schema import check_choice
 
@@ -138,6 +142,8 @@ class MasterConfig:
     max_sigma_yaw_deg: float = 1.0
     require_consistency: bool = True
     max_clock_disagreement_s: float = 0.05
+    filter_integrity: dict = field(default_factory=dict)   # [validity] alert_limit_m / integrity_risk of the own filter
+    verification_out: Path | None = None                    # [validity] write the own set-up's record here at the end
     path: str = "<defaults>"
 
     @classmethod
@@ -153,7 +159,11 @@ class MasterConfig:
                        "validity"}, path)
         va = take(d, "validity", dict, {}, path)
         wv = f"{path}: [validity]"
-        check_keys(va, {"max_sigma_h_m", "max_sigma_yaw_deg", "require_consistency", "max_clock_disagreement_ms"}, wv)
+        check_keys(va, {"max_sigma_h_m", "max_sigma_yaw_deg", "require_consistency", "max_clock_disagreement_ms",
+                        *INTEGRITY_KEYS}, wv)
+        filter_integrity = integrity_from_table(va, wv, config_dir(path))
+        verification_out = (verification_path(va, wv, config_dir(path))
+                            if take(va, "write_verification", bool, False, wv) else None)
         max_clock_ms = take(va, "max_clock_disagreement_ms", float, 50.0, wv)
         if not 0 < max_clock_ms <= 60000:
             raise ConfigError(f"{wv}.max_clock_disagreement_ms: {max_clock_ms} outside (0, 60000]")
@@ -220,7 +230,8 @@ class MasterConfig:
             future_tolerance_s=take(sec, "future_tolerance_s", float, 0.05, ws), replay_window=window,
             corrections=corrections_from_table(d, path), max_sigma_h_m=max_sigma_h, max_sigma_yaw_deg=max_sigma_yaw,
             require_consistency=take(va, "require_consistency", bool, True, wv),
-            max_clock_disagreement_s=max_clock_ms / 1e3, path=path)._resolved()
+            max_clock_disagreement_s=max_clock_ms / 1e3, filter_integrity=filter_integrity,
+            verification_out=verification_out, path=path)._resolved()
 
     def _resolved(self) -> "MasterConfig":
         """Relative file paths made absolute against the config file's directory (``config_dir``), as

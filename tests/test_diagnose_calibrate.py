@@ -222,7 +222,7 @@ def drive_baseline():
 
 
 INJECTED = {P_TIME_OFFSET: 0.005, P_MISALIGN.start: 0.3 * DEG, P_MISALIGN.start + 1: -0.3 * DEG,
-            P_MISALIGN.start + 2: 0.3 * DEG, P_GYRO_SCALE.stop - 1: 0.003, P_LEVER_ARM.start + 1: 0.1}
+            P_MISALIGN.start + 2: 0.3 * DEG, P_GYRO_SCALE.stop - 1: 0.005, P_LEVER_ARM.start + 1: 0.1}
 FOUND = (P_MISALIGN.start + 1, P_GYRO_SCALE.stop - 1)
 TOLERANCE = {P_TIME_OFFSET: 0.0025, P_MISALIGN.start: 0.1 * DEG, P_MISALIGN.start + 1: 0.1 * DEG,
              P_MISALIGN.start + 2: 0.15 * DEG, P_GYRO_SCALE.stop - 1: 0.0015, P_LEVER_ARM.start + 1: 0.05}
@@ -245,8 +245,10 @@ def test_drive_injected_effects_found_relative_to_baseline(drive_baseline, sign)
     for i, v in INJECTED.items():
         assert abs(diff[i] - sign * v) < max(TOLERANCE[i], 3 * f.sd_stat[i]), (i, sign * v, report)
     # found: beyond 3 standard errors, i.e. the sd without the small-sample t factor of its degrees
-    # of freedom (``identify.normal_equivalent_factor``): the +0.3 % gyro z scale came out at 2.8
-    # Normal-equivalent sd (0.296 +- 0.106 %) on 2026-11-24 midday, within its tolerance
+    # of freedom (``identify.normal_equivalent_factor``). The paired difference is close to the
+    # injected value itself, so "found" holds only for an effect several standard errors large: the
+    # drive's turns reveal the gyro z scale to ~0.1 %, so 0.3 % sat at 3 se (a coin toss) and the
+    # injection is 0.5 %; the single-effect test below keeps 0.3 % to its tolerance
     se = f.sd_stat / identify.normal_equivalent_factor(f.dof)
     for i in FOUND:
         assert abs(diff[i]) > 3 * se[i], (i, report, float(diff[i] / se[i]))

@@ -110,3 +110,51 @@ def corrections_from_table(d: dict, path: str):
         return parse_corrections(d["corrections"], f"{path}: [corrections]")
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
+
+
+INTEGRITY_KEYS = ("alert_limit_m", "integrity_risk", "verification_file", "write_verification")
+"""The ``[validity]`` keys that configure the vehicle's own filter (``InsConfig``): its horizontal
+protection level is held against ``alert_limit_m`` at ``integrity_risk``; ``verification_file``
+keeps the ``[verification]`` record of its set-up between sessions (read at the start: a verified
+set-up starts with the prior of a change, not of a blunder; written at the end when
+``write_verification``) -- docs/integrity.md."""
+
+
+def integrity_from_table(table: dict, where: str, base_dir: Path | None = None) -> dict:
+    """``InsConfig`` overrides from a service's ``[validity]`` table: ``alert_limit_m`` (0, 10] m,
+    ``integrity_risk`` (0, 0.1], and ``setup_verified`` when ``verification_file`` (relative to
+    ``base_dir``) holds a verified record; only what is given (the filter's defaults otherwise).
+    ConfigError naming ``where`` and the key, or the file."""
+    out = {}
+    limit = take(table, "alert_limit_m", float, None, where)
+    if limit is not None:
+        if not 0 < limit <= 10.0:
+            raise ConfigError(f"{where}.alert_limit_m: {limit} outside (0, 10] m")
+        out["alert_limit_m"] = float(limit)
+    risk = take(table, "integrity_risk", float, None, where)
+    if risk is not None:
+        if not 0 < risk <= 0.1:
+            raise ConfigError(f"{where}.integrity_risk: {risk} outside (0, 0.1]")
+        out["integrity_risk"] = float(risk)
+    path = verification_path(table, where, base_dir)
+    if path is not None:
+        from v2xpos.datasets.verification import VerificationError, read_verification_file
+        try:
+            record = read_verification_file(path)
+        except VerificationError as exc:
+            raise ConfigError(f"{where}.verification_file: {exc}") from None
+        if record is not None and record.verified:
+            out["setup_verified"] = True
+    return out
+
+
+def verification_path(table: dict, where: str, base_dir: Path | None = None) -> Path | None:
+    """The ``[validity]`` ``verification_file`` resolved against ``base_dir`` (None when absent);
+    ``write_verification = true`` without a file is a ConfigError."""
+    name = take(table, "verification_file", str, None, where)
+    if take(table, "write_verification", bool, False, where) and name is None:
+        raise ConfigError(f"{where}.write_verification: needs verification_file (where to write the record)")
+    if name is None:
+        return None
+    p = Path(name).expanduser()
+    return p if p.is_absolute() or base_dir is None else Path(base_dir) / p

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 KEYS = ("verified", "drive", "date", "protection_m", "alert_limit_m", "software")
@@ -97,3 +98,49 @@ def record_from_filter(flt: Any, drive: str, software: str | None = None) -> Ver
     return VerificationRecord(verified=bool(ok), drive=str(drive),
                               date=datetime.datetime.now(datetime.timezone.utc).date().isoformat(),
                               protection_m=pl, alert_limit_m=limit, software=software)
+
+
+def read_verification_file(path: str | Path) -> VerificationRecord | None:
+    """The ``[verification]`` record kept in a file of its own (a service's ``[validity]
+    verification_file``): None when the file does not exist yet (nothing verified); a file without
+    the table, or a malformed one, is a VerificationError naming the file."""
+    from v2xpos.compat import tomllib
+    p = Path(path)
+    if not p.exists():
+        return None
+    try:
+        doc = tomllib.loads(p.read_text())
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise VerificationError(f"{p}: {exc}") from None
+    if "verification" not in doc:
+        raise VerificationError(f"{p}: no [verification] table")
+    return parse_verification(doc["verification"], f"{p}: [verification]")
+
+
+def write_verification_file(path: str | Path, record: VerificationRecord) -> None:
+    """``record`` as the whole content of ``path`` (written to a temporary file beside it, then
+    renamed over it: a reader never sees half a record)."""
+    import os
+    import tempfile
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=p.parent, prefix=f".{p.name}.", suffix=".tmp")
+    with os.fdopen(fd, "w") as fh:
+        fh.write(record.to_toml())
+    os.replace(tmp, p)
+
+
+def session_verification(source: Any, path: str | Path, drive: str) -> VerificationRecord | None:
+    """At the end of a session: the record of what the source's filter vouches for
+    (:func:`record_from_filter`), written to ``path``; None (nothing written) for a source without
+    a filter or one whose filter never started. A record that is not verified is written too: the
+    next session then starts unverified, as the drive said."""
+    flt = getattr(source, "filter", None)
+    if flt is None or not getattr(flt, "initialized", False):
+        return None
+    from v2xpos.provenance import software
+    sw = software()
+    rev = f" (git {sw['git_revision'][:7]}{', dirty' if sw['git_dirty'] else ''})" if sw["git_revision"] else ""
+    record = record_from_filter(flt, drive, f"{sw['name']} {sw['version']}{rev}")
+    write_verification_file(path, record)
+    return record

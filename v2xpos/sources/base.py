@@ -36,7 +36,9 @@ class SourceContext:
     vehicle_id / fleet: identity of the vehicle; role: "master" or "slave"; config_dir: directory of
     the config file (relative paths in ``[source]`` are resolved against it); link: the service's
     ``v2xpos.link.Link`` once open (sources that synchronise over the network use it); stop:
-    returns True when the service is asked to stop (long waits poll it).
+    returns True when the service is asked to stop (long waits poll it); filter_overrides:
+    ``InsConfig`` fields the service's configuration sets for the vehicle's filter (its
+    ``[validity]`` alert limit and integrity risk, ``v2xpos.config.integrity_from_table``).
     """
     vehicle_id: str
     fleet: str = "demo"
@@ -45,6 +47,7 @@ class SourceContext:
     link: Any = None
     stop: Callable[[], bool] = lambda: False
     extra: dict = field(default_factory=dict)
+    filter_overrides: dict = field(default_factory=dict)
 
     def resolve(self, path: str) -> Path:
         """``path`` relative to the config file's directory (absolute paths unchanged)."""

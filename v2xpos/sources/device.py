@@ -305,7 +305,8 @@ def from_config(table: dict, where: str, ctx: SourceContext) -> DeviceSource:
     from v2xpos.ins.profiles import vehicle_config
     v = check_table(table, where)
     clock, calibration, window, span = v["clock"], v["calibration"], v["window"], v["span"]
-    cfg = vehicle_config(v["platform"], v["imu_to_body"], v["lever"], v["lever_sd"], calibration)
+    cfg = vehicle_config(v["platform"], v["imu_to_body"], v["lever"], v["lever_sd"], calibration,
+                         **getattr(ctx, "filter_overrides", {}))
 
     holder: dict = {}
 

@@ -81,18 +81,19 @@ def from_config(table: dict, where: str, ctx: SourceContext) -> "RecordingSource
     path = ctx.resolve(v.pop("dataset"))
     check_declared(path, where)
     try:
-        return RecordingSource(path, **v)
+        return RecordingSource(path, **v, filter_overrides=getattr(ctx, "filter_overrides", None))
     except (OSError, ValueError) as exc:
         raise SourceError(f"{where}.dataset: {exc}") from None
 
 
-def ins_config_for(ds) -> "object":
+def ins_config_for(ds, **overrides) -> "object":
     """The filter configuration of a recording: its declared mounting and lever arm, the platform's
     vehicle constraints, its ``[calibration]`` table and its wheel speeds, in the services'
     profile (``v2xpos.ins.profiles.dataset_config``: the same function ``v2xpos replay`` and the
-    device source use, so a vehicle is the same filter everywhere)."""
+    device source use, so a vehicle is the same filter everywhere); ``overrides``: ``InsConfig``
+    fields the service sets (its ``[validity]``)."""
     from v2xpos.ins.profiles import dataset_config
-    return dataset_config(ds)
+    return dataset_config(ds, **overrides)
 
 
 class RecordingSource(VehicleSource):
@@ -101,7 +102,7 @@ class RecordingSource(VehicleSource):
     name = "recording"
 
     def __init__(self, path: str | Path, speed: float = 1.0, sync: str = "auto", wait_for: tuple = (),
-                 wait_timeout_s: float = 120.0, outline_m: list | None = None):
+                 wait_timeout_s: float = 120.0, outline_m: list | None = None, filter_overrides: dict | None = None):
         from v2xpos.datasets.loader import load_dataset
         from v2xpos.ins import InsFilter
         from v2xpos.ins.driver import InsDriver, push_dataset
@@ -121,7 +122,7 @@ class RecordingSource(VehicleSource):
             self.geometry = Geometry(kind="circle", radius_m=0.3)
         else:
             self.geometry = Geometry.box(3.8, 1.0, 0.9)
-        self.filter = InsFilter(ins_config_for(self.ds))
+        self.filter = InsFilter(ins_config_for(self.ds, **(filter_overrides or {})))
         self.driver = InsDriver(self.filter, complete=True, emit_states=True)
         push_dataset(self.driver, self.ds)
 

@@ -1,0 +1,73 @@
+"""Issue 27 item 1: the alert limit and the integrity risk are configuration. A service's
+``[validity]`` ``alert_limit_m`` / ``integrity_risk`` reach the vehicle's own filter (the source it
+builds), misspelt or out-of-range values are refused naming the table and key."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from master.config import MasterConfig
+from slave.config import SlaveConfig
+from v2xpos.config import ConfigError
+from v2xpos.ins.config import InsConfig
+from tests.shared_data import SHARED_DATA, require_shared
+
+DEV_A = SHARED_DATA / "convoy_dev" / "A" / "dataset.toml"
+SOURCE = {"type": "recording", "dataset": str(DEV_A)}
+
+
+@pytest.mark.parametrize("cls", [MasterConfig, SlaveConfig])
+def test_validity_keys_configure_the_filter_and_are_checked(cls):
+    cfg = cls.from_dict({"validity": {"alert_limit_m": 0.5, "integrity_risk": 1e-6}, "source": SOURCE}, "svc.toml")
+    assert cfg.filter_integrity == {"alert_limit_m": 0.5, "integrity_risk": 1e-6}
+    assert cls.from_dict({"source": SOURCE}, "svc.toml").filter_integrity == {}
+    with pytest.raises(ConfigError, match=r"svc.toml: \[validity\].*'alert_limt_m'.*did you mean 'alert_limit_m'"):
+        cls.from_dict({"validity": {"alert_limt_m": 0.5}, "source": SOURCE}, "svc.toml")
+    with pytest.raises(ConfigError, match=r"\[validity\]\.integrity_risk: 2.0 outside"):
+        cls.from_dict({"validity": {"integrity_risk": 2.0}, "source": SOURCE}, "svc.toml")
+    with pytest.raises(ConfigError, match=r"\[validity\]\.alert_limit_m: 0.0 outside"):
+        cls.from_dict({"validity": {"alert_limit_m": 0}, "source": SOURCE}, "svc.toml")
+
+
+def test_the_recording_source_builds_its_filter_with_the_services_limits():
+    require_shared(DEV_A)
+    from v2xpos.sources import SourceContext, make_source
+    ctx = SourceContext("A", config_dir=Path("."), filter_overrides={"alert_limit_m": 0.55, "integrity_risk": 1e-7})
+    src = make_source(dict(SOURCE), "[source]", ctx)
+    assert (src.filter.cfg.alert_limit_m, src.filter.cfg.integrity_risk) == (0.55, 1e-7)
+    plain = make_source(dict(SOURCE), "[source]", SourceContext("A", config_dir=Path(".")))
+    assert (plain.filter.cfg.alert_limit_m, plain.filter.cfg.integrity_risk) == (InsConfig.alert_limit_m,
+                                                                                  InsConfig.integrity_risk)
+
+
+def test_a_session_writes_its_verification_record_and_the_next_one_starts_from_it(tmp_path):
+    """Issue 27 item 2: ``[validity] write_verification`` writes what the filter vouches for at the
+    end of a session to ``verification_file``; the next session's filter reads it (a verified
+    set-up starts with the prior of a change); a malformed file is refused naming it."""
+    require_shared(DEV_A)
+    from v2xpos.datasets.verification import read_verification_file, session_verification
+    from v2xpos.sources import SourceContext, make_source
+    table = {"verification_file": "B.verification.toml", "write_verification": True}
+    cfg = SlaveConfig.from_dict({"validity": table, "source": SOURCE}, str(tmp_path / "slave.toml"))
+    assert cfg.verification_out == tmp_path / "B.verification.toml"
+    assert "setup_verified" not in cfg.filter_integrity            # no record yet: not verified
+    with pytest.raises(ConfigError, match=r"write_verification: needs verification_file"):
+        SlaveConfig.from_dict({"validity": {"write_verification": True}, "source": SOURCE}, "s.toml")
+    src = make_source(dict(SOURCE), "[source]", SourceContext("B", config_dir=tmp_path))
+    assert session_verification(src, cfg.verification_out, "test") is None   # filter not started: nothing
+    t0 = src.t_begin_gps_s
+    src.advance(t0 + 150.0)                                        # through the first turns
+    record = session_verification(src, cfg.verification_out, "test drive")
+    assert record is not None and record.verified, record
+    assert record.protection_m <= record.alert_limit_m
+    again = read_verification_file(cfg.verification_out)
+    assert again.verified and again.drive == "test drive" and again.protection_m == round(record.protection_m, 4)
+    nxt = SlaveConfig.from_dict({"validity": table, "source": SOURCE}, str(tmp_path / "slave.toml"))
+    assert nxt.filter_integrity.get("setup_verified") is True
+    verified = make_source(dict(SOURCE), "[source]", SourceContext("B", config_dir=tmp_path,
+                                                                   filter_overrides=nxt.filter_integrity))
+    assert verified.filter.cfg.setup_verified
+    (tmp_path / "B.verification.toml").write_text("[verification]\nverifed = true\n")
+    with pytest.raises(ConfigError, match=r"B.verification.toml.*'verifed'.*did you mean 'verified'"):
+        SlaveConfig.from_dict({"validity": table, "source": SOURCE}, str(tmp_path / "slave.toml"))
