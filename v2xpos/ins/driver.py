@@ -172,11 +172,6 @@ class _ImuQueue:
         self._settle()
         return self.t, self.acc, self.gyr, self.i
 
-    def last_stamp(self) -> float:
-        if self._new:
-            return float(self._new[-1][0][-1])
-        return float(self.t[-1]) if self.i < len(self.t) else -math.inf
-
 
 class InsDriver:
     """The event loop of the module docstring around one ``InsFilter``.
