@@ -89,6 +89,7 @@ from pathlib import Path
 from v2xpos.config import (INTEGRITY_KEYS, ConfigError, SourceConfig, check_keys, config_dir, corrections_from_table,
                            integrity_from_table, link_from_table, load_toml, take, verification_path)
 from v2xpos.link import LinkConfig
+from v2xpos.schema import check_choice
 
 
 @dataclass
@@ -120,6 +121,8 @@ class MasterConfig:
     udp_port: int = 47001
     udp_status_hz: float = 10.0
     zenoh_enabled: bool = True
+    output_plugins: dict = field(default_factory=dict)
+    """Plug-in outputs: name -> its ``[output.NAME]`` table (``master.outputs``)."""
     geojson: str | None = None
     scene_hz: float = 10.0
     results_npz: str | None = None
@@ -178,8 +181,7 @@ class MasterConfig:
         if not 0 <= rt <= 99:
             raise ConfigError(f"{w}.realtime_priority: {rt} outside 0..99")
         dispatch = take(s, "dispatch", str, "inline", w)
-        if dispatch not in ("inline", "asyncio"):
-            raise ConfigError(f"{w}.dispatch: {dispatch!r} is not one of ['inline', 'asyncio']")
+        check_choice(dispatch, ("inline", "asyncio"), f"{w}.dispatch", ConfigError)
         timeout = take(s, "timeout_ms", float, 200.0, w)
         if not 0 < timeout <= 60000:
             raise ConfigError(f"{w}.timeout_ms: {timeout} outside (0, 60000]")
@@ -241,6 +243,14 @@ class MasterConfig:
                 setattr(self, name, str(base / Path(value).expanduser()))
         return self
 
+    def enabled_outputs(self) -> list[tuple[str, dict]]:
+        """(name, table) of every output to open, in this order: ``can``, ``udp``, ``zenoh``,
+        ``results_csv`` when enabled (their settings are this config's fields), then the plug-ins."""
+        builtin = (("can", self.can_enabled), ("udp", self.udp_enabled), ("zenoh", self.zenoh_enabled),
+                   ("results_csv", bool(self.results_csv)))
+        return [(name, {}) for name, on in builtin if on] + [
+            (name, t) for name, t in self.output_plugins.items() if t.get("enabled", True)]
+
     def can_bus_kwargs(self) -> dict:
         """python-can ``Bus`` options of ``[output.can]`` (besides interface and channel)."""
         kw = {"receive_own_messages": self.can_receive_own_messages}
@@ -259,8 +269,19 @@ CAN_INTERFACES_HINT = ("socketcan", "virtual")
 
 def output_from_table(out: dict, path: str) -> dict:
     """The MasterConfig fields of the ``[output]`` table (``[output.can]``, ``[output.udp]``,
-    ``[output.zenoh]``), validated; ConfigError naming the file and key otherwise."""
-    check_keys(out, {"can", "udp", "zenoh"}, f"{path}: [output]")
+    ``[output.zenoh]``, and a table per plug-in output: ``master.outputs``), validated; ConfigError
+    naming the file and key otherwise."""
+    from master.outputs import check_output_table, output_kinds
+    builtin = {"can", "udp", "zenoh"}
+    known = set(output_kinds()) - {"results_csv"}     # results_csv is a path of [record]
+    plugins = {k: v for k, v in out.items() if k not in builtin and (k in known or isinstance(v, dict) and "factory" in v)}
+    check_keys(out, known | set(plugins), f"{path}: [output]")
+    for name, t in plugins.items():
+        wp = f"{path}: [output.{name}]"
+        if not isinstance(t, dict):
+            raise ConfigError(f"{wp}: expected a table, got {type(t).__name__}")
+        take(t, "enabled", bool, True, wp)
+        check_output_table(name, t, wp)
     wc, wu, wz = f"{path}: [output.can]", f"{path}: [output.udp]", f"{path}: [output.zenoh]"
     can_t = take(out, "can", dict, {}, f"{path}: [output]")
     udp_t = take(out, "udp", dict, {}, f"{path}: [output]")
@@ -277,11 +298,7 @@ def output_from_table(out: dict, path: str) -> dict:
         raise ConfigError(f"{wc}.status_hz: {status_hz} outside (0, 100]")
     interface = take(can_t, "interface", str, "virtual", wc)
     from can.interfaces import VALID_INTERFACES
-    if interface not in VALID_INTERFACES:
-        from difflib import get_close_matches
-        near = get_close_matches(interface, sorted(VALID_INTERFACES), n=1)
-        hint = f"; did you mean {near[0]!r}?" if near else f" (python-can interfaces: {sorted(VALID_INTERFACES)})"
-        raise ConfigError(f"{wc}.interface: {interface!r} is not a python-can interface{hint}")
+    check_choice(interface, sorted(VALID_INTERFACES), f"{wc}.interface (python-can interfaces)", ConfigError)
     channel = take(can_t, "channel", str, "v2xpos", wc)
     if not channel:
         raise ConfigError(f"{wc}.channel: empty")
@@ -323,4 +340,4 @@ def output_from_table(out: dict, path: str) -> dict:
                 can_receive_own_messages=take(can_t, "receive_own_messages", bool, False, wc), can_slots=dict(slots),
                 udp_enabled=take(udp_t, "enabled", bool, False, wu), udp_host=host, udp_port=port,
                 udp_status_hz=udp_status_hz,
-                zenoh_enabled=take(zen_t, "enabled", bool, True, wz))
+                zenoh_enabled=take(zen_t, "enabled", bool, True, wz), output_plugins=plugins)

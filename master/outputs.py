@@ -11,14 +11,96 @@
 ``CanSink.from_config(cfg)`` / ``UdpSink.from_config(cfg)`` build them from a ``MasterConfig``
 (``[output.can]`` / ``[output.udp]``); a bus that cannot be opened is a ``ConfigError`` naming the
 file, interface and channel. ``master_status(nav, ...)`` makes the dict ``write_master_status`` takes.
+
+Every output is registered by name (``output_kinds``): the built-in ones (``BUILTIN_OUTPUTS``: ``can``,
+``udp``, ``zenoh``, ``results_csv``), those registered at run time and every entry point of the group
+``v2xpos.outputs`` (``v2xpos.plugins``). A factory is ``factory(table, where, ctx: OutputContext) ->
+sink``; a plug-in output is configured by its own ``[output.NAME]`` table (``enabled = false`` turns it
+off; ``factory = "module:function"`` names a factory that is not registered) and its module may have
+``check_table(table, where)``, called when the config loads. A sink has ``write(result)`` and
+``close()``; ``flush()``, ``write_scene(...)`` when it has them (``master.pipeline``).
+docs/extending.md adds one.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Mapping
 
+from v2xpos import plugins
 from v2xpos.config import ConfigError
 from v2xpos.link import Publisher
-from v2xpos.wire import RelativeResult, encode_relative
+from v2xpos.wire import RelativeResult, encode_relative, relative_key
+
+OUTPUT_GROUP = "v2xpos.outputs"
+BUILTIN_OUTPUTS: dict[str, str] = {
+    "can": "master.outputs:can_output",
+    "udp": "master.outputs:udp_output",
+    "zenoh": "master.outputs:zenoh_output",
+    "results_csv": "master.outputs:results_csv_output",
+}
+PLUGIN_TABLE_KEYS = ("enabled", "factory")
+"""Keys of an ``[output.NAME]`` table that the master reads itself; the rest is the factory's."""
+
+
+@dataclass
+class OutputContext:
+    """What an output factory may use besides its table: the master's config and its link."""
+    cfg: Any
+    link: Any = None
+
+
+def output_kinds() -> dict[str, str]:
+    """Every known output name -> ``module:factory``."""
+    return plugins.registered(OUTPUT_GROUP, BUILTIN_OUTPUTS)
+
+
+def _output_ref(name: str, table: Mapping, where: str) -> str:
+    ref = table.get("factory")
+    if ref is not None:
+        if not isinstance(ref, str) or ":" not in ref:
+            raise ConfigError(f"{where}.factory: expected 'module:function', got {ref!r}")
+        return ref
+    kinds = output_kinds()
+    if name not in kinds:
+        from v2xpos.schema import check_choice
+        check_choice(name, sorted(kinds), where, ConfigError)
+    return kinds[name]
+
+
+def check_output_table(name: str, table: Mapping, where: str) -> None:
+    """Validate a plug-in's ``[output.NAME]`` table when the config loads: the name is registered (or
+    the table names a factory) and the factory module's ``check_table(table, where)``, if any, passes."""
+    ref = _output_ref(name, table, where)
+    check = plugins.load(f"{ref.partition(':')[0]}:check_table", where, ConfigError, missing=None)
+    if check is not None:
+        check({k: v for k, v in table.items() if k not in PLUGIN_TABLE_KEYS}, where)
+
+
+def make_output(name: str, table: Mapping, where: str, ctx: OutputContext):
+    """The sink the output ``name`` (registered, or ``table["factory"]``) builds from ``table``."""
+    factory = plugins.load(_output_ref(name, table, where), where, ConfigError)
+    return factory({k: v for k, v in table.items() if k not in PLUGIN_TABLE_KEYS}, where, ctx)
+
+
+def can_output(table: Mapping, where: str, ctx: OutputContext) -> "CanSink":
+    """The built-in ``can`` output (``[output.can]``, read into the MasterConfig)."""
+    return CanSink.from_config(ctx.cfg)
+
+
+def udp_output(table: Mapping, where: str, ctx: OutputContext) -> "UdpSink":
+    """The built-in ``udp`` output (``[output.udp]``)."""
+    return UdpSink.from_config(ctx.cfg)
+
+
+def zenoh_output(table: Mapping, where: str, ctx: OutputContext) -> "ZenohSink":
+    """The built-in ``zenoh`` output: results republished on the master's relative key."""
+    return ZenohSink(ctx.link.publisher(relative_key(ctx.cfg.fleet, ctx.cfg.master_id), express=False))
+
+
+def results_csv_output(table: Mapping, where: str, ctx: OutputContext):
+    """The built-in ``results_csv`` output (``[record] results_csv``)."""
+    from v2xpos.output.results_csv import ResultsCsvWriter
+    return ResultsCsvWriter(ctx.cfg.results_csv)
 
 
 def summary_provenance(cfg: Any, seeds: Mapping[str, Any] | None = None) -> dict:

@@ -45,12 +45,12 @@ import numpy as np
 
 from master.config import MasterConfig
 from master.dispatch import InlineDispatch, StartupHold
-from master.outputs import CanSink, UdpSink, ZenohSink, master_status, summary_provenance
+from master.outputs import OutputContext, make_output, master_status, summary_provenance
 from master.pipeline import RECORD_FIELDS, MasterPipeline, PipelineConfig
 from v2xpos.config import ConfigError, config_dir
 from v2xpos.link import Link, LinkUnavailable
 from v2xpos.sources import SourceContext, SourceError, make_source
-from v2xpos.wire import STATE_KEY_ALL, alive_key, grades_key, relative_key, status_key
+from v2xpos.wire import STATE_KEY_ALL, alive_key, grades_key, status_key
 
 GRADING_NICE = 10
 """CPU priority offset of the IMU grading worker: grading is background analysis (windows of
@@ -151,14 +151,14 @@ class MasterService:
         except LinkUnavailable as exc:
             raise ConfigError(f"{cfg.path}: [link]: {exc}") from None
         self.ctx.link = self.link
-        if cfg.can_enabled:
-            self.can = CanSink.from_config(cfg)
-            self.sinks.append(self.can)
-        if cfg.udp_enabled:
-            self.udp = UdpSink.from_config(cfg)
-            self.sinks.append(self.udp)
-        if cfg.zenoh_enabled:
-            self.sinks.append(ZenohSink(self.link.publisher(relative_key(cfg.fleet, cfg.master_id), express=False)))
+        octx = OutputContext(cfg, self.link)
+        for name, table in cfg.enabled_outputs():
+            sink = make_output(name, table, f"{cfg.path}: [output.{name}]", octx)
+            self.sinks.append(sink)
+            if name == "can":
+                self.can = sink
+            elif name == "udp":
+                self.udp = sink
         from v2xpos.security import MessageAuthenticator
         auth = MessageAuthenticator(self.trust, require_signature=cfg.require_signature and bool(cfg.trust_list),
                                     max_age_s=cfg.max_age_s, future_tolerance_s=cfg.future_tolerance_s,
@@ -170,9 +170,6 @@ class MasterService:
                               record=cfg.results_npz is not None, max_sigma_h_m=cfg.max_sigma_h_m,
                               max_sigma_yaw_deg=cfg.max_sigma_yaw_deg, require_consistency=cfg.require_consistency,
                               max_clock_disagreement_s=cfg.max_clock_disagreement_s)
-        if cfg.results_csv:
-            from v2xpos.output.results_csv import ResultsCsvWriter
-            self.sinks.append(ResultsCsvWriter(cfg.results_csv))
         self.pipeline = MasterPipeline(pcfg, self.sinks, authenticator=auth)
         self.pipeline.warm_up()
         if cfg.mcap:

@@ -383,7 +383,9 @@ def apply_overrides(p: ConvoyParams, mountings: list[str], effects: list[str], f
         name, _, key = lhs.partition(".")
         v = vehicle(name, f"--effect {item!r}")
         if key not in _EFFECT_KEYS:
-            raise ValueError(f"--effect {item!r}: unknown key {key!r}; one of {sorted(_EFFECT_KEYS)}")
+            from v2xpos.schema import did_you_mean
+            raise ValueError(f"--effect {item!r}: unknown key {key!r}{did_you_mean(key, _EFFECT_KEYS)}; "
+                             f"one of {sorted(_EFFECT_KEYS)}")
         vals = _parse_vec(val, _EFFECT_KEYS[key], f"--effect {item!r}")
         setattr(v.effects, key, vals[0] if _EFFECT_KEYS[key] == 1 else vals)
     for item in floats:

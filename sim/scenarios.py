@@ -258,7 +258,7 @@ def check_params(name: str, params: dict, where: str = "") -> None:
     ``where`` (e.g. ``"slave.toml: [source.params]"``) prefixes the message."""
     import inspect
 
-    from v2xpos.datasets.calibration import did_you_mean
+    from v2xpos.schema import did_you_mean
     prefix = f"{where}: " if where else ""
     if name not in BUILDERS:
         raise ScenarioError(f"{prefix}unknown scenario {name!r}{did_you_mean(str(name), BUILDERS)}; "

@@ -328,13 +328,10 @@ SIM_KEYS = ("factory", "scenario", "actor", "model", "params", "start_file", "st
 def check_table(table: dict, where: str) -> None:
     """Validate a ``sim`` ``[source]`` table (keys, model, scenario parameters) without building the
     scenario; SourceError naming ``where`` and the key."""
-    from v2xpos.datasets.calibration import did_you_mean
-    for key in table:
-        if key not in SIM_KEYS:
-            raise SourceError(f"{where}: unknown key {key!r}{did_you_mean(key, SIM_KEYS)}; allowed {list(SIM_KEYS)}")
+    from v2xpos.schema import check_choice, check_keys
+    check_keys(table, SIM_KEYS, where, SourceError)
     model = table.get("model", "ins")
-    if model not in SOURCES:
-        raise SourceError(f"{where}.model: {model!r} is not one of {sorted(SOURCES)}")
+    check_choice(model, sorted(SOURCES), f"{where}.model", SourceError)
     params = table.get("params", {})
     if not isinstance(params, dict):
         raise SourceError(f"{where}.params: expected a table of scenario parameters")

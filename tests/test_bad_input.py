@@ -93,6 +93,7 @@ def test_declared_mounting_passes_gravity_check(tmp_path):
 
 
 # ---------------------------------------------------------------------------------- IMU csv cut in half
+@pytest.mark.slow
 def test_imu_csv_cut_in_half_scores_only_the_common_span(tmp_path):
     """Exit 0 with the cut stated (stderr and JSON), GNSS epochs after the IMU ends not used, and
     the outages scored are exactly the full run's outages inside the IMU's span, with the same errors
@@ -266,6 +267,7 @@ def test_stop_signals_interrupt_the_block_even_when_sigint_was_inherited_ignored
         signal.signal(signal.SIGINT, before)
 
 
+@pytest.mark.slow
 def test_demo_ctrl_c_writes_a_partial_report(tmp_path):
     """The demo is started as a script's background job would be, with SIGINT ignored (what a
     non-interactive shell gives an asynchronous command): a SIGINT to its process group must still

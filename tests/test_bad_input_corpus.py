@@ -63,6 +63,7 @@ def test_corpus_bases_are_clean(built):
         assert corpus_mod.run_case(case, work)[0].status == "silent"
 
 
+@pytest.mark.slow
 def test_corpus_zero_tracebacks_zero_silent_exits(built):
     corpus, work = built
     res = corpus_mod.run_corpus(corpus, work / "out")

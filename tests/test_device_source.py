@@ -142,6 +142,7 @@ def test_device_config_is_validated_with_where_and_key():
 
 
 # ------------------------------------------------------------------ states against the replay
+@pytest.mark.slow
 @needs_walk
 def test_device_source_on_recorded_chunks_gives_the_replay_states(walk_reference):
     """The device path without real time: every recorded chunk fed at its recorded arrival time,
@@ -282,6 +283,7 @@ def _parked_device_source(table_extra: dict):
     return src, states
 
 
+@pytest.mark.slow
 def test_a_dual_antenna_heading_makes_a_parked_start_attitude_determined():
     """Without the baseline declared a parked car's heading stays pending (never a guess); with it
     the states carry the baseline's heading and ``attitude_ok`` after the filter starts."""

@@ -65,7 +65,7 @@ def test_emulator_chunks_are_the_file_and_its_arrival_times(ubx_chunks):
     assert np.all(np.diff(times) >= 0) and times[0] >= tag.t_s[0] and times[-1] <= tag.t_s[-1]
 
 
-@pytest.mark.parametrize("max_chunk", [1, 13, 4096])
+@pytest.mark.parametrize("max_chunk", [pytest.param(1, marks=pytest.mark.slow), 13, 4096])
 def test_framer_finds_every_frame_whatever_the_chunking(max_chunk):
     raw = UBX_FILE.read_bytes()
     ref, _ = scan_frames(raw, ParseIssues("ref"))
@@ -271,8 +271,8 @@ def test_csv_imu_decoder_and_clock_match_the_recorded_reader():
     recs: list[ImuRecord] = []
     for t, c in zip(times, chunks):
         st.feed(c, t)
-    recs += st.imu.flush()
-    assert len(recs) == len(ref.imu) and st.imu.issues.count == ref.issues.count - 1   # the cut last line stays in the buffer
+    recs += st.decoder.imu.flush()
+    assert len(recs) == len(ref.imu) and st.decoder.imu.issues.count == ref.issues.count - 1   # the cut last line stays in the buffer
     np.testing.assert_allclose([r.counter_s for r in recs], ref.imu.counter_ms * 1e-3)
     np.testing.assert_allclose(np.array([r.acc_mps2 for r in recs]), ref.imu.acc_mps2)
     m = OnlineLowerEnvelope()

@@ -196,6 +196,7 @@ def test_samples_inserted_by_interpolation_leave_the_trapezoid_increments_unchan
         np.testing.assert_allclose(split, whole, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_exact_epoch_replays_make_the_cost_continuous_in_the_imu_offset():
     """A stamp shift that moves the GNSS epochs past an IMU sample (here +-0.1 ms around the
     simulator's grid, where each epoch sits one float ulp before a sample) must not make the

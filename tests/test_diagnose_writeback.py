@@ -49,6 +49,7 @@ def test_table_writes_significant_values_and_honest_sds():
     assert th[P_TIME_OFFSET] == -0.025 and th[P_MISALIGN.start + 2] == pytest.approx(np.radians(-1.0))
 
 
+@pytest.mark.slow
 def test_written_descriptor_loads_with_paths_and_calibration(tmp_path):
     src = DATA / "convoy_dev" / "B" / "dataset.toml"
     require_shared(src)

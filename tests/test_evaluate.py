@@ -47,6 +47,7 @@ def _check(res: dict, where: str) -> None:
     assert not res["present_not_significant"], f"{where}: present effects not found: {res['present_not_significant']}"
 
 
+@pytest.mark.slow
 def test_effects_recovered_over_seeds_and_models(convoy, synthetic, tmp_path):
     """10 seeds on convoy_dev (a rear radar watching the follower) cycling through every error model,
     and 4 on three synthetic targets ahead of a front radar with other models."""
@@ -83,6 +84,7 @@ def _metrics(out: Path) -> dict:
     return m
 
 
+@pytest.mark.slow
 def test_same_log_as_csv_asc_blf_mf4_same_metrics(convoy, tmp_path):
     truths, ref = convoy
     points = {k: t.reference_point_m for k, t in truths.items()}
@@ -139,6 +141,7 @@ def test_bad_input_exit_2_names_file_and_key_writes_nothing(convoy, tmp_path, ca
     assert not [p for p in out.parent.iterdir() if p.name.startswith(".out.")]
 
 
+@pytest.mark.slow
 def test_reference_by_column_name_extra_columns_and_smoothed(convoy, tmp_path):
     d = _sensor_dir(convoy, tmp_path)
     lines = (d / "reference.csv").read_text().splitlines()
@@ -157,6 +160,7 @@ def test_reference_by_column_name_extra_columns_and_smoothed(convoy, tmp_path):
     assert a == b
 
 
+@pytest.mark.slow
 def test_mcap_reference_same_effects(convoy, tmp_path):
     from v2xpos.evaluate.reference import read_results_csv_reference
     from v2xpos.output.recorder import McapRecorder
@@ -183,6 +187,7 @@ def test_mcap_reference_same_effects(convoy, tmp_path):
     assert a["targets"]["B"]["detection_rate"] == b["targets"]["B"]["detection_rate"]
 
 
+@pytest.mark.slow
 def test_report_shows_what_a_test_record_needs(convoy, tmp_path):
     d = _sensor_dir(convoy, tmp_path / "in")
     out = tmp_path / "out"

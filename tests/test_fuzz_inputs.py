@@ -19,6 +19,7 @@ from tests.shared_data import SHARED_DATA, require_shared
 DATA = SHARED_DATA
 
 
+@pytest.mark.slow
 def test_mutation_fuzz_all_targets_zero_crashes():
     report = fuzz.run_fuzz(total=12_000, seed=11, progress=False)
     assert report["fuzz_crashes"] == 0, {k: v["crash_examples"] for k, v in report["targets"].items()}
@@ -61,6 +62,7 @@ _values = st.recursive(_scalars, lambda inner: st.one_of(st.lists(inner, max_siz
                        max_leaves=12)
 
 
+@pytest.mark.slow
 @settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(field=st.sampled_from(["fleet", "id", "seq", "t", "fix", "lat", "lon", "h", "v", "a", "w", "rpy",
                               "sp", "sv", "sa", "g", "kind", "ver", "T", "tw", "iq"]), value=_values)

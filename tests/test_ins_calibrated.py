@@ -64,6 +64,7 @@ def test_generic_platform_gets_timing_states_for_a_clock_drift():
     assert "imu_clock_drift" in cfg.effects and "imu_time_offset" in cfg.effects
 
 
+@pytest.mark.slow
 def test_applied_in_the_filter_equals_rewriting_the_recording():
     """Effects in a simulated drive, undeclared: the filter configured with the true calibration
     (``ins_config`` through the vehicle's profile) navigates through GNSS outages as well as (or
@@ -117,6 +118,7 @@ def test_every_filter_takes_the_same_noise_margin_over_a_calibrated_noise():
     assert ins_config("car", B, LEVER, 0.05, loud, integrity=True).gyro_noise_rps_rthz == InsConfig.gyro_noise_rps_rthz
 
 
+@pytest.mark.slow
 def test_a_calibrated_noise_never_makes_the_outage_worse_on_a_drive_without_effects():
     """Nothing undeclared in the drive, the table carries only the IMU white noise that
     ``calibrate`` measures from the samples (``tuning.imu_noise_density``). The filter given it

@@ -125,6 +125,7 @@ def test_seed001_static_calibration_estimates_biases():
     assert abs(np.degrees(cal2.not_level[0].tilt_rad[1]) - 5.0) < 1.0
 
 
+@pytest.mark.slow
 def test_replay_cli_writes_json_and_plots(tmp_path):
     toml = DATA / "walk_0827" / "dataset.toml"
     require_shared(toml)
@@ -149,6 +150,7 @@ def test_replay_cli_reports_unloadable_dataset(tmp_path, capsys):
     assert "cannot load" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_replay_survives_a_truncated_and_corrupted_pos_file(tmp_path):
     """A copy of walk_0827 (outside the repo) whose .pos has a garbage line and is cut mid-line:
     the bad records are counted and the replay runs to the end."""

@@ -71,6 +71,7 @@ def test_turn_counting_still_gates_verification_when_configured():
     assert run(2.0).state == UNVERIFIED
 
 
+@pytest.mark.slow
 def test_false_alarm_rate_is_per_hour_not_per_window():
     """An hour of exactly consistent 10 Hz position and velocity updates (innovation covariance as
     predicted, not pessimistic): with the per-hour level split over the disjoint blocks (Bonferroni,
@@ -283,6 +284,7 @@ def test_fault_tolerant_solution_is_the_wide_prior_filter():
         np.testing.assert_allclose(ft, ref, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_no_fault_no_alarm_and_the_protection_level_falls_with_turning():
     rows = _toy_run(np.zeros(3), rate_rps=0.15)
     assert not any(r[2] for r in rows)
@@ -295,6 +297,7 @@ def test_no_fault_no_alarm_and_the_protection_level_falls_with_turning():
     assert all(r[1] < 0.3 for r in verified[20:])   # ...but a set-up verified before needs no turn
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("error", [(0.3, 0.0), (0.0, -0.5), (0.4, 0.4), (0.15, -0.1)])
 def test_an_undeclared_lever_arm_is_found_before_the_protection_level_vouches(error):
     """Integrity: at every epoch before the first alarm, a protection level within the alert limit

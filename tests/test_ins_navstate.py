@@ -14,6 +14,8 @@ from v2xpos import geo
 from v2xpos.ins import InsConfig, InsFilter
 from v2xpos.types import FixStatus
 
+pytestmark = pytest.mark.slow   # replays of whole recordings (make test-fast leaves them out)
+
 LEVER_ARM_M = np.array([0.5, 0.0, -1.4])
 SPEED_MPS = 20.0
 

@@ -8,6 +8,8 @@ from v2xpos.ins.replay import replay
 from v2xpos.ins.replay_engine import OutageSchedule
 from tests.shared_data import SHARED_DATA, require_shared
 
+pytestmark = pytest.mark.slow   # replays of whole recordings (make test-fast leaves them out)
+
 DATA = SHARED_DATA
 REQUIRED_KEYS = ("dataset", "imu_samples", "gnss_epochs", "malformed_lines", "outage_count", "outage_h_rms_m",
                  "outage_h_max_m", "outage_v_rms_m", "aided_h_rms_m", "wall_s", "imu_samples_per_s")

@@ -86,6 +86,7 @@ def test_exact_epochs_puts_the_state_at_each_epoch_and_constraints_between(datas
         run_replay(InsFilter(InsConfig(platform="car", imu_to_body=CAR_MOUNT)), dataset, [], exact_epochs=True)
 
 
+@pytest.mark.slow
 def test_replay_and_fit_replay_are_the_same_loop(dataset):
     """The declared model through ``v2xpos replay`` and through calibrate's fit replay (no
     odometer, outages not thinned) gives the same innovations, update for update."""

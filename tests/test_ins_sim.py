@@ -30,6 +30,7 @@ def test_ideal_imu_mechanization_reproduces_truth(drive):
     assert np.linalg.norm(f.v_ned_mps - drive.v_ned_mps[-1]) < 1e-3
 
 
+@pytest.mark.slow
 def test_stationary_imu_holds_position_with_zupt():
     """Automotive MEMS IMU standing still for 120 s without GNSS: ZUPT/ZARU bound the drift."""
     tr = static(120.0)
@@ -47,6 +48,7 @@ def test_stationary_imu_holds_position_with_zupt():
     assert np.linalg.norm(geo.lla_to_ned(free.lla, tr.lla[0])) > 10 * drift   # the detector is what holds it
 
 
+@pytest.mark.slow
 def test_rtk_aided_drive_is_centimetre_accurate_through_public_api(drive):
     """100 Hz automotive IMU, 10 Hz RTK (1 cm), auto alignment, sample-by-sample API, lever arm
     declared to 1 cm (with the default 10 cm prior the IMU point wanders with the lever-arm state)."""
@@ -81,6 +83,7 @@ def _sim_dataset(tr, dt_s=0.0, misalignment_deg=(0, 0, 0), seed=3):
     return Dataset(name="sim", platform="car", imu=imu, gnss=gn, imu_to_body=CAR_MOUNT)
 
 
+@pytest.mark.slow
 def test_outage_drift_bounded_and_time_offset_found():
     """15-s outages with NHC on an automotive IMU; an undeclared -120 ms IMU delay and a 3 deg yaw
     mounting error are estimated online."""
@@ -96,6 +99,7 @@ def test_outage_drift_bounded_and_time_offset_found():
     assert abs(np.degrees(eff["misalignment_rad"][2]) + 3.0) < 0.5
 
 
+@pytest.mark.slow
 def test_alignment_without_receiver_velocity_uses_the_course_tracker():
     """Positions only (no GNSS velocity): the filterpy constant-velocity tracker supplies the
     course for the heading; the aided solution is still centimetre-level."""

@@ -18,6 +18,8 @@ from v2xpos.cli import main
 from v2xpos.types import FixStatus
 from tests.shared_data import SHARED_DATA, needs_shared, require_shared
 
+pytestmark = pytest.mark.slow   # replays of whole recordings (make test-fast leaves them out)
+
 DEV_A = SHARED_DATA / "convoy_dev" / "A" / "dataset.toml"
 DRIVE = SHARED_DATA / "drive_0708" / "dataset.toml"
 

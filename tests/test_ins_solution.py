@@ -16,7 +16,7 @@ from v2xpos.cli import main
 from tests.shared_data import SHARED_DATA, needs_shared
 
 WALK = SHARED_DATA / "walk_0827" / "dataset.toml"
-pytestmark = needs_shared(WALK)
+pytestmark = [pytest.mark.slow, needs_shared(WALK)]
 
 
 @pytest.fixture(scope="module")

@@ -18,6 +18,8 @@ from v2xpos.rotation import dcm_from_euler, exp_so3
 from v2xpos.types import Dataset
 from tests.shared_data import SHARED_DATA, require_shared
 
+pytestmark = pytest.mark.slow   # replays of whole recordings (make test-fast leaves them out)
+
 CAR_MOUNT = np.array([[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]])
 GRADE_5PCT_RAD = math.atan(0.05)
 GYRO_TOL_RPS = math.radians(0.05)     # issue 31: the injected amount within 0.05 deg/s ...

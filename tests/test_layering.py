@@ -4,7 +4,8 @@ functions and under ``TYPE_CHECKING`` -- so that a lazy ``import sim`` inside a 
 fails here as surely as one at the top of the file.
 
 Floors, bottom to top:
-0 foundations (geo, rotation and their compiled twin kernels, timebase, types, stats, provenance, compat)
+0 foundations (geo, rotation and their compiled twin kernels, timebase, types, stats, provenance, compat,
+  schema, plugins)
 1 formats and the wire (datasets/, devices/, wire/, scene)
 2 estimation, relative kinematics, link, security, outputs (ins/, relative*, link, tls, security,
   verify_worker, output/)
@@ -30,7 +31,8 @@ PACKAGES = ("v2xpos", "master", "slave", "sim", "bench")
 
 FLOORS: dict[str, int] = {
     "v2xpos": 0, "v2xpos.geo": 0, "v2xpos.rotation": 0, "v2xpos.kernels": 0, "v2xpos.timebase": 0, "v2xpos.types": 0,
-    "v2xpos.stats": 0, "v2xpos.provenance": 0, "v2xpos.compat": 0,
+    "v2xpos.stats": 0, "v2xpos.provenance": 0, "v2xpos.compat": 0, "v2xpos.schema": 0,
+    "v2xpos.plugins": 0,
     "v2xpos.datasets": 1, "v2xpos.devices": 1, "v2xpos.wire": 1, "v2xpos.scene": 1,
     "v2xpos.ins": 2, "v2xpos.relative": 2, "v2xpos.relative_jit": 2, "v2xpos.link": 2, "v2xpos.tls": 2,
     "v2xpos.security": 2, "v2xpos.verify_worker": 2, "v2xpos.output": 2,

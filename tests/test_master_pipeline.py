@@ -82,6 +82,7 @@ def test_rejections_are_counted_and_do_not_disturb_other_targets(scenario):
     assert r.status == TargetStatus.VALID
 
 
+@pytest.mark.slow
 def test_fix_transitions_change_status_and_stop_outputs(scenario):
     """A float spell then a single spell on the target: VALID through float, FIX_INVALID on single; on
     CAN (decoded with cantools from the shipped DBC) and UDP every update says both vehicles' fix."""
@@ -167,6 +168,7 @@ def test_delay_spike_gives_timeout_and_never_a_stale_output(scenario):
     assert np.all(valid[:, 3] <= 0.2)                     # every kinematic output came from a fresh message
 
 
+@pytest.mark.slow
 def test_compensation_on_a_turning_target(scenario):
     """Cut-in target t1 during its lane change and the convoy curve: 100 ms old messages predicted
     with CTRA are within 2 cm of the truth at the master time; without compensation ~2 m off."""

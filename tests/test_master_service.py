@@ -26,6 +26,7 @@ def state_at(svc: MasterService, vid: str, seq: int, t: float) -> bytes:
     return encode_state(msg)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dispatch", ["inline", "asyncio"])
 async def test_master_service_round_trip(dispatch):
     port = free_tcp_port()

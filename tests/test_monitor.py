@@ -132,6 +132,7 @@ def test_parse_host_port():
         parse_host_port("localhost:http")
 
 
+@pytest.mark.slow
 def test_attach_to_a_master_shows_changes_within_half_a_second():
     """A stand-in master (16 targets at 100 Hz, one target's status flipped every 1.3 s) and the
     monitor attached over zenoh with its page served: every flip reaches the snapshot, the

@@ -9,6 +9,7 @@ from bench.grading import run_fault_sweep
 from v2xpos.types import ImuData
 
 
+@pytest.mark.slow
 def test_fault_sweep_20_seeds_every_fault_fails_no_healthy_unit_fails():
     res = run_fault_sweep(seeds=20, progress=False)
     assert res["none"]["healthy_fail"] == 0
@@ -77,6 +78,7 @@ def test_inject_fault_kinds():
         inject_fault(imu, FaultSpec("melted", 1.0))
 
 
+@pytest.mark.slow
 def test_second_parameter_with_gnss_separates_a_scale_fault():
     from sim.sensors import simulate_gnss
     from v2xpos import geo

@@ -8,6 +8,8 @@ from sim.lidar import Box, Cylinder, LidarModel, Scene, cast
 from v2xpos.quality import grade_units
 from bench.grading import run_lidar_check
 
+pytestmark = pytest.mark.slow   # kiss-icp over a lidar recording (make test-fast leaves it out)
+
 
 def test_ray_casting_hits_known_surfaces():
     scene = Scene(ground_z_m=0.0, boxes=[Box(np.array([10.0, -5.0, -4.0]), np.array([11.0, 5.0, 0.0]))],

@@ -18,6 +18,7 @@ def _path(name: str) -> Path:
     return require_shared(DATA / name / "IMU_1.csv").parent
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["path_2", "path_3"])
 def test_quadrotor_units_all_pass_with_estimated_rotation_and_pcc(name):
     rep = grade_recording(_path(name))
@@ -39,6 +40,7 @@ def test_quadrotor_units_all_pass_with_estimated_rotation_and_pcc(name):
         assert u["rate_check"]["anomaly"] is False and abs(u["rate_check"]["relative_diff"]) < 0.01
 
 
+@pytest.mark.slow
 def test_grade_command_writes_json_and_plots(tmp_path):
     out = tmp_path / "grade.json"
     plots = tmp_path / "plots"

@@ -16,6 +16,8 @@ from v2xpos.output import recording_schema as schema
 from v2xpos.types import FixStatus, NavState
 from v2xpos.wire import Geometry, StateMessage, decode_relative, encode_state, state_key
 
+pytestmark = pytest.mark.slow   # whole sessions recorded, some through the recorder child process, and replayed
+
 T0 = 1.4e9
 
 

@@ -401,6 +401,7 @@ def test_effects_without():
     assert e.without({"misalignment", "delay", "gyro_scale", "lever_arm"}).is_clean()
 
 
+@pytest.mark.slow
 def test_filter_relative_error_on_a_clean_pair(clean, dev_like):
     """The project's filter (recording source, both vehicles) on generated recordings: the figure
     is reported, not tuned. On a clean pair the relative horizontal error while moving is at the

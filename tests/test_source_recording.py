@@ -24,6 +24,7 @@ def _drive():
     return require_shared(path)
 
 
+@pytest.mark.slow
 def test_recording_source_on_its_own_gps_time_and_on_track():
     path = _drive()
     src = make_source({"type": "recording", "dataset": str(path), "sync": "none"}, "[source]",
@@ -144,6 +145,7 @@ def _assert_same_states(a, b):
                                       err_msg=name)
 
 
+@pytest.mark.slow
 def test_recording_source_and_replay_give_identical_states_with_wheel_speeds():
     """comma2k19 (a car with wheel speeds): the ``recording`` source and ``v2xpos replay``'s engine
     run the same driver, events, order and profile -- state for state identical, bit for bit."""
@@ -153,6 +155,7 @@ def test_recording_source_and_replay_give_identical_states_with_wheel_speeds():
     _assert_same_states(states, replayed)
 
 
+@pytest.mark.slow
 def test_recording_source_and_replay_agree_on_a_recording_with_malformed_lines(tmp_path):
     """A generated recording whose IMU csv has malformed lines besides its cut first one: both paths
     skip and count the same lines (``malformed_lines``) and give identical states; the source's

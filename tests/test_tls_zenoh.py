@@ -46,6 +46,7 @@ def test_certificates_have_the_fields_rustls_checks(tmp_path):
     assert pki.router.key_path.stat().st_mode & 0o077 == 0
 
 
+@pytest.mark.slow
 def test_zenoh_tls_and_mtls_on_loopback(tmp_path):
     pki = tls.make_test_pki(tmp_path / "pki")
     port = free_tcp_port()

@@ -9,8 +9,8 @@ from pathlib import Path
 from typing import Any
 
 from v2xpos.compat import tomllib
-from v2xpos.datasets.calibration import did_you_mean
 from v2xpos.link import LinkConfig, LinkImpairment
+from v2xpos import schema
 
 
 class ConfigError(ValueError):
@@ -45,12 +45,8 @@ def take(table: dict, key: str, kind: type | tuple, default: Any, where: str) ->
 
 
 def check_keys(table: dict, allowed: set, where: str) -> None:
-    """ConfigError naming ``where`` and the unknown keys, with a "did you mean" for a near miss."""
-    unknown = sorted((str(k) for k in set(table) - set(allowed)))
-    if unknown:
-        hint = "".join(did_you_mean(k, allowed).replace(" (did you mean", f" ({k!r}: did you mean")
-                       for k in unknown[:3])
-        raise ConfigError(f"{where}: unknown key(s) {unknown}{hint}; allowed {sorted(allowed)}")
+    """``v2xpos.schema.check_keys`` raising ConfigError."""
+    schema.check_keys(table, allowed, where, ConfigError)
 
 
 @dataclass

@@ -134,28 +134,3 @@ def ned_to_lla(r_ned_m: np.ndarray, lla_ref: np.ndarray) -> np.ndarray:
 def lla_to_enu(lla: np.ndarray, lla_ref: np.ndarray) -> np.ndarray:
     """Geodetic points -> ENU [m] relative to ``lla_ref``."""
     return lla_to_ned(lla, lla_ref) @ NED_TO_ENU.T
-
-
-def enu_to_lla(r_enu_m: np.ndarray, lla_ref: np.ndarray) -> np.ndarray:
-    """ENU [m] relative to ``lla_ref`` -> geodetic points."""
-    return ned_to_lla(np.asarray(r_enu_m, dtype=float) @ NED_TO_ENU.T, lla_ref)
-
-
-def dlla_to_dned_matrix(lat_rad: float, h_m: float) -> np.ndarray:
-    """D such that d(NED) = D @ d(lat, lon, h) for small increments (Groves eq. 2.119)."""
-    r_m, r_n = radii_m(lat_rad)
-    return np.diag([r_m + h_m, (r_n + h_m) * np.cos(lat_rad), -1.0])
-
-
-def deg_lla_to_rad(lla_deg: np.ndarray) -> np.ndarray:
-    """(lat_deg, lon_deg, h_m) -> (lat_rad, lon_rad, h_m)."""
-    out = np.array(lla_deg, dtype=float)
-    out[..., :2] = np.radians(out[..., :2])
-    return out
-
-
-def rad_lla_to_deg(lla: np.ndarray) -> np.ndarray:
-    """(lat_rad, lon_rad, h_m) -> (lat_deg, lon_deg, h_m)."""
-    out = np.array(lla, dtype=float)
-    out[..., :2] = np.degrees(out[..., :2])
-    return out

@@ -108,12 +108,8 @@ class LinkConfig:
         """Build from a TOML/JSON table; unknown keys are rejected with their location."""
         known = {"mode", "listen", "connect", "retry_init_ms", "retry_max_ms", "retry_factor",
                  "connect_timeout_ms", "extra_json5"}
-        unknown = set(d) - known
-        if unknown:
-            from v2xpos.datasets.calibration import did_you_mean
-            first = sorted(map(str, unknown))[0]
-            raise ValueError(f"{where}: unknown key(s) {sorted(unknown)}{did_you_mean(first, known)}; "
-                             f"allowed {sorted(known)}")
+        from v2xpos.schema import check_keys
+        check_keys(d, known, where)
         for k, kinds, low in (("retry_init_ms", (int,), 1), ("retry_max_ms", (int,), 1),
                               ("retry_factor", (int, float), 1), ("connect_timeout_ms", (int,), -1)):
             v = d.get(k)

@@ -110,11 +110,6 @@ def quat_mult(p: np.ndarray, q: np.ndarray) -> np.ndarray:
                      pw * qz + px * qy - py * qx + pz * qw])
 
 
-def quat_conj(q: np.ndarray) -> np.ndarray:
-    """Conjugate (= inverse for unit quaternions)."""
-    return np.array([q[0], -q[1], -q[2], -q[3]])
-
-
 def quat_from_rotvec(phi: np.ndarray) -> np.ndarray:
     """Quaternion of the rotation vector phi [rad]: [cos(|phi|/2), sin(|phi|/2) phi/|phi|]."""
     a = float(np.linalg.norm(phi))

@@ -10,7 +10,6 @@ Public API (stable)
   [lon_deg, lat_deg(, h_m ellipsoidal)]. Malformed features are skipped and kept in
   ``scene.errors`` (strict=True raises the first one); an unreadable file always raises.
 * ``Scene.evaluate(master_state, measurement_point_body_m=None) -> SceneResult``.
-* ``Scene.features_ned(origin_lla)`` -- every feature's vertices in NED at an origin (plots).
 
 Geometry: all features are held in ECEF; each evaluation resolves them in the local NED frame at
 the master (exact, Groves 2013 eqs. 2.112 & 2.150), so there is no site origin and no flat-Earth
@@ -336,15 +335,5 @@ class Scene:
             out.object_lateral_m = lat_m
             out.object_closing_speed_mps = closing
             out.object_ttc_s = ttc
-        return out
-
-    def features_ned(self, origin_lla: np.ndarray) -> list:
-        """[(feature, (N, 3) NED vertices at origin_lla)] for plotting (missing heights -> origin height)."""
-        out = []
-        e0 = lla_to_ecef(np.asarray(origin_lla, float))
-        C_en = dcm_ecef_to_ned(origin_lla[0], origin_lla[1])
-        for f in self.lanes + self.objects:
-            r0, n = _ecef_parts(f.lla)
-            out.append((f, self._to_ned(r0, n, f.lla[:, 2], float(origin_lla[2]), e0, C_en)))
         return out
 

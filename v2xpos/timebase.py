@@ -158,10 +158,6 @@ class ClockModel:
             return self.offset_s + self.scale * np.asarray(counter_s, dtype=float)
         return self.offset_s + self.scale * float(counter_s)
 
-    def to_counter(self, gps_s: float | np.ndarray) -> float | np.ndarray:
-        """GPS seconds -> counter [s] (inverse of :meth:`to_gps`)."""
-        return (np.asarray(gps_s, dtype=float) - self.offset_s) / self.scale
-
     def as_dict(self) -> dict:
         return {k: float(v) if isinstance(v, float) else v for k, v in self.__dict__.items()}
 

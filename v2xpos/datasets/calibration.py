@@ -29,10 +29,11 @@ is taken as exact. Unknown keys are rejected with the table and the key named.
 """
 from __future__ import annotations
 
-import difflib
 import math
 from dataclasses import dataclass, field
 from typing import Any
+
+from v2xpos.schema import check_keys
 
 EFFECT_SHAPES: dict[str, int] = {
     "imu_time_offset_s": 1, "imu_clock_drift_ppm": 1, "gnss_latency_s": 1,
@@ -94,12 +95,6 @@ def _toml_num(v: Any) -> str:
     return repr(float(v))
 
 
-def did_you_mean(key: str, allowed: Any) -> str:
-    """`` (did you mean 'x'?)`` for the closest allowed key, or an empty string."""
-    close = difflib.get_close_matches(key, [str(a) for a in allowed], n=1, cutoff=0.6)
-    return f" (did you mean {close[0]!r}?)" if close else ""
-
-
 def _number(v: Any, where: str) -> float:
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
         raise CalibrationError(f"{where}: expected a finite number, got {v!r}")
@@ -120,23 +115,17 @@ def parse_calibration(table: Any, where: str) -> CalibrationTable:
     if not isinstance(table, dict):
         raise CalibrationError(f"{where}: expected a table, got {type(table).__name__}")
     out = CalibrationTable()
-    allowed = (*INFO_KEYS, *EFFECT_SHAPES)
+    check_keys(table, (*INFO_KEYS, *EFFECT_SHAPES), where, CalibrationError)
     for key, v in table.items():
         if key in INFO_KEYS:
             if not isinstance(v, str):
                 raise CalibrationError(f"{where}.{key}: expected a string, got {v!r}")
             setattr(out, key, v)
             continue
-        if key not in EFFECT_SHAPES:
-            raise CalibrationError(f"{where}: unknown key {key!r}{did_you_mean(key, allowed)}; "
-                                   f"allowed {list(allowed)}")
         w = f"{where}.{key}"
         if not isinstance(v, dict):
             raise CalibrationError(f"{w}: expected {{ value = ..., sd = ... }}, got {v!r}")
-        extra = set(v) - {"value", "sd"}
-        if extra:
-            k = sorted(extra)[0]
-            raise CalibrationError(f"{w}: unknown key {k!r}{did_you_mean(k, ('value', 'sd'))}; allowed ['value', 'sd']")
+        check_keys(v, ("value", "sd"), w, CalibrationError)
         if "value" not in v or "sd" not in v:
             raise CalibrationError(f"{w}: needs both 'value' and 'sd'")
         n = EFFECT_SHAPES[key]

@@ -58,10 +58,6 @@ MIN_TIMETAG_COVERAGE = 0.99
 MAX_LISTED = 5
 
 
-class InputCheckError(ValueError):
-    """The recording failed a plausibility check; the message names the file and the key."""
-
-
 @dataclass
 class Finding:
     """One outcome: ``level`` "error" or "warning", the check's name and a one-line message."""
@@ -95,10 +91,6 @@ class InputCheck:
         return {"source": self.source, "errors": [f.message for f in self.errors],
                 "warnings": [f.message for f in self.warnings],
                 "findings": [f.as_dict() for f in self.findings], **self.details}
-
-    def raise_for_errors(self) -> None:
-        if self.errors:
-            raise InputCheckError("; ".join(f.message for f in self.errors))
 
 
 def _fmt_span(a: float, b: float) -> str:

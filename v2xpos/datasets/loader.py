@@ -42,6 +42,7 @@ import numpy as np
 from v2xpos.types import Dataset, GnssData, MultiImuRecording
 
 from v2xpos.compat import tomllib
+from v2xpos.schema import check_choice, check_keys
 
 IMU_FORMATS = ("csv_g_dps_ms",)
 TOP_KEYS = ("name", "platform", "imu", "gnss", "calibration", "verification")
@@ -67,16 +68,6 @@ def _field(table: dict, key: str, where: str, toml_path: Path, kind: type | tupl
         raise ValueError(f"{toml_path}: field {where}{key} has type {type(value).__name__}, "
                          f"expected {getattr(kind, '__name__', kind)}")
     return value
-
-
-def check_keys(table: dict, allowed: tuple[str, ...], where: str) -> None:
-    """ValueError naming ``where`` (file and table) and the first unknown key, with a "did you
-    mean" for a near miss."""
-    from v2xpos.datasets.calibration import did_you_mean
-    for key in table:
-        if key not in allowed:
-            raise ValueError(f"{where}: unknown key {key!r}{did_you_mean(str(key), allowed)}; "
-                             f"allowed {list(allowed)}")
 
 
 def _all_numbers(value: Any) -> bool:
@@ -121,8 +112,7 @@ def _load_toml(toml_path: Path, read_raw: bool) -> Dataset:
     if "layout" in desc:
         check_keys(desc, LAYOUT_KEYS, f"{toml_path}: top level (layout descriptor)")
         layout = _field(desc, "layout", "", toml_path)
-        if layout not in LAYOUTS:
-            raise ValueError(f"{toml_path}: field layout: unknown {layout!r} (known: {LAYOUTS})")
+        check_choice(layout, LAYOUTS, f"{toml_path}: field layout")
         folder = base / _field(desc, "path", "", toml_path)
         if not folder.is_dir():
             raise ValueError(f"{toml_path}: field path: folder {folder} not found")
@@ -144,9 +134,7 @@ def _load_toml(toml_path: Path, read_raw: bool) -> Dataset:
     verification = _verification(desc, toml_path)
 
     imu_format = _field(imu_t, "format", "[imu] ", toml_path)
-    if imu_format not in IMU_FORMATS:
-        raise ValueError(f"{toml_path}: field [imu] format: unknown {imu_format!r} "
-                         f"(known: {IMU_FORMATS})")
+    check_choice(imu_format, IMU_FORMATS, f"{toml_path}: field [imu] format")
     imu_file = base / _field(imu_t, "file", "[imu] ", toml_path)
     timetag = _field(imu_t, "timetag", "[imu] ", toml_path, required=False)
     imu_to_body = _matrix(_field(imu_t, "imu_to_body", "[imu] ", toml_path, kind=list,
@@ -157,9 +145,7 @@ def _load_toml(toml_path: Path, read_raw: bool) -> Dataset:
                          "(orthonormal with determinant +1)")
 
     gnss_format = _field(gnss_t, "format", "[gnss] ", toml_path)
-    if gnss_format not in GNSS_FORMATS:
-        raise ValueError(f"{toml_path}: field [gnss] format: unknown {gnss_format!r} "
-                         f"(known: {GNSS_FORMATS})")
+    check_choice(gnss_format, GNSS_FORMATS, f"{toml_path}: field [gnss] format")
     gnss_file = base / _field(gnss_t, "file", "[gnss] ", toml_path)
     lever = _matrix(_field(gnss_t, "lever_arm_m", "[gnss] ", toml_path, kind=list,
                            required=False, default=[0.0, 0.0, 0.0]),

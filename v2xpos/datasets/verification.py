@@ -61,12 +61,10 @@ class VerificationRecord:
 
 def parse_verification(table: Any, where: str) -> VerificationRecord:
     """A ``VerificationRecord`` from the TOML table ``table``; VerificationError naming ``where``."""
-    from v2xpos.datasets.calibration import did_you_mean
+    from v2xpos.schema import check_keys
     if not isinstance(table, dict):
         raise VerificationError(f"{where}: expected a table")
-    for key in table:
-        if key not in KEYS:
-            raise VerificationError(f"{where}: unknown key {key!r}{did_you_mean(key, KEYS)}; allowed {list(KEYS)}")
+    check_keys(table, KEYS, where, VerificationError)
     if not isinstance(table.get("verified"), bool):
         raise VerificationError(f"{where}.verified: required: true or false")
     out = VerificationRecord(verified=table["verified"])

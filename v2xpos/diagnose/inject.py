@@ -27,7 +27,7 @@ import numpy as np
 
 from v2xpos import geo
 from v2xpos.rotation import dcm_from_euler, dcm_from_euler_batch
-from v2xpos.types import Dataset, GnssData, ImuData
+from v2xpos.types import Dataset, GnssData
 
 # parameter vector layout shared by identify.py, estimator.py and calibrate.py
 P_TIME_OFFSET = 0
@@ -213,19 +213,4 @@ def correct(ds: Dataset, effects: EffectSet) -> Dataset:
     out.imu_to_body = dcm_from_euler(*e.imu_misalignment_rad) @ B
     out.lever_arm_m = np.asarray(ds.lever_arm_m, float) + np.asarray(e.gnss_lever_arm_m, float)
     out.notes["corrected_effects"] = repr(e)
-    return out
-
-
-def crop(ds: Dataset, t_start_s: float, t_end_s: float) -> Dataset:
-    """The part of a recording between two GPS times (IMU by stamp, GNSS by tag)."""
-    out = _copy(ds)
-    ki = (ds.imu.t_s >= t_start_s) & (ds.imu.t_s <= t_end_s)
-    kg = (ds.gnss.t_s >= t_start_s) & (ds.gnss.t_s <= t_end_s)
-    out.imu = ImuData(t_s=ds.imu.t_s[ki], acc_mps2=ds.imu.acc_mps2[ki], gyro_rps=ds.imu.gyro_rps[ki],
-                      counter_ms=None if ds.imu.counter_ms is None else ds.imu.counter_ms[ki])
-    g = ds.gnss
-    out.gnss = GnssData(t_s=g.t_s[kg], lla=g.lla[kg], fix=g.fix[kg], sd_ned_m=g.sd_ned_m[kg],
-                        vel_ned_mps=None if g.vel_ned_mps is None else g.vel_ned_mps[kg],
-                        vel_sd_ned_mps=None if g.vel_sd_ned_mps is None else g.vel_sd_ned_mps[kg],
-                        height_datum=g.height_datum)
     return out

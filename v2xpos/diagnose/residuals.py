@@ -45,10 +45,6 @@ class ResidualSet:
         from v2xpos.rotation import euler_from_dcm_batch
         return euler_from_dcm_batch(self.C_nb)
 
-    def whitened(self) -> np.ndarray:
-        """innovation / sd, per component (N, m)."""
-        return self.innovation / np.where(self.sd > 0, self.sd, np.nan)
-
     def in_body(self) -> np.ndarray:
         """NED innovations resolved in the body frame, C_bn nu (only for 3-component NED kinds)."""
         return np.einsum("nji,nj->ni", self.C_nb, self.innovation)

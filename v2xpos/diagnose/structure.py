@@ -106,13 +106,3 @@ def correlation(residual: np.ndarray, signal: np.ndarray, alpha: float = 0.01) -
     resid = y - y.mean() - slope * xc
     slope_sd = float(np.sqrt((resid @ resid) / max(n - 2, 1) / (xc @ xc) * n / ne))
     return TestResult("correlation", t, p, p < alpha, n, {"r": r, "slope": slope, "slope_sd": slope_sd, "n_eff": ne})
-
-
-def summarize(residual: np.ndarray, signals: dict[str, np.ndarray], alpha: float = 0.01) -> dict:
-    """Whiteness, bias and the correlation with every named motion signal, as plain dicts."""
-    out = {"ljung_box": ljung_box(residual, alpha=alpha).as_dict(),
-           "mean_bias": mean_bias(residual, alpha=alpha).as_dict(),
-           "correlation": {}}
-    for name, sig in signals.items():
-        out["correlation"][name] = correlation(residual, sig, alpha=alpha).as_dict()
-    return out

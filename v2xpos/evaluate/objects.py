@@ -163,7 +163,7 @@ def read_csv_table(path: Path, required: tuple[str, ...], error: type[ValueError
             raise error(f"{path}: empty file") from None
         missing = [c for c in required if c not in header]
         if missing:
-            from v2xpos.datasets.calibration import did_you_mean
+            from v2xpos.schema import did_you_mean
             hint = "".join(did_you_mean(m, header).replace(" (did you mean", f" ({m!r}: did you mean") for m in missing)
             raise error(f"{path}: missing column(s) {missing}{hint}; header {header}")
         return header, [r for r in reader if r and any(x.strip() for x in r)]
@@ -230,7 +230,7 @@ def read_can_objects(path: Path, cfg: SensorConfig) -> ObjectList:
     names = {s.name: s for s in message.signals}
     for field_name, ref in refs.items():
         if ref.signal not in names:
-            from v2xpos.datasets.calibration import did_you_mean
+            from v2xpos.schema import did_you_mean
             raise ObjectListError(f"{cfg.path}: [can.signals].{field_name}: signal {ref.signal!r} is not in message "
                                   f"{msg_name!r} of {cfg.can.dbc}{did_you_mean(ref.signal, names)}")
     decimals = {f: _decimals(abs(names[r.signal].scale * r.scale)) for f, r in refs.items()}

@@ -48,9 +48,8 @@ the IMU beyond its time of validity is there (or the input has ended; live, or a
 Live (``reorder_window_s`` given: the ``device`` source) a measurement that arrives after the IMU
 beyond its time was processed -- a GNSS solution reaches the host 20-80 ms after its epoch -- is
 put in its place: the driver keeps snapshots of the filter over the last ``reorder_window_s`` and
-the events processed since, restores
-the last snapshot before the late event's place and processes the events again in order
-(robot_localization's ``smooth_lagged_data`` with ``history_length``). States already returned
+the events processed since, restores the last snapshot before the late event's place and
+processes the events again in order (robot_localization's ``smooth_lagged_data``). States already returned
 stay as they were (the best estimate when returned); the following ones include the late event.
 So a live state leaves as soon as its IMU sample arrives, and only what actually arrives out of
 order is reordered. An event older than the window (without a window, any late event), or not
@@ -171,11 +170,6 @@ class _ImuQueue:
         """(t, acc, gyr, head index) with every pushed sample in them."""
         self._settle()
         return self.t, self.acc, self.gyr, self.i
-
-    def last_stamp(self) -> float:
-        if self._new:
-            return float(self._new[-1][0][-1])
-        return float(self.t[-1]) if self.i < len(self.t) else -math.inf
 
 
 class InsDriver:
@@ -578,10 +572,8 @@ def push_dataset(drv: InsDriver, dataset: Dataset, *, imu: tuple | None = None, 
     if imu is None:
         imu = (dataset.imu.t_s, dataset.imu.acc_mps2, dataset.imu.gyro_rps)
     drv.push_imu_block(*imu)
-    gn = dataset.gnss
-    t_gnss = np.asarray(gn.t_s, float)
-    vel, vel_sd = gn.vel_ned_mps, gn.vel_sd_ned_mps
-    fix = np.asarray(gn.fix)
+    gn, t_gnss = dataset.gnss, np.asarray(dataset.gnss.t_s, float)
+    vel, vel_sd, fix = gn.vel_ned_mps, gn.vel_sd_ned_mps, np.asarray(gn.fix)
     for k in np.argsort(t_gnss, kind="stable"):
         t = float(t_gnss[k])
         drv.push_gnss(t, gn.lla[k], gn.sd_ned_m[k], FixStatus(int(fix[k])), None if vel is None else vel[k],

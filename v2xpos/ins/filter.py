@@ -281,8 +281,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
             self._on_inconsistency()
         if self.cfg.log_residuals and kind.startswith("gnss"):
             self.residuals.append(res)
-        # every update (GNSS, NHC, ZUPT, ZARU, odometer) is offered to the hook with the filter,
-        # whose motion_signals() give the signals at the same instant
+        # every update (GNSS, NHC, ZUPT, ZARU, odometer) is offered to the hook with the filter
         if self.on_update is not None:
             self.on_update(res, self)
         return res

@@ -204,9 +204,3 @@ def strapdown_batch(t_s, acc_mps2, gyro_rps, i0, i1, t_prev_s, nav, C_nb, corr, 
                 for j in range(3):
                     A[p_vel + i, p_sa + j] += -C_nb[i, j] * f[j] * dt
     return t_last
-
-
-def orthonormalize_inplace(C: np.ndarray) -> None:
-    """Replace C by the nearest rotation matrix (SVD polar factor)."""
-    u, _, vt = np.linalg.svd(C)
-    C[:] = u @ vt

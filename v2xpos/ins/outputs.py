@@ -16,7 +16,7 @@ from v2xpos.rotation import euler_from_dcm
 from v2xpos.types import FilterReason, FixStatus, NavState
 
 from .consistency import INCONSISTENT, VERIFIED
-from .mechanization import COR_BA, COR_BG, COR_SA, COR_SG, MEM_F, MEM_W, NAV_H, NAV_LAT
+from .mechanization import COR_BA, COR_BG, COR_SA, COR_SG, NAV_H, NAV_LAT
 from .reported import correlations, reported_covariance, reported_jacobian
 
 if TYPE_CHECKING:
@@ -27,16 +27,6 @@ class Outputs:
     """Output methods of ``InsFilter`` (module docstring)."""
 
     cfg: InsConfig
-
-    def motion_signals(self) -> dict:
-        """Signals an effect imprints on residuals (for ``on_update`` hooks / diagnosis):
-        speed [m/s], kinematic acceleration NED [m/s^2], body rate and specific force (bias
-        compensated, filter body axes), attitude rpy of C_nb [rad], C_nb (body -> NED)."""
-        v = self.nav[3:6]
-        return {"t_s": float(self.t_s), "speed_mps": math.sqrt(float(v @ v)), "v_ned_mps": v.copy(),
-                "acc_ned_mps2": self.acc_ned_mps2.copy(), "rate_body_rps": self.mem[MEM_W:MEM_W + 3].copy(),
-                "f_body_mps2": self.mem[MEM_F:MEM_F + 3].copy(), "rpy_rad": euler_from_dcm(self.C_nb),
-                "C_nb": self.C_nb.copy(), "static": self.static}
 
     def kinematics_now(self) -> tuple[np.ndarray, np.ndarray]:
         """Body rate w_nb^b [rad/s] (filter body axes, relative to the local-level frame) and

@@ -38,7 +38,7 @@ def vehicle_config(platform: str, imu_to_body: np.ndarray, lever_arm_m: np.ndarr
     ``[verification]`` record of its set-up) in the named ``profile`` (module docstring);
     ``overrides``: any other ``InsConfig`` field, applied last."""
     if profile not in PROFILES:
-        from v2xpos.datasets.calibration import did_you_mean
+        from v2xpos.schema import did_you_mean
         raise ValueError(f"profile {profile!r} is not one of {list(PROFILES)}{did_you_mean(str(profile), PROFILES)}")
     if profile == "fit":
         return ins_config(platform, imu_to_body, lever_arm_m, lever_arm_sd_m, None, **{"effects": (), **overrides})

@@ -98,10 +98,6 @@ def location_fix(t_ns: int, frame_id: str, lla_rad: Iterable[float], pos_sd_ned_
     return msg.SerializeToString()
 
 
-def world_origin(lla_rad: Iterable[float]) -> np.ndarray:
-    return np.array([float(x) for x in lla_rad])
-
-
 def master_transform(t_ns: int, master_id: str, origin_lla_rad: np.ndarray, lla_rad: Iterable[float],
                      rpy_rad: Iterable[float]) -> FrameTransform:
     """world (ENU at the origin) -> master body (FRD)."""

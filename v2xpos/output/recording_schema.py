@@ -146,21 +146,6 @@ FOXGLOVE_TOPICS: dict[str, str] = {TOPIC_TF: "foxglove.FrameTransforms", TOPIC_S
 """Fixed protobuf channels (``/location/<id>`` channels are added per vehicle)."""
 
 
-def _fin(x: Any) -> float | None:
-    """float, or None for None / NaN / inf (JSON has no NaN)."""
-    if x is None:
-        return None
-    x = float(x)
-    return x if math.isfinite(x) else None
-
-
-def _fin3(a: Any, scale: float = 1.0) -> list | None:
-    vals = [_fin(v) for v in np.asarray(a, dtype=float).reshape(3)]
-    if all(v is None for v in vals):
-        return None
-    return [None if v is None else v * scale for v in vals]
-
-
 def nav_to_dict(nav: Any, index: int) -> dict:
     """Master state (NavState-like) -> JSON-ready dict; floats round-trip exactly (repr)."""
     d = {"index": index, "t_s": float(nav.t_s), "fix": int(nav.fix)}

@@ -38,7 +38,7 @@ def load_recording(path: str | Path) -> tuple[MultiImuRecording, dict]:
     """(MultiImuRecording, grade options dict) from a folder or a toml (see module doc)."""
     from v2xpos.datasets.loader import load_multi_imu, read_descriptor
 
-    from v2xpos.datasets.loader import check_keys
+    from v2xpos.schema import check_keys
 
     p = Path(path)
     opts: dict = {}
@@ -188,13 +188,13 @@ def prepare_recording(path: str | Path, reference: str | None = None, cfg: Grade
     cfg.step_s = float(opts.get("step_s", cfg.step_s))
     reference = reference or opts.get("reference")
     if reference is not None and reference not in rec.units:
-        from v2xpos.datasets.calibration import did_you_mean
+        from v2xpos.schema import did_you_mean
         raise ValueError(f"{path}: reference unit {reference!r} is not among the units {list(rec.units)}"
                          f"{did_you_mean(reference, rec.units)}")
     mounting = _mounting(opts, str(path))
     for uid in mounting or {}:
         if uid not in rec.units:
-            from v2xpos.datasets.calibration import did_you_mean
+            from v2xpos.schema import did_you_mean
             raise ValueError(f"{path}: [grade.mounting_xyz_deg] {uid}: no such unit{did_you_mean(uid, rec.units)}; "
                              f"units {list(rec.units)}")
     return {"rec": rec, "coverage": coverage, "reference": reference, "mounting": mounting, "cfg": cfg}

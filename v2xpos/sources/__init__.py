@@ -10,9 +10,9 @@ and raises ``SourceError`` naming ``where`` and the key.
 """
 from __future__ import annotations
 
-import importlib
-from importlib import metadata
 from typing import Callable
+
+from v2xpos import plugins
 
 from .base import SessionClock, SourceContext, SourceError, Stopped, VehicleSource, run_until_stopped
 
@@ -25,14 +25,7 @@ BUILTIN: dict[str, str] = {
 
 def source_types() -> dict[str, str]:
     """Every known source type -> ``module:factory`` (built-in first, then entry points)."""
-    out = dict(BUILTIN)
-    try:
-        eps = metadata.entry_points(group=ENTRY_POINT_GROUP)
-    except TypeError:  # Python < 3.10 API
-        eps = metadata.entry_points().get(ENTRY_POINT_GROUP, [])
-    for ep in eps:
-        out.setdefault(ep.name, ep.value)
-    return out
+    return plugins.registered(ENTRY_POINT_GROUP, BUILTIN)
 
 
 def _factory_ref(table: dict, where: str) -> str:
@@ -51,23 +44,17 @@ def _factory_ref(table: dict, where: str) -> str:
             raise SourceError(f"{where}.factory: expected 'module:function', got {factory_ref!r}")
         kinds = {**kinds, kind: factory_ref}
     elif kind not in kinds:
-        from v2xpos.datasets.calibration import did_you_mean
-        raise SourceError(f"{where}.type: {kind!r} is not one of {sorted(kinds)}{did_you_mean(str(kind), kinds)}")
+        from v2xpos.schema import check_choice
+        check_choice(kind, sorted(kinds), f"{where}.type", SourceError)
     return kinds[kind]
 
 
 def _module_attr(ref: str, where: str, kind: str, attr: str | None = None) -> Callable | None:
-    module, _, name = ref.partition(":")
-    try:
-        mod = importlib.import_module(module)
-    except ImportError as exc:
-        raise SourceError(f"{where}.type: source {kind!r} ({ref}) cannot be loaded: {exc}") from None
+    """The factory ``ref`` names; with ``attr``: that attribute of the factory's module, or None."""
+    what = f"{where}.type: source {kind!r}"
     if attr is not None:
-        return getattr(mod, attr, None)
-    try:
-        return getattr(mod, name)
-    except AttributeError:
-        raise SourceError(f"{where}.type: source {kind!r}: {module} has no {name!r}") from None
+        return plugins.load(f"{ref.partition(':')[0]}:{attr}", what, SourceError, missing=None)
+    return plugins.load(ref, what, SourceError)
 
 
 def make_source(table: dict, where: str, ctx: SourceContext) -> VehicleSource:

@@ -49,8 +49,8 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Callable
 
-from v2xpos.datasets.calibration import did_you_mean
 from v2xpos.devices.rtcm import NtripClient, RtcmChecker
+from v2xpos.schema import check_choice, check_keys
 from v2xpos.wire import corrections_key
 
 ATTACHMENT = struct.Struct("<Qd")
@@ -83,9 +83,7 @@ def parse_corrections(table: dict, where: str = "[corrections]") -> CorrectionsC
     from v2xpos.devices.transport import parse_address
     if not isinstance(table, dict):
         raise ValueError(f"{where}: expected a table")
-    for k in table:
-        if k not in KEYS:
-            raise ValueError(f"{where}: unknown key {k!r}{did_you_mean(k, KEYS)}; allowed {list(KEYS)}")
+    check_keys(table, KEYS, where)
     c = CorrectionsConfig()
 
     def text(k: str) -> str:
@@ -96,7 +94,7 @@ def parse_corrections(table: dict, where: str = "[corrections]") -> CorrectionsC
 
     src = table.get("source")
     if src is not None and src not in SOURCES:
-        raise ValueError(f"{where}.source: {src!r} is not one of {list(SOURCES)}{did_you_mean(str(src), SOURCES)}")
+        check_choice(src, SOURCES, f"{where}.source")
     c.source = src
     needs = {"ntrip": ("caster", "mountpoint"), "serial": ("port",), "tcp": ("tcp",)}.get(src, ())
     for k in needs:

@@ -62,10 +62,11 @@ from pathlib import Path
 
 import numpy as np
 
-from v2xpos.datasets.calibration import CalibrationError, did_you_mean, parse_calibration
+from v2xpos.datasets.calibration import CalibrationError, parse_calibration
 from v2xpos.devices.clock_model import OnlineLowerEnvelope
 from v2xpos.devices.records import GnssEpoch, HeadingObs, ImuRecord, ReceiverTime
 from v2xpos.devices.stream import DeviceStream, open_stream
+from v2xpos.schema import check_choice, check_keys
 from v2xpos.sources.base import SessionClock, SourceContext, SourceError, VehicleSource
 from v2xpos.sources.gnss_clock import HostGnssClock, clock_from_config
 from v2xpos.types import FixStatus, NavState
@@ -130,10 +131,6 @@ class DeviceSource(VehicleSource):
         self._started = False
 
     # ------------------------------------------------------------------ plumbing
-    def sink_for(self, stream_name: str):
-        """The callable a stream hands its records to (runs on the stream's thread)."""
-        append = self.inbox.append
-        return lambda rec: append((stream_name, rec))
 
     def start(self) -> None:
         """Open the ports and start the reader threads (idempotent; ``from_config`` calls it)."""
@@ -255,10 +252,7 @@ def check_table(table: dict, where: str) -> dict:
     parsed values. SourceError naming ``where`` and the key."""
     if not isinstance(table, dict):
         raise SourceError(f"{where}: expected a table")
-    for key in table:
-        if key not in SOURCE_KEYS:
-            raise SourceError(f"{where}: unknown key {key!r}{did_you_mean(key, SOURCE_KEYS)}; "
-                              f"allowed {list(SOURCE_KEYS)}")
+    check_keys(table, SOURCE_KEYS, where, SourceError)
     if "gnss" not in table:
         raise SourceError(f"{where}.gnss: missing; e.g. gnss = {{ format = \"ubx\", port = \"/dev/ttyACM0\" }}")
     if "imu" not in table:
@@ -267,9 +261,7 @@ def check_table(table: dict, where: str) -> dict:
         if key not in table:
             raise SourceError(f"{where}.{key}: missing: {how}")
     platform = table["platform"]
-    if platform not in PLATFORMS:
-        raise SourceError(f"{where}.platform: {platform!r} is not one of {list(PLATFORMS)}"
-                          f"{did_you_mean(str(platform), PLATFORMS)}")
+    check_choice(platform, PLATFORMS, f"{where}.platform", SourceError)
     mounting = table["imu_to_body"]
     if isinstance(mounting, str):
         if mounting != "identity":

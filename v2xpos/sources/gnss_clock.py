@@ -52,10 +52,14 @@ from collections import deque
 from typing import Callable
 
 from v2xpos import timebase
+from v2xpos.schema import Key, read_table
 from v2xpos.sources.base import SessionClock
 
-CLOCK_KEYS = ("max_offset_s", "latency_floor_s", "window_s", "stale_after_s", "host_time_offset_s",
-              "emulation_speed", "require_kernel_sync")
+CLOCK_SCHEMA = (Key("max_offset_s", float, None, above=0.0), Key("latency_floor_s", float, None),
+                Key("window_s", float, None, above=0.0), Key("stale_after_s", float, None, above=0.0),
+                Key("host_time_offset_s", float, None), Key("emulation_speed", float, None, above=0.0),
+                Key("require_kernel_sync", bool, None))
+"""The ``clock = { ... }`` table; absent keys keep ``HostGnssClock``'s defaults."""
 
 
 class _Timex(ctypes.Structure):
@@ -212,23 +216,7 @@ class HostGnssClock(SessionClock):
 
 
 def clock_from_config(table: dict | None, where: str) -> HostGnssClock:
-    """HostGnssClock from a ``clock = { ... }`` table (keys ``CLOCK_KEYS``); ValueError naming
+    """HostGnssClock from a ``clock = { ... }`` table (``CLOCK_SCHEMA``); ValueError naming
     ``where`` and the key."""
-    from v2xpos.datasets.calibration import did_you_mean
-    table = {} if table is None else table
-    if not isinstance(table, dict):
-        raise ValueError(f"{where}: expected a table")
-    kw = {}
-    for key, value in table.items():
-        if key not in CLOCK_KEYS:
-            raise ValueError(f"{where}: unknown key {key!r}{did_you_mean(key, CLOCK_KEYS)}; allowed {list(CLOCK_KEYS)}")
-        if key == "require_kernel_sync":
-            if not isinstance(value, bool):
-                raise ValueError(f"{where}.{key}: expected true or false")
-        elif isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(float(value)):
-            raise ValueError(f"{where}.{key}: expected a number, got {value!r}")
-        kw[key] = value
-    for key in ("max_offset_s", "window_s", "stale_after_s", "emulation_speed"):
-        if key in kw and not kw[key] > 0:
-            raise ValueError(f"{where}.{key}: must be > 0")
-    return HostGnssClock(**kw)
+    kw = read_table({} if table is None else table, CLOCK_SCHEMA, where)
+    return HostGnssClock(**{k: v for k, v in kw.items() if v is not None})

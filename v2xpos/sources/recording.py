@@ -24,45 +24,29 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from v2xpos.schema import Key, check_choice, read_table
 from v2xpos.types import NavState
 
 from .base import SessionClock, SourceContext, SourceError, VehicleSource
 from .clock import ReplayClock
 
 
-KEYS = ("dataset", "speed", "sync", "wait_for", "wait_timeout_s", "outline_m")
-
-
-def _check_keys(table: dict, where: str) -> None:
-    from v2xpos.datasets.calibration import did_you_mean
-    for key in table:
-        if key not in KEYS:
-            raise SourceError(f"{where}: unknown key {key!r}{did_you_mean(key, KEYS)}; allowed {list(KEYS)}")
-
-
-def _number(table: dict, key: str, default: float, where: str, lo: float, hi: float) -> float:
-    v = table.get(key, default)
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not lo < float(v) <= hi:
-        raise SourceError(f"{where}.{key}: expected a number in ({lo}, {hi}], got {v!r}")
-    return float(v)
+SCHEMA = (Key("dataset", str, None), Key("speed", float, 1.0, above=0.0, high=1000.0), Key("sync", str, "auto"),
+          Key("wait_for", list, []), Key("wait_timeout_s", float, 120.0, above=0.0, high=86400.0),
+          Key("outline_m", list, None))
+"""The ``recording`` ``[source]`` table (without ``type``)."""
 
 
 def check_table(table: dict, where: str) -> dict:
     """Validate a ``recording`` ``[source]`` table (without ``type``) without loading anything; the
     parsed values. SourceError naming ``where`` and the key."""
-    _check_keys(table, where)
-    path = table.get("dataset")
-    if not isinstance(path, str) or not path:
+    t = read_table(table, SCHEMA, where, SourceError)
+    path, speed, sync, wait_for, timeout, outline = t.values()
+    if not path:
         raise SourceError(f"{where}.dataset: required: the recording's dataset.toml (or its folder)")
-    speed = _number(table, "speed", 1.0, where, 0.0, 1000.0)
-    sync = table.get("sync", "auto")
-    if sync not in ("auto", "none"):
-        raise SourceError(f"{where}.sync: {sync!r} is not one of ['auto', 'none']")
-    wait_for = table.get("wait_for", [])
-    if not isinstance(wait_for, list) or not all(isinstance(x, str) for x in wait_for):
+    check_choice(sync, ("auto", "none"), f"{where}.sync", SourceError)
+    if not all(isinstance(x, str) for x in wait_for):
         raise SourceError(f"{where}.wait_for: expected a list of vehicle ids")
-    timeout = _number(table, "wait_timeout_s", 120.0, where, 0.0, 86400.0)
-    outline = table.get("outline_m")
     if outline is not None and (not isinstance(outline, list) or len(outline) != 3
                                 or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and x >= 0
                                            for x in outline)):
