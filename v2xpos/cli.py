@@ -58,6 +58,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "evaluate": ("bench.evaluate", "evaluate: Monte-Carlo recovery of simulated sensor effects; 30 min 20 Hz 32-object speed"),
     "real-pair": ("bench.real_pair", "a real recording and itself delayed as two vehicles, scored against the RTK"),
     "smoothing-memory": ("bench.smoothing_memory", "peak memory of replay --smooth on a generated hour (limit 1 GiB)"),
+    "figures": ("bench.figures", "run the benchmarks behind the docs' figures and write docs/figures.md (--quick: CI subset)"),
 }
 
 
