@@ -1,6 +1,13 @@
 """Seed 001 stop calibration with the filter (issue 31): the level verdict on the vehicle's grade
 with the filter's mounting, the estimates with the filter's attitude, their check against the
-filter's bias states, a 5 % slope, a bias step, drive_0708 and biases injected into it."""
+filter's bias states, a 5 % slope, a bias step, drive_0708 and biases injected into it.
+
+The replays run the ``plain`` profile (``PROFILE``), on which the estimator's figures were set. In
+the services' profile the same stops are judged with a better-known roll mounting: on drive_0708
+its sd falls below the 2-degree roll limit by the time the start stops are judged, and their
+estimated crossfall (-2.2 +- 1.1 deg) makes them "not level" (probability 0.4 < 0.5), so only the
+two stops near the end give estimates there -- the verdict its own rule asks for, not a defect of
+the estimator; the generated drive's start stop is judged in time differently too."""
 import math
 
 import numpy as np
@@ -19,6 +26,7 @@ from v2xpos.types import Dataset
 from tests.shared_data import SHARED_DATA, require_shared
 
 pytestmark = pytest.mark.slow   # replays of whole recordings (make test-fast leaves them out)
+PROFILE = "plain"
 
 CAR_MOUNT = np.array([[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]])
 GRADE_5PCT_RAD = math.atan(0.05)
@@ -112,7 +120,7 @@ def test_generated_drive_slope_stop_is_not_level_and_a_bias_step_is_seen():
     gyro_step, accel_step = np.radians([0.1, -0.2, 0.15]), np.array([0.08, -0.05, 0.1])
     ds, stop_t0, stop_t1, model = _drive_with_slope_and_step(130.0, gyro_step, accel_step)
     assert len(stop_t0) == 4
-    res = replay(ds, OutageSchedule(0.0, 0.0, 0.0), progress=False)
+    res = replay(ds, OutageSchedule(0.0, 0.0, 0.0), progress=False, profile=PROFILE)
     f, s = res.filter, res.summary
     est_in = [[e for e in f.calibrator.estimates if a - 1.0 <= e.t_start_s and e.t_end_s <= b] for a, b in
               zip(stop_t0, stop_t1)]
@@ -148,7 +156,7 @@ def drive_0708():
     from v2xpos.datasets import load_dataset
     require_shared(DRIVE)
     ds = load_dataset(DRIVE)
-    return ds, replay(ds, OutageSchedule(), progress=False)
+    return ds, replay(ds, OutageSchedule(), progress=False, profile=PROFILE)
 
 
 def test_drive_0708_stop_estimates_agree_with_the_filter(drive_0708):
@@ -181,7 +189,7 @@ def test_bias_injected_into_drive_0708_moves_the_stop_estimates(drive_0708, gyro
     from v2xpos.diagnose.inject import inject_imu_bias
     ds, base = drive_0708
     bg, ba = np.radians(gyro_dps), np.asarray(accel_mps2, float)
-    res = replay(inject_imu_bias(ds, bg, ba), OutageSchedule(), progress=False)
+    res = replay(inject_imu_bias(ds, bg, ba), OutageSchedule(), progress=False, profile=PROFILE)
     B = np.asarray(ds.imu_to_body)
     matched, tilt_known = 0, 0
     for e0 in base.filter.calibrator.estimates:
