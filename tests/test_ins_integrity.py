@@ -423,3 +423,34 @@ def test_consider_states_are_never_estimated_and_their_covariance_is_exact():
     np.testing.assert_allclose(P_new, I_KH @ P @ I_KH.T + K @ R @ K.T, atol=1e-12)
     _, P_opt, _, _, _ = kalman_update(P, H, d, R, None)
     assert np.all(np.diag(P_new) >= np.diag(P_opt) - 1e-12)          # not estimating costs information
+
+
+def test_the_protection_level_keeps_the_evidence_once_it_was_there():
+    """``FaultTolerantSolution.peak_fault_probability``: after the data made the set-up fault
+    likely, a later collapse of the likelihood ratio (a model that does not describe the vehicle,
+    docs: dev_like seed 9) does not bring the protection level back to the prior's; a right
+    declaration, whose posterior never rose, is unaffected; an exclusion resolves it."""
+    from v2xpos.ins.integrity import FaultTolerantSolution
+    n, L = 9, 6
+    P = np.diag([0.01 ** 2] * 6 + [0.02 ** 2] * 3)
+
+    def pl_after(log_lrs):
+        sep = FaultTolerantSolution(L, prior=1e-3)
+        sep.start(P, np.eye(3), np.zeros(3))
+        sep.w = np.zeros(n)
+        sep.w[0] = 0.05                                    # a small separation on body x
+        for k, llr in enumerate(log_lrs):
+            sep.log_lr = llr
+            sep.test(float(k), np.eye(n)[0:3], P, 0.0)
+        return sep
+
+    quiet = pl_after([-3.0, -3.0])
+    assert quiet.peak_fault_probability == pytest.approx(1e-3) and quiet.last["fault_probability"] == pytest.approx(1e-3)
+    forgot = pl_after([9.0, -3.0])                          # P(H1) 0.89, then back at the prior
+    assert forgot.fault_probability == pytest.approx(1e-3)
+    assert forgot.last["fault_probability"] == pytest.approx(forgot.peak_fault_probability)
+    assert forgot.peak_fault_probability > 0.8
+    assert forgot.protection_m > quiet.protection_m + 0.5  # the bound still holds H1 likely
+    forgot.exclude(P)
+    forgot.test(3.0, np.eye(n)[0:3], P, 0.0)
+    assert forgot.last["fault_probability"] == 0.0        # excluded: the twin is the main filter

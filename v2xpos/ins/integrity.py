@@ -29,6 +29,19 @@ covariance, loses a little likelihood on every epoch where the data cannot tell 
 apart (the Occam factor), which over a long drive would drive P(H1) to zero whatever the set-up,
 also before the first turn, where a wrong lever arm has not yet shown.
 
+**Evidence is not forgotten.** The protection level weighs H1 with the *largest* posterior seen
+since the twin started (``peak_fault_probability``), not the current one. The twin models the
+set-up fault as a lever-arm (and widened calibrated-effect) error; other undeclared effects
+(mounting, a late IMU stamp, a gyro scale) move its lever-arm estimate too. On a generated
+follower with all of them (dev_like seed 9) the data made H1 likely (P = 0.85 over 15 s of turns),
+then a manoeuvre pulled the twin's lever arm back to the declared one, the likelihood ratio fell by
+e^10 within 3 s, and with P(H1) back at its prior the protection level vouched for a solution
+0.53 m off. A posterior that collapses like that says the hypotheses do not describe the vehicle;
+the likelihood ratio still decides the reason shown and the exclusion test is unchanged, but the
+bound keeps the evidence once it was there. A right declaration never raises P(H1) above its prior
+(no cost); a wrong one stays unverified until it is excluded, after which the twin is the main
+filter and the bound is that of its own error.
+
 **Protection level** (multiple-hypothesis integrity, Pervan, Pullen & Christie 1998, "A multiple
 hypothesis approach to satellite navigation integrity", Navigation 45(1)). Per body axis i
 (x forward, y right) of the reported position, the integrity risk of the main solution at a bound L:
@@ -137,6 +150,7 @@ class FaultTolerantSolution:
         self.last: dict = {}
         self.alarms = 0
         self.excluded = False
+        self.peak_fault_probability = self.prior
         self._cap: dict[int, float] = {}
 
     @property
@@ -158,6 +172,7 @@ class FaultTolerantSolution:
     def set_prior(self, prior: float) -> None:
         """A new P(H1) before the evidence (a consistency alarm re-opens a verified set-up)."""
         self.prior = float(prior)
+        self.peak_fault_probability = max(self.peak_fault_probability, self.prior)
 
     def start(self, P_main: np.ndarray, C_nb: np.ndarray, rate_body_rps: np.ndarray) -> None:
         """Start from the main filter's covariance with the declared set-up widened
@@ -257,6 +272,8 @@ class FaultTolerantSolution:
         sd_ss = np.sqrt(np.maximum(np.diag(Pw - Pm), self.min_sd_m ** 2))
         sd_w = np.sqrt(np.maximum(np.diag(Pw), 0.0))
         w1 = self.fault_probability
+        if not self.excluded:
+            self.peak_fault_probability = w1 = max(self.peak_fault_probability, w1)
         pl = protection_levels(0.5 * self.integrity_risk, w1, sd0, sep, sd_w)
         pl_free = protection_levels(0.5 * self.integrity_risk, 0.0, sd0, sep, sd_w)
         self.protection_m = float(math.hypot(pl[0], pl[1]))
