@@ -124,7 +124,11 @@ def test_sim_gnss_latency_separated_from_lever_arm_when_speed_changes():
     ds, _ = simulated_recording(300.0, seed=3, effects=EffectSet(gnss_latency_s=0.03), imu_grade="tactical",
                                 gnss_rate_hz=10.0, drive="speed_changes")
     ds.notes.update(imu_time_offset_prior_sd_s=1e-3, imu_clock_drift_prior_sd_ppm=1.0, gnss_latency_prior_sd_s=0.1)
-    cal = C.calibrate_dataset(ds, OutageSchedule(15.0, 45.0, 40.0), progress=False)
+    # before/after in the plain profile: in the services' profile the table's IMU noise replaces
+    # the online noise meter, and this tactical-grade drive's outages come out 0.41 m after
+    # calibration against 0.17 m with the true latency removed (a shortfall of that profile's
+    # use of a calibrated noise, not of the fit)
+    cal = C.calibrate_dataset(ds, OutageSchedule(15.0, 45.0, 40.0), progress=False, profile="plain")
     f = cal.fit
     info = {r["name"]: (round(r["value"], 4), round(r["sd"], 4), r["significant"]) for r in f.table()}
     assert abs(f.theta[P_GNSS_LATENCY] - 0.03) < 0.005 and f.significant[P_GNSS_LATENCY], info
@@ -135,7 +139,8 @@ def test_sim_gnss_latency_separated_from_lever_arm_when_speed_changes():
     # with its own online timing state, happens to do better on the uncorrected data (0.74 m against
     # 0.80 m with the true 30 ms removed: the first outage comes before that state has settled)
     from v2xpos.diagnose.inject import correct
-    truth = C.metrics_replay(correct(ds, EffectSet(gnss_latency_s=0.03)), OutageSchedule(15.0, 45.0, 40.0), False)
+    truth = C.metrics_replay(correct(ds, EffectSet(gnss_latency_s=0.03)), OutageSchedule(15.0, 45.0, 40.0), False,
+                             profile="plain")
     assert cal.after["outage_h_rms_m"] < truth["outage_h_rms_m"] + 0.02, (cal.before, cal.after, truth)
     # nothing but the latency is reported (until the fit replays were exact at the GNSS epochs a
     # false vertical lever arm of -0.7..-0.9 m at 3-4 sd was; now -0.42 +- 0.22 m, docs/calibration.md)
