@@ -245,7 +245,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--master-id", required=True)
     ap.add_argument("--period-s", type=float, default=1.0)
     a = ap.parse_args(argv)
-    os.nice(GRADER_NICE)                 # background work: never ahead of the master's message path
+    # background work, never ahead of the master's message path: GRADER_NICE in all, not on top of
+    # the niceness the master already gave the worker (``master.service._background_priority``; both
+    # at 10 made it 19, which on a busy machine got no CPU for the whole session)
+    os.nice(max(0, GRADER_NICE - os.nice(0)))
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
