@@ -8,7 +8,8 @@ Phases (each stops within about half a second on SIGINT/SIGTERM):
 2. open the zenoh link (a client whose router is not up says so and retries);
 3. start the session clock (``source.make_clock``): a recording follows the master's session
    clock, live devices run on GPS time from the host clock, the simulator on its scenario clock;
-4. loop paced by that clock: the source consumes every sensor sample up to the session time;
+4. loop paced by that clock, and woken by the source's input (a device record: its state leaves
+   at once, not at the next tick): the source consumes every sensor sample up to the session time;
    every ``1/rate_hz`` of filter time a StateMessage is queued for sending at
    ``clock.wall_of(time of validity) + injected delay`` (``[impairment]``, FIFO; none on a
    vehicle); due messages are stamped with ``t_sent_wall_s``, flagged when the clock is not
@@ -51,7 +52,11 @@ EXIT_INTERRUPTED = 130
 IMU_PERIOD_S = 0.25
 """IMU grading messages carry the samples of the last 0.25 s of every unit (full rate)."""
 TICK_S = 0.01
-"""The loop wakes every 10 ms of session time (and at every due message)."""
+"""The loop wakes every 10 ms of session time, at every due message, and when the source has new
+input (``VehicleSource.wait_for_input``: a device record)."""
+AGE_HISTORY = 10_000
+"""Messages whose age when sent (session time at sending - time of validity) the final counters
+summarise (``state_age_at_send_ms``: median and 95th percentile)."""
 
 
 class _Stop:
@@ -167,6 +172,7 @@ def _loop(cfg: SlaveConfig, source, clock, link: Link, signer, stop: _Stop, coun
         unit_imu, mounting = units
         unit_idx = {u: int(np.searchsorted(imu.t_s, t_start)) for u, imu in unit_imu.items()}
     next_imu_pub_t = -math.inf
+    age_at_send_s: deque = deque(maxlen=AGE_HISTORY)
     while not stop.flag:
         t_gps = clock.now_gps_s()
         done = t_gps > end_gps or source.finished(t_gps)
@@ -199,6 +205,7 @@ def _loop(cfg: SlaveConfig, source, clock, link: Link, signer, stop: _Stop, coun
             pub.put(encode_state(msg, signer))
             counters["sent"] += 1
             counters["late_ms_max"] = max(counters["late_ms_max"], (msg.t_sent_wall_s - send_at) * 1e3)
+            age_at_send_s.append(msg.t_sent_gps_s - msg.t_gps_s)
         live.tick(now, source, clock, counters)
         if imu_pub is not None and not done and t_gps >= next_imu_pub_t:
             next_imu_pub_t = t_gps + IMU_PERIOD_S
@@ -207,9 +214,10 @@ def _loop(cfg: SlaveConfig, source, clock, link: Link, signer, stop: _Stop, coun
         t_next = clock.wall_of((math.floor(clock.now_gps_s() / TICK_S) + 1) * TICK_S)
         if queue:
             t_next = min(t_next, queue[0][0])
-        dt = t_next - time.time()
-        if dt > 0:
-            time.sleep(min(dt, 0.25))
+        source.wait_for_input(min(t_next - time.time(), 0.25))
+    ages_ms = np.asarray(age_at_send_s, float) * 1e3
+    counters["state_age_at_send_ms"] = ({"p50": float(np.median(ages_ms)), "p95": float(np.percentile(ages_ms, 95)),
+                                         "n": len(ages_ms)} if len(ages_ms) else None)
 
 
 class _LiveStatus:

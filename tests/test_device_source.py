@@ -141,6 +141,42 @@ def test_device_config_is_validated_with_where_and_key():
         src.close()
 
 
+def test_a_device_record_wakes_the_service_loop_at_once():
+    """Issue 29 item 5: a state leaves with the IMU line that carried it. The service loop waits in
+    ``wait_for_input`` between its 10 ms ticks; an IMU line queued by the reader thread wakes it
+    (before: the loop slept to its next tick, 5 ms at the median, up to 10 ms, on top of the IMU's
+    own delivery time); without input the wait lasts its timeout."""
+    import threading
+    holder = {}
+    imu = DeviceStream("imu", "csv_g_dps_ms", None, lambda r: holder["src"].receive("imu", r))
+    gnss = DeviceStream("gnss", "ubx", None, lambda r: holder["src"].receive("gnss", r))
+    from v2xpos.ins.profiles import vehicle_config
+    cfg = vehicle_config("car", np.eye(3), np.zeros(3), 0.02, None)
+    src = holder["src"] = DeviceSource(gnss, imu, cfg, HostGnssClock())
+    t0 = time.perf_counter()
+    assert src.wait_for_input(0.05) is False and time.perf_counter() - t0 >= 0.045
+    fed, woke = [], []
+
+    def feeder():
+        for k in range(40):
+            time.sleep(0.02)
+            fed.append(time.perf_counter())
+            imu.feed(b"0.000,0.000,-1.000,0.000,0.000,0.000,%d\r\n" % (1000 + 10 * k), time.time())
+
+    th = threading.Thread(target=feeder)
+    th.start()
+    while th.is_alive() or src.inbox:
+        if src.wait_for_input(0.01):      # the slave's tick
+            woke.append(time.perf_counter())
+            src.advance(HostGnssClock().now_gps_s())
+    th.join()
+    assert src.counts["imu_samples"] == 40
+    # the wake after each line (a line fed while the loop was busy is taken by the next wake)
+    delay_ms = [(min(w for w in woke if w >= f) - f) * 1e3 for f in fed if any(w >= f for w in woke)]
+    assert len(delay_ms) == 40
+    assert np.median(delay_ms) <= 2.0, np.percentile(delay_ms, [50, 90, 100])
+
+
 # ------------------------------------------------------------------ states against the replay
 @pytest.mark.slow
 @needs_walk

@@ -125,6 +125,15 @@ class VehicleSource(ABC):
         states = self.advance(t_gps_s)
         return states[-1] if states else None
 
+    def wait_for_input(self, timeout_s: float) -> bool:
+        """Block until new input has arrived (True) or ``timeout_s`` has passed (False). A service
+        loop waits here between its ticks, so that a source fed by devices is advanced as soon as
+        a record arrives instead of at the next tick. Default (inputs that are not pushed: a
+        recording, a simulation): sleep ``timeout_s``."""
+        if timeout_s > 0:
+            time.sleep(timeout_s)
+        return False
+
     def status(self) -> dict:
         """JSON-ready status: counters, receiver/clock figures, correction stream."""
         return {"source": self.name}

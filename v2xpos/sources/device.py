@@ -35,8 +35,9 @@ Time order. The records go to the one driver of the filter (``v2xpos.ins.driver.
 they arrive -- each IMU sample mapped to GPS time, each GNSS epoch, each usable heading -- and the
 driver processes them at once, in the order of their times of validity (the same rule as
 ``v2xpos replay``: a GNSS epoch after the IMU samples stamped <= t_gnss - imu_time_offset -
-gnss_latency). A state is returned for each IMU sample as soon as it arrives, so a state leaves
-within one service tick of its IMU line. A GNSS epoch reaches the host 20-80 ms after its time,
+gnss_latency). A state is returned for each IMU sample as soon as it arrives; a reader thread that
+queues a record wakes the service loop waiting in ``wait_for_input``, so a state leaves with the
+IMU line that carried it, not at the loop's next 10 ms tick. A GNSS epoch reaches the host 20-80 ms after its time,
 after the IMU samples beyond it were processed: the driver puts it in its place (it restores its
 snapshot of the filter from before the epoch and processes the samples since again,
 ``reorder_window_s`` back at most, counted ``gnss_reordered``); the states already returned stay
@@ -57,6 +58,7 @@ without an accuracy are counted (``headings_unusable``) and not used.
 from __future__ import annotations
 
 import math
+import threading
 from collections import deque
 from pathlib import Path
 
@@ -120,6 +122,7 @@ class DeviceSource(VehicleSource):
         self.imu_clock = OnlineLowerEnvelope(min_span_s=imu_clock_min_span_s)
         self.calibration = calibration
         self.inbox: deque = deque()
+        self.input_arrived = threading.Event()   # set by the reader threads with each record (``wait_for_input``)
         self.last_gnss: GnssEpoch | None = None
         self.last_heading: HeadingObs | None = None
         self.heading_baseline_m = None if heading_baseline_m is None else np.asarray(heading_baseline_m, float)
@@ -180,6 +183,18 @@ class DeviceSource(VehicleSource):
                     self._received["headings_unusable"] += 1
                     continue
                 drv.push_heading(rec.t_s, rec.heading_rad, rec.heading_sd_rad, self.heading_baseline_m)
+
+    def receive(self, stream_name: str, record) -> None:
+        """A decoded record from stream ``stream_name`` (called on its reader thread): queued for
+        the next ``advance``, and the service loop waiting in ``wait_for_input`` woken."""
+        self.inbox.append((stream_name, record))
+        self.input_arrived.set()
+
+    def wait_for_input(self, timeout_s: float) -> bool:
+        """Block until a record has arrived since the last call (True) or ``timeout_s`` has passed."""
+        arrived = self.input_arrived.wait(max(timeout_s, 0.0))
+        self.input_arrived.clear()      # what arrives from here on sets it again; the inbox keeps it
+        return arrived
 
     def advance(self, t_gps_s: float) -> list[NavState]:
         self._drain()
@@ -311,7 +326,7 @@ def from_config(table: dict, where: str, ctx: SourceContext) -> DeviceSource:
     holder: dict = {}
 
     def sink(name):
-        return lambda rec: holder["source"].inbox.append((name, rec))
+        return lambda rec: holder["source"].receive(name, rec)
 
     resolve = getattr(ctx, "resolve", lambda p: Path(p))
     try:
