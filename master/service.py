@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import gc
 import json
 import math
 import os
@@ -48,6 +47,7 @@ from master.dispatch import InlineDispatch, StartupHold
 from master.outputs import OutputContext, make_output, master_status, summary_provenance
 from master.pipeline import RECORD_FIELDS, MasterPipeline, PipelineConfig
 from v2xpos.config import ConfigError, config_dir
+from v2xpos.launch import freeze_setup_heap
 from v2xpos.link import Link, LinkUnavailable
 from v2xpos.sources import SourceContext, SourceError, make_source
 from v2xpos.wire import STATE_KEY_ALL, alive_key, grades_key, status_key
@@ -417,9 +417,7 @@ class MasterService:
             sub.subscribe(self.link, STATE_KEY_ALL(self.cfg.fleet))
         else:
             sub = self.link.subscribe_async(STATE_KEY_ALL(self.cfg.fleet), loop)
-        gc.collect()
-        gc.freeze()                       # long-lived setup objects leave the collector's scans
-        gc.set_threshold(50_000, 50, 100)  # fewer young-generation pauses in the message path
+        freeze_setup_heap()
         coros = [self._nav_task(), self._tick_task()]
         if self.cfg.can_enabled and self.cfg.can_status_hz > 0:
             coros.append(self._can_status_task())

@@ -43,6 +43,7 @@ import numpy as np
 
 from slave.config import ConfigError, SlaveConfig
 from v2xpos.config import config_dir
+from v2xpos.launch import freeze_setup_heap
 from v2xpos.link import Link, LinkUnavailable
 from v2xpos.sources import SourceContext, SourceError, Stopped, make_source, run_until_stopped
 from v2xpos.wire import StateMessage, encode_imu_payload, encode_state, imu_key, state_key, vehicle_status_key, alive_key
@@ -131,6 +132,7 @@ def run_slave(cfg: SlaveConfig, stop: _Stop | None = None, quiet: bool = False) 
         except TimeoutError as exc:
             raise ConfigError(f"{cfg.path}: [source]: {exc}") from None
         counters["phase"] = "run"
+        freeze_setup_heap()
         _loop(cfg, source, clock, link, signer, stop, counters, quiet, sink)
         counters["phase"] = "done"
     except Stopped:

@@ -27,8 +27,9 @@ Each stream table is ``v2xpos.devices.stream`` (``format``, ``port``/``baud`` or
 
 Data path: every stream is read on its own thread (``v2xpos.devices.transport``), framed, decoded
 (pyubx2 / pynmeagps / the csv decoder) and stamped with the host's GPS arrival time; the records
-wait in a queue until the service calls ``advance(t)``. IMU counters are mapped to GPS time by
-the online lower-envelope model of their arrival stamps (``v2xpos.devices.clock_model``), as the
+wait in a queue until the service calls ``advance(t)``; each one queued wakes the service loop
+(``wait_for_input``). IMU counters are mapped to GPS time by the online lower-envelope model of
+their arrival stamps (``v2xpos.devices.clock_model``), as the
 recorded reader maps a TIMETAG'd csv; receiver time statements go to the ``HostGnssClock``.
 
 Time order. The records go to the one driver of the filter (``v2xpos.ins.driver.InsDriver``) as
