@@ -38,10 +38,10 @@ driver processes them at once, in the order of their times of validity (the same
 ``v2xpos replay``: a GNSS epoch after the IMU samples stamped <= t_gnss - imu_time_offset -
 gnss_latency). A state is returned for each IMU sample as soon as it arrives; a reader thread that
 queues a record wakes the service loop waiting in ``wait_for_input``, so a state leaves with the
-IMU line that carried it, not at the loop's next 10 ms tick. A GNSS epoch reaches the host 20-80 ms after its time,
-after the IMU samples beyond it were processed: the driver puts it in its place (it restores its
-snapshot of the filter from before the epoch and processes the samples since again,
-``reorder_window_s`` back at most, counted ``gnss_reordered``); the states already returned stay
+IMU line that carried it, not at the loop's next 10 ms tick. A GNSS epoch reaches the host
+20-80 ms after its time, after the IMU samples beyond it were processed: the driver puts it in
+its place (it restores its snapshot of the filter from before the epoch and processes the samples
+since again, ``reorder_window_s`` back at most, counted ``gnss_reordered``); the states already returned stay
 as they were, the next ones include it. An epoch older than the window, or not newer than the
 previous one, is counted (``gnss_rejected_late``, ``gnss_out_of_order``) and not used. A GNSS
 epoch still waiting for IMU samples one second after its time is applied at the filter's state
