@@ -153,6 +153,7 @@ def test_a_device_record_wakes_the_service_loop_at_once():
     from v2xpos.ins.profiles import vehicle_config
     cfg = vehicle_config("car", np.eye(3), np.zeros(3), 0.02, None)
     src = holder["src"] = DeviceSource(gnss, imu, cfg, HostGnssClock())
+    src.warm_up()                         # as the services do before real time (no JIT in the loop)
     t0 = time.perf_counter()
     assert src.wait_for_input(0.05) is False and time.perf_counter() - t0 >= 0.045
     fed, woke = [], []
