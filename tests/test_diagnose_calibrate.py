@@ -273,10 +273,7 @@ def test_drive_single_effect_recovered_to_tolerance(drive_baseline, param, value
     y case moves the IMU offset and the clock drift by 1.2-1.3 sd since the fit replays are exact
     at the GNSS epochs, docs/calibration.md; every other case stays below 1 sd). The absolute
     values are known only to their sd (e.g. the IMU time offset to ~7 ms), but the change between
-    two fits of the same drive is a paired comparison in which the drive's own noise cancels
-    (measured 2026-11-23: stamps +6.7 / -5.6 ms for +-5 ms, roll +0.2985 deg, pitch -0.280 deg,
-    yaw +0.303 deg for +-0.3 deg, gyro z -0.298 % for -0.3 %, antenna y +0.101 m for +0.1 m; the
-    largest move of another parameter 0.72 sd, 1.28 sd (clock drift) in the antenna case)."""
+    two fits of the same drive is a paired comparison in which the drive's own noise cancels."""
     est, f0, start = drive_baseline
     inj = np.zeros(N_PARAMS)
     inj[param] = value
