@@ -22,20 +22,32 @@ gravity direction over the stop, ``-(mean f - b_a) / |mean f - b_a|`` (b_a the f
 accelerometer bias state); roll ``atan2(u_y, u_z)``, pitch ``-asin(u_x)`` (Groves 2013 eqs.
 5.101-5.102). Their covariance: the bias error db turns ``u_b`` by ``rho = -[u_b x] db / g``, the
 mounting error dm enters through ``R(m - dm)``; (db, dm) and their correlation are the filter's
-covariance, and the Jacobian of (roll, pitch) in (rho, dm) is taken by central differences. The
-stop is level when the probability under these Gaussian errors that |pitch| <
-``level_pitch_max_rad`` (``Phi((lim - x)/s) - Phi((-lim - x)/s)``), times the same for the roll
-when the roll's sd is below ``level_roll_max_rad``, is at least ``level_probability_min``. So a
-tilt estimated beyond a limit is never level (its probability is below one half), nor is a stop
-whose grade is too uncertain to tell: with the mounting at its 10-degree prior the probability is
-at most 0.16. The roll enters only when it is known: a car's roll mounting is not observable from
-its motion (the vehicle constraints see a velocity along the vehicle's x axis, which a roll leaves
-unchanged; the sd stays near its prior on a generated drive), so without a declared or calibrated
-mounting the crossfall cannot be judged, and the verdict is the grade's; the roll and its sd are
-still stated. The mounting is constant and each stop's mean specific force is kept, so a stop not
-shown level is judged again at every later stop for ``level_pending_max_s`` with the filter's
+covariance, and the Jacobian of (roll, pitch) in (rho, dm) is taken by central differences.
+
+What needs level, with the filter's attitude: nothing in the estimates. The gyro bias needs only an
+IMU that stands still (the Earth rate is removed with the attitude); the accelerometer bias is
+taken with the filter's attitude, not with an assumed level, and is off by g times that attitude's
+error at any grade (below). A grade changes them only in second order: g sin(theta) on a horizontal
+axis meets the gyro's g-sensitivity and the accelerometer's scale and cross-axis errors (0.05 g at
+a 5 % grade: 5e-3 deg/s at 0.1 deg/s/g, 5 mm/s^2 at 1 %), and on a grade a car whose brake is
+let go creeps with an acceleration up to g sin(theta) that the per-frame static test does not see.
+That is why a hill stop is left out; nothing is lost by it, the ZARU and the ZUPT take its samples
+as at any stop. The level verdict is therefore a test whose costly error is the false "not level":
+a valid stop and its check are lost, and on real roads -- a crossfall of 1.5 to 2.5 % (0.9 to
+1.4 deg), a roll mounting the motion does not show (the vehicle constraints see a velocity along
+the vehicle's x axis, which a roll leaves unchanged) and so known only to about a degree -- a rule
+that wants the stop *shown* level loses most stops. A false "level" (a grade a little beyond the
+limit) keeps estimates that are right within their sds. So a stop is **not level only when its
+tilt is beyond the limits with confidence**: P(|roll| < ``level_roll_max_rad``) times P(|pitch| <
+``level_pitch_max_rad``), each tilt x ~ N(estimate, sd^2) (``Phi((lim - x)/s) - Phi((-lim - x)/s)``;
+roll and pitch errors taken as independent), is at most ``1 - level_confidence``. A tilt known
+to a tenth of a degree beyond the limit (a 5 % grade: 2.9 deg) is not level; an unknown one is
+not shown to be tilted and is level (a tilt sd of 10 deg gives 0.16 per axis), except when the
+prior itself makes a tilt beyond the limits likely on both axes (both mounting angles at their
+10-degree prior: 0.16 x 0.16 = 0.025). The mounting is constant and each stop's mean specific force is kept, so a
+stop not level is judged again at every later stop for ``level_pending_max_s`` with the filter's
 mounting and bias of then (the accelerometer bias drift over that time, <= 5e-3 m/s^2 in the
-default model, turns u_b by 0.03 deg), and its estimate is published when the stop is shown level
+default model, turns u_b by 0.03 deg), and its estimate is published when the stop is then level
 (``late``).
 
 **Estimate** over window 2: the means of w and f, their standard errors by batch means over
@@ -102,7 +114,7 @@ class StaticCalibrationConfig:
     accel_norm_dev_max_mps2: float = 0.8     # per frame
     level_roll_max_rad: float = math.radians(2.0)    # the vehicle's roll and pitch at a level stop
     level_pitch_max_rad: float = math.radians(2.0)   # (a 5 % grade is 2.9 deg)
-    level_probability_min: float = 0.5       # P(within the limits) under the tilt's uncertainty
+    level_confidence: float = 0.95           # not level when P(beyond the limits) is at least this
     level_pending_max_s: float = 600.0       # a stop not shown level is judged again at later stops this long
     window1_s: float = 1.0
     window2_s: float = 1.0                   # least length of window 2 ...
@@ -142,8 +154,9 @@ def standalone_prior(cfg: StaticCalibrationConfig) -> StopPrior:
 @dataclass
 class StopTilt:
     """The level verdict of a stop whose window 1 spans [t_start_s, t_end_s]: the vehicle's (roll,
-    pitch) [rad], their sds, the probability that the stop is level and the verdict, made with the
-    filter's knowledge at ``t_judged_s``."""
+    pitch) [rad], their sds, the probability that both are within the limits and the verdict (not
+    level when that probability is at most ``1 - level_confidence``), made with the filter's
+    knowledge at ``t_judged_s``."""
     t_start_s: float
     t_end_s: float
     tilt_rad: np.ndarray
@@ -237,15 +250,12 @@ def tilt_covariance(down_b: np.ndarray, mounting_rpy_rad: np.ndarray, cov_rho_mi
 
 
 def level_probability(tilt_rad: np.ndarray, tilt_sd_rad: np.ndarray, max_rad: np.ndarray) -> float:
-    """P(|pitch| < max) times, if the roll's sd is below its limit, P(|roll| < max), each tilt
-    x ~ N(estimate, sd^2) (sd 0: certain); a roll known worse than its limit cannot be judged and
-    is left out (module docstring). Arrays are (roll, pitch)."""
+    """P(|roll| < max and |pitch| < max), each tilt x ~ N(estimate, sd^2) (sd 0: certain), the two
+    independent. Arrays are (roll, pitch)."""
     def inside(x: float, s: float, lim: float) -> float:
         return float(norm.cdf((lim - x) / s) - norm.cdf((-lim - x) / s)) if s > 0 else float(abs(x) < lim)
-    p = inside(float(tilt_rad[1]), float(tilt_sd_rad[1]), float(max_rad[1]))
-    if tilt_sd_rad[0] < max_rad[0]:
-        p *= inside(float(tilt_rad[0]), float(tilt_sd_rad[0]), float(max_rad[0]))
-    return p
+    return inside(float(tilt_rad[0]), float(tilt_sd_rad[0]), float(max_rad[0])) * \
+        inside(float(tilt_rad[1]), float(tilt_sd_rad[1]), float(max_rad[1]))
 
 
 def gravity_tilt_jacobian(C_nb: np.ndarray, gravity_mps2: float) -> np.ndarray:
@@ -278,7 +288,7 @@ def judge_level(cfg: StaticCalibrationConfig, mean_f_b: np.ndarray, gravity_mps2
     tilt = vehicle_tilt(u, p.mounting_rpy_rad)
     sd = np.sqrt(np.maximum(np.diag(tilt_covariance(u, p.mounting_rpy_rad, cov)), 0.0))
     prob = level_probability(tilt, sd, np.array([cfg.level_roll_max_rad, cfg.level_pitch_max_rad]))
-    return StopTilt(t_start_s, t_end_s, tilt, sd, prob, prob >= cfg.level_probability_min, t_judged_s)
+    return StopTilt(t_start_s, t_end_s, tilt, sd, prob, prob > 1.0 - cfg.level_confidence, t_judged_s)
 
 
 def bias_estimate(cfg: StaticCalibrationConfig, f: np.ndarray, w: np.ndarray, gravity_mps2: float, p: StopPrior,
