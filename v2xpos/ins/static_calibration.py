@@ -176,7 +176,10 @@ class StaticBiasEstimate:
     """One stop: the time span [s] of window 2, gyro bias [rad/s] and accelerometer bias [m/s^2] in
     b axes, the standard errors of the window's means (``*_sem_*``), the estimates' covariances
     (sems floored, attitude and Earth-rate terms added; module docstring), the number of frames,
-    whether the filter's attitude removed gravity (``attitude``) and the level verdict. With an
+    whether the filter's attitude removed gravity (``attitude``) and the level verdict.
+    ``accel_attitude_sd_mps2``: the part of the accelerometer estimate's sd that is the gravity
+    removed with an uncertain attitude, g times the tilt's sd on the horizontal axes (without an
+    attitude: the prior of the horizontal components, which the stop does not measure). With an
     attitude, ``filter_*`` are the filter's bias states at the start of window 2 and
     ``*_difference_sd_*`` the sds of estimate minus state. ``late``: published at a later stop that
     showed this one level; ``applied``: the filter used it (``InsFilter._update_static_calibration``,
@@ -192,6 +195,7 @@ class StaticBiasEstimate:
     accel_cov: np.ndarray
     attitude: bool
     tilt: StopTilt
+    accel_attitude_sd_mps2: np.ndarray = field(default_factory=lambda: np.zeros(3))
     filter_gyro_bias_rps: np.ndarray | None = None
     filter_accel_bias_mps2: np.ndarray | None = None
     gyro_difference_sd_rps: np.ndarray | None = None
@@ -214,6 +218,7 @@ class StaticBiasEstimate:
              "gyro_bias_rps": self.gyro_bias_rps.tolist(), "accel_bias_mps2": self.accel_bias_mps2.tolist(),
              "gyro_sem_rps": self.gyro_sem_rps.tolist(), "accel_sem_mps2": self.accel_sem_mps2.tolist(),
              "gyro_sd_rps": self.gyro_sd_rps.tolist(), "accel_sd_mps2": self.accel_sd_mps2.tolist(),
+             "accel_attitude_sd_mps2": self.accel_attitude_sd_mps2.tolist(),
              "frames": self.frames, "attitude": self.attitude, "late": self.late, "applied": self.applied,
              "level": self.tilt.as_dict()}
         if self.filter_gyro_bias_rps is not None:
@@ -319,12 +324,14 @@ def bias_estimate(cfg: StaticCalibrationConfig, f: np.ndarray, w: np.ndarray, gr
     if p.C_nb is not None:
         ba = mf + g * u
         A = gravity_tilt_jacobian(p.C_nb, g)
-        accel_cov = r_a + A @ p.cov[PRIOR_ATT, PRIOR_ATT] @ A.T
+        attitude_cov = A @ p.cov[PRIOR_ATT, PRIOR_ATT] @ A.T
+        accel_cov = r_a + attitude_cov
     else:
         ba = p.accel_bias_mps2 + (g - float(np.linalg.norm(mf - p.accel_bias_mps2))) * u
-        accel_cov = horizontal @ p.cov[PRIOR_BA, PRIOR_BA] @ horizontal + float(u @ r_a @ u) * np.outer(u, u)
+        attitude_cov = horizontal @ p.cov[PRIOR_BA, PRIOR_BA] @ horizontal
+        accel_cov = attitude_cov + float(u @ r_a @ u) * np.outer(u, u)
     est = StaticBiasEstimate(t_start_s, t_end_s, mw - earth_b, ba, sw, sf, len(f), gyro_cov, accel_cov,
-                             p.C_nb is not None, tilt)
+                             p.C_nb is not None, tilt, np.sqrt(np.maximum(np.diag(attitude_cov), 0.0)))
     if p.C_nb is not None:
         compare_with_filter(est, p, r_a, g)
     return est
