@@ -203,7 +203,7 @@ def test_bias_injected_into_drive_0708_moves_the_stop_estimates(drive_0708):
     stop estimate by that bias in body axes: the gyro within 0.05 deg/s; the accelerometer within
     0.03 m/s^2 where the filter's attitude knows the tilt (after driving), within its sd where it
     cannot (at the start stop, before any driving: g * tilt uncertainty). A stop whose tilt is
-    near the confidence limit may be judged otherwise when the filter's mounting and bias are
+    near the confidence limit may be judged otherwise when the filter's mounting and bias differ
     (drive_0708's stop after the hill, a roll of about -4 +- 1.5 deg); it must then be
     among the stops not level. One bias per profile."""
     from v2xpos.diagnose.inject import inject_imu_bias

@@ -83,7 +83,7 @@ bias the filter's levelling built; ``*_nis`` are the normalised squared differen
 bias, no sample counted twice): ``InsFilter._update_static_calibration`` and docs/ins.md.
 
 ``estimates`` keeps every published estimate (the IMU-grading work reads the bias stability between
-stops), ``not_level`` the verdicts of the stops not (yet) shown level, ``latest`` the last estimate
+stops), ``not_level`` the verdicts of the stops not (yet) level, ``latest`` the last estimate
 made, published or not (the filter's start uses it).
 """
 from __future__ import annotations
@@ -115,7 +115,7 @@ class StaticCalibrationConfig:
     level_roll_max_rad: float = math.radians(2.0)    # the vehicle's roll and pitch at a level stop
     level_pitch_max_rad: float = math.radians(2.0)   # (a 5 % grade is 2.9 deg)
     level_confidence: float = 0.95           # not level when P(beyond the limits) is at least this
-    level_pending_max_s: float = 600.0       # a stop not shown level is judged again at later stops this long
+    level_pending_max_s: float = 600.0       # a stop not level is judged again at later stops this long
     window1_s: float = 1.0
     window2_s: float = 1.0                   # least length of window 2 ...
     window2_max_s: float = 10.0              # ... which lasts while the stop does, up to this
@@ -358,7 +358,7 @@ def compare_with_filter(est: StaticBiasEstimate, p: StopPrior, accel_noise_cov: 
 
 @dataclass
 class _PendingStop:
-    """A stop whose level is not yet shown: its verdict, the mean specific force and the gravity
+    """A stop not (yet) judged level: its verdict, the mean specific force and the gravity
     of its windows, and its estimate (None while window 2 runs or if it was too short)."""
     tilt: StopTilt
     mean_f_b: np.ndarray
@@ -417,7 +417,7 @@ class StaticCalibrator:
         caller's cue that the vehicle is not standing (ends the stop); ``prior``: what the caller
         knows, or a function giving it (called only at the end of a window 1); None:
         ``standalone_prior``. Returns the estimates published in this chunk (this stop's, and
-        earlier stops' shown level now)."""
+        earlier stops' judged level now)."""
         if not self.cfg.enabled or len(t_s) == 0:
             return []
         if moving:
@@ -506,7 +506,7 @@ class StaticCalibrator:
         return []
 
     def _revisit(self, p: StopPrior, t_s: float) -> list[StaticBiasEstimate]:
-        """Judge the pending stops again with what the filter knows now: those shown level leave
+        """Judge the pending stops again with what the filter knows now: those now level leave
         ``not_level`` and their estimates are published (``late``); those older than
         ``level_pending_max_s`` are judged no more (their verdict stays in ``not_level``)."""
         c = self.cfg
