@@ -126,8 +126,10 @@ def test_generated_drive_slope_stop_is_not_level_and_a_bias_step_is_seen(profile
     """The stop on a 5 % grade gives no estimate and is counted not level, its pitch alone beyond
     the limit with confidence, in both profiles. The rest (the level stops' estimates and the bias
     step) in ``plain`` only: on this drive the services' profile runs its roll mounting estimate
-    away (about -37 deg at the end, truth 0.5 deg, sd near 2 deg), which makes stop B's vehicle tilt
-    tens of degrees -- a defect of that profile's filter, not of the stop calibration."""
+    away (about -37 deg at the end, truth 0.5 deg, sd near 2 deg; with the configured IMU noise
+    instead of the online noise meter's it stays near the truth with its prior-like sd), which
+    makes stop B's vehicle tilt tens of degrees -- a defect of that profile's filter, not of the
+    stop calibration."""
     gyro_step, accel_step = np.radians([0.1, -0.2, 0.15]), np.array([0.08, -0.05, 0.1])
     ds, stop_t0, stop_t1, model = _drive_with_slope_and_step(130.0, gyro_step, accel_step)
     assert len(stop_t0) == 4
