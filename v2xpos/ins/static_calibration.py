@@ -30,7 +30,8 @@ taken with the filter's attitude, not with an assumed level, and is off by g tim
 error at any grade (below). A grade changes them only in second order: g sin(theta) on a horizontal
 axis meets the gyro's g-sensitivity and the accelerometer's scale and cross-axis errors (0.05 g at
 a 5 % grade: 5e-3 deg/s at 0.1 deg/s/g, 5 mm/s^2 at 1 %), and on a grade a car whose brake is
-let go creeps with an acceleration up to g sin(theta) that the per-frame static test does not see.
+let go creeps with an acceleration up to g sin(theta) that the per-frame static test does not see
+(only the filter's speed does, once the creep has lasted).
 That is why a hill stop is left out; nothing is lost by it, the ZARU and the ZUPT take its samples
 as at any stop. The level verdict is therefore a test whose costly error is the false "not level":
 a valid stop and its check are lost, and on real roads -- a crossfall of 1.5 to 2.5 % (0.9 to
@@ -44,8 +45,8 @@ roll and pitch errors taken as independent), is at most ``1 - level_confidence``
 to a tenth of a degree beyond the limit (a 5 % grade: 2.9 deg) is not level; an unknown one is
 not shown to be tilted and is level (a tilt sd of 10 deg gives 0.16 per axis), except when the
 prior itself makes a tilt beyond the limits likely on both axes (both mounting angles at their
-10-degree prior: 0.16 x 0.16 = 0.025). The mounting is constant and each stop's mean specific force is kept, so a
-stop not level is judged again at every later stop for ``level_pending_max_s`` with the filter's
+10-degree prior: 0.16 x 0.16 = 0.025). The mounting is constant and each stop's mean specific
+force is kept, so a stop not level is judged again at every later stop for ``level_pending_max_s`` with the filter's
 mounting and bias of then (the accelerometer bias drift over that time, <= 5e-3 m/s^2 in the
 default model, turns u_b by 0.03 deg), and its estimate is published when the stop is then level
 (``late``).
