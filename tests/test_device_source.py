@@ -183,13 +183,14 @@ def test_device_source_on_recorded_chunks_gives_the_replay_states(walk_reference
 @pytest.mark.slow
 def test_device_source_on_emulated_pseudo_terminals_gives_the_replay_states(walk_reference):
     """``v2xpos emulate`` (a separate process) writes walk_0827's UBX stream and IMU csv into
-    pseudo-terminals at their recorded arrival times, 4x faster; a device source reads them as
+    pseudo-terminals at their recorded arrival times, 2x faster (4x left a loaded 2-core machine
+    too little CPU for the filter to keep up: states seconds late); a device source reads them as
     serial ports, on the host clock mapped onto the recording (emulation only), advanced by a
     service-like loop every 10 ms. The reorder window (how far back a late GNSS epoch is put in
     its place) is the default's, scaled by the speed."""
     toml, ds, series = walk_reference
     import v2xpos.ins  # noqa: F401  (import before the emulator's timeline starts)
-    speed = 4.0
+    speed = 2.0
     emu = subprocess.Popen([sys.executable, "-m", "v2xpos.cli", "emulate", str(toml), "--json", "--start-in", "3",
                             "--speed", str(speed)], stdout=subprocess.PIPE, text=True)
     src = None
@@ -208,10 +209,14 @@ def test_device_source_on_emulated_pseudo_terminals_gives_the_replay_states(walk
         assert clock.start(lambda: False)
         src.warm_up()
         states, synced = [], []
-        while clock.now_gps_s() < info["recording_end_gps_s"] + 1.0:
+        drain_until = time.monotonic() + 60.0       # a starved emulator may finish writing late
+        while (clock.now_gps_s() < info["recording_end_gps_s"] + 1.0
+               or (emu.poll() is None and time.monotonic() < drain_until)):
             states += src.advance(clock.now_gps_s())
-            synced.append(clock.synchronised())
+            synced.append((clock.now_gps_s(), clock.synchronised()))
             time.sleep(0.01)
+        time.sleep(0.5)                             # the reader's last bytes
+        states += src.advance(clock.now_gps_s())
         st = src.status()
         done = json.loads(emu.stdout.readline())
     finally:
@@ -225,7 +230,13 @@ def test_device_source_on_emulated_pseudo_terminals_gives_the_replay_states(walk
           f"max {d.max() * 1e3:.1f} mm; counts {st['counts']}; emulator {done['counts']}")
     assert st["streams"]["gnss"]["framing"]["frames"]["ubx"] > 3000
     assert st["clock"]["receiver"]["observations"] >= len(ds.gnss) - 10
-    assert np.mean(synced[len(synced) // 10:]) > 0.95            # receiver time within 20 ms of the host
+    # receiver time within 20 ms of the host (in host seconds), as a share of the time from the
+    # first receiver epoch plus the clock's window to the end of the recording: before the first
+    # epoch arrives the clock rightly says "no receiver time" (the emulator's --start-in)
+    t_check, ok = np.array(synced).T
+    inside = (t_check >= ds.gnss.t_s[0] + clock.window_s) & (t_check <= info["recording_end_gps_s"])
+    dt = np.diff(t_check, append=t_check[-1])
+    assert np.sum(dt[inside] * ok[inside]) / np.sum(dt[inside]) > 0.95
     assert len(d) >= len(ds.gnss) - 20
     assert rms <= RMS_BOUND_M
 

@@ -319,6 +319,20 @@ def test_clock_offset_bound_turns_synchronised_off():
     assert not clk.synchronised() and clk.leap_mismatches == 1
 
 
+def test_emulated_clock_bounds_the_offset_in_host_seconds():
+    """At emulation speed k a host timing error d shows as k d on the emulated GPS time: 40 ms of
+    emulated offset is 10 ms of host time at 4x (synchronised), 40 ms at 1x (not)."""
+    for speed, ok in ((4.0, True), (1.0, False)):
+        ft = FakeTime(1.8e9)
+        clk = HostGnssClock(max_offset_s=0.02, window_s=5.0, emulation_speed=speed, time_fn=ft)
+        for _ in range(40):
+            ft.t += 0.25 / speed
+            t_rx = clk.now_gps_s() - 0.040
+            clk.observe(t_rx, clk.now_gps_s(), 18.0, "NAV-PVT")
+        assert clk.offset_s() == pytest.approx(0.040)
+        assert clk.synchronised() is ok, clk.status()["reason"]
+
+
 def test_clock_on_the_recorded_nav_pvt_arrivals(recorded_ubx):
     """The recorded arrivals of walk_0827 against its receiver time: with a floor of 0 the output
     latency reads as a host offset beyond 20 ms; with the floor at the smallest latency it is 0."""

@@ -10,28 +10,16 @@ import pytest
 
 from sim.calibration_drive import simulated_recording
 from v2xpos.diagnose import calibrate as C
-from v2xpos.diagnose import identify
-from v2xpos.diagnose.inject import (N_PARAMS, PARAM_NAMES, P_ACCEL_SCALE, P_CLOCK_DRIFT, P_GNSS_LATENCY, P_GYRO_SCALE,
-                                    P_LEVER_ARM, P_MISALIGN, P_TIME_OFFSET, EffectSet, inject)
-from tests.shared_data import SHARED_DATA, require_shared
+from v2xpos.diagnose.inject import (P_ACCEL_SCALE, P_CLOCK_DRIFT, P_GNSS_LATENCY, P_GYRO_SCALE, P_LEVER_ARM, P_MISALIGN,
+                                    P_TIME_OFFSET, EffectSet, inject)
+from tests.calibrate_cases import SIM_TRUTH, fit_from_baseline, fit_simulated
 
 pytestmark = pytest.mark.slow   # every test fits a 300 s drive: 10-100 CPU-s each
-
-DATA = SHARED_DATA
-DRIVE = DATA / "drive_0708" / "dataset.toml"
 
 DEG = np.pi / 180.0
 
 
-def _fit_from_baseline(est: C.Estimator, ds, theta_start):
-    f, prob, _ = est.refine(ds, theta_start, iterations=3)
-    return f
-
-
 # ------------------------------------------------------------------ simulator (known truth)
-SIM_TRUTH = EffectSet(imu_time_offset_s=0.005, imu_clock_drift_ppm=50.0,
-                      imu_misalignment_rad=np.radians([0.3, -0.3, 0.3]),
-                      gnss_lever_arm_m=np.array([0.1, -0.1, 0.0]), gyro_scale=np.array([0.0, 0.0, 0.003]))
 SIM_TOL = {P_CLOCK_DRIFT: 20.0, P_MISALIGN.start + 1: 0.05 * DEG,
            P_MISALIGN.start + 2: 0.05 * DEG, P_LEVER_ARM.start + 1: 0.07,
            P_GYRO_SCALE.stop - 1: 0.0005}
@@ -40,9 +28,7 @@ SIM_TOL = {P_CLOCK_DRIFT: 20.0, P_MISALIGN.start + 1: 0.05 * DEG,
 @pytest.fixture(scope="module")
 def sim_fit():
     ds, truth = simulated_recording(300.0, seed=3, effects=SIM_TRUTH, imu_grade="tactical", gnss_rate_hz=10.0)
-    est = C.Estimator(ds)
-    theta = est.gauss_newton(est.coarse(), iterations=2)
-    f, prob, _ = est.refine(ds, theta, iterations=0)
+    est, f, prob = fit_simulated(ds)
     return est, f, prob, truth
 
 
@@ -83,9 +69,8 @@ def test_sim_gnss_latency_found_when_imu_is_synchronised(sim_fit):
     moves the predicted antenna along track (-v L) as a forward lever arm does, and this drive
     does not separate the two: the test asserts the along-track combination, the timing split
     that the priors impose and that a latency is detected; its size is a documented shortfall
-    (measured 13.0 +- 3.0 ms for 30 on this seed, the forward lever arm taking the rest: the same
-    bias along l_x - v tau as the -13 ms / -0.15 m of the un-injected drive, docs/calibration.md;
-    the speed-change drive separates them, next test)."""
+    (the forward lever arm takes part of it, the same bias along l_x - v tau as on the un-injected
+    drive, docs/calibration.md; the speed-change drive separates them, next test)."""
     est, f_base, _, truth = sim_fit
     from v2xpos.diagnose.inject import correct
     # an IMU whose timing is declared (synchronised): the known offset and drift are corrected, and
@@ -100,7 +85,7 @@ def test_sim_gnss_latency_found_when_imu_is_synchronised(sim_fit):
     try:
         start = f_base.theta.copy()
         start[[P_TIME_OFFSET, P_CLOCK_DRIFT, P_GNSS_LATENCY]] = 0.0
-        f = _fit_from_baseline(est, ds_lat, start)
+        f = fit_from_baseline(est, ds_lat, start)
     finally:
         est.prior_sd = saved
     g = est.ds.gnss
@@ -156,132 +141,6 @@ def test_sim_clean_drive_reports_no_effect(seed):
     each ~7 sd: seed 3 -17 ms / -0.19 m, seed 4 +17 ms / +0.18 m); the backward elimination in
     ``Estimator.confirm`` lets each take over the other's part and drops both."""
     ds, _ = simulated_recording(300.0, seed=seed, effects=EffectSet(), imu_grade="tactical", gnss_rate_hz=10.0)
-    est = C.Estimator(ds)
-    theta = est.gauss_newton(est.coarse(), iterations=2)
-    f, prob, _ = est.refine(ds, theta, iterations=0)
+    est, f, prob = fit_simulated(ds)
     f = est.confirm(ds, f, prob)
     assert not f.significant.any(), [r for r in f.table() if r["significant"]]
-
-
-@pytest.fixture(scope="module")
-def eight_fit():
-    """The known-truth effects on a calibration drive: figure-eights at six speeds (6-15 m/s)."""
-    ds, truth = simulated_recording(300.0, seed=3, effects=SIM_TRUTH, imu_grade="tactical", gnss_rate_hz=10.0,
-                                    drive="figure_eights")
-    est = C.Estimator(ds)
-    theta = est.gauss_newton(est.coarse(), iterations=2)
-    f, prob, _ = est.refine(ds, theta, iterations=0)
-    return est, f, prob, truth
-
-
-def test_sim_calibration_drive_separates_offset_and_forward_lever_arm(eight_fit):
-    """Turning at several speeds separates a time offset (lateral velocity residual v w tau) from a
-    forward lever arm (w l_x), which the urban drive at one speed confounds: the forward lever arm
-    is found (measured 0.083 +- 0.020 m for 0.1), the 5 ms offset is estimated within its sd
-    (3.2 +- 2.3 ms: 300 s of figure-eights do not reach 3 sd for 5 ms), and the effects present
-    are reported while the absent ones are not."""
-    import copy
-    est, f_joint, prob, truth = eight_fit
-    t = truth.to_vector()
-    f = est.confirm(est.ds, copy.deepcopy(f_joint), prob)
-    info = [(r["name"], round(r["value"], 5), round(r["sd"], 5), r["significant"]) for r in f.table()]
-    lx = P_LEVER_ARM.start
-    assert abs(f_joint.theta[P_TIME_OFFSET] - t[P_TIME_OFFSET]) < min(0.003, 3 * f_joint.sd[P_TIME_OFFSET]), info
-    assert abs(f.theta[lx] - t[lx]) < 0.04 and f.significant[lx], info
-    present = [P_CLOCK_DRIFT, P_MISALIGN.start + 1, P_MISALIGN.start + 2, lx, lx + 1, P_GYRO_SCALE.stop - 1]
-    assert f.significant[present].all(), info
-    for i in present:
-        assert abs(f.theta[i] - t[i]) < 3 * f.sd[i], (PARAM_NAMES[i], info)
-    absent = [P_GNSS_LATENCY, lx + 2, P_GYRO_SCALE.start, P_GYRO_SCALE.start + 1,
-              *range(P_ACCEL_SCALE.start, P_ACCEL_SCALE.stop)]
-    assert not f.significant[absent].any(), info
-
-
-@pytest.mark.parametrize("param, value, tol", [(P_TIME_OFFSET, +0.005, 0.001), (P_TIME_OFFSET, -0.005, 0.001),
-                                               (P_LEVER_ARM.start, +0.1, 0.015), (P_LEVER_ARM.start, -0.1, 0.015)],
-                         ids=["stamps+5ms", "stamps-5ms", "antenna_x+0.1", "antenna_x-0.1"])
-def test_sim_calibration_drive_paired_offset_and_antenna(eight_fit, param, value, tol):
-    """IMU stamps shifted or the antenna moved forward on top of the known-truth effects, fitted
-    against the un-shifted fit of the same drive (as for drive_0708): measured +5.29 / -5.12 ms
-    for +-5 ms, +0.093 / -0.094 m for +-0.1 m, every other parameter within 0.6 sd."""
-    est, f0, prob, truth = eight_fit
-    inj = np.zeros(N_PARAMS)
-    inj[param] = value
-    f = _fit_from_baseline(est, inject(est.ds, EffectSet.from_vector(inj)), f0.theta)
-    diff = f.theta - f0.theta
-    assert abs(diff[param] - value) < tol, (param, value, diff[param])
-    others = [i for i in np.flatnonzero(est.active) if i != param]
-    assert np.all(np.abs(diff[others]) < f.sd_stat[others]), {int(i): float(diff[i] / f.sd_stat[i]) for i in others}
-
-
-# ------------------------------------------------------------------ drive_0708 (real data)
-@pytest.fixture(scope="module")
-def drive_baseline():
-    require_shared(DRIVE)
-    from v2xpos.datasets import load_dataset
-    ds = load_dataset(DRIVE)
-    est = C.Estimator(ds)
-    theta = est.gauss_newton(est.coarse(), iterations=1)
-    f = _fit_from_baseline(est, ds, theta)
-    return est, f, theta
-
-
-INJECTED = {P_TIME_OFFSET: 0.005, P_MISALIGN.start: 0.3 * DEG, P_MISALIGN.start + 1: -0.3 * DEG,
-            P_MISALIGN.start + 2: 0.3 * DEG, P_GYRO_SCALE.stop - 1: 0.005, P_LEVER_ARM.start + 1: 0.1}
-FOUND = (P_MISALIGN.start + 1, P_GYRO_SCALE.stop - 1)
-TOLERANCE = {P_TIME_OFFSET: 0.0025, P_MISALIGN.start: 0.1 * DEG, P_MISALIGN.start + 1: 0.1 * DEG,
-             P_MISALIGN.start + 2: 0.15 * DEG, P_GYRO_SCALE.stop - 1: 0.0015, P_LEVER_ARM.start + 1: 0.05}
-
-
-@pytest.mark.parametrize("sign", [+1.0, -1.0])
-def test_drive_injected_effects_found_relative_to_baseline(drive_baseline, sign):
-    est, f0, start = drive_baseline
-    inj = np.zeros(N_PARAMS)
-    for i, v in INJECTED.items():
-        inj[i] = sign * v
-    ds_inj = inject(est.ds, EffectSet.from_vector(inj))
-    f = _fit_from_baseline(est, ds_inj, start)
-    diff = f.theta - f0.theta
-    report = {int(i): (round(float(diff[i]), 5), round(float(f.sd_stat[i]), 5)) for i in np.flatnonzero(est.active)}
-    # each injected effect: estimated within the tolerance or, where the drive barely reveals it
-    # (time offset, roll), within 3 of its own sd; the well-observed ones must also be found (> 3 sd)
-    # (with all effects at once the stamp shift trades off against the clock drift; alone it is
-    # held to its tolerance: test_drive_single_effect_recovered_to_tolerance)
-    for i, v in INJECTED.items():
-        assert abs(diff[i] - sign * v) < max(TOLERANCE[i], 3 * f.sd_stat[i]), (i, sign * v, report)
-    # found: beyond 3 standard errors, i.e. the sd without the small-sample t factor of its degrees
-    # of freedom (``identify.normal_equivalent_factor``). The paired difference is close to the
-    # injected value itself, so "found" holds only for an effect several standard errors large: the
-    # drive's turns reveal the gyro z scale to ~0.1 %, so 0.3 % sat at 3 se (a coin toss) and the
-    # injection is 0.5 %; the single-effect test below keeps 0.3 % to its tolerance
-    se = f.sd_stat / identify.normal_equivalent_factor(f.dof)
-    for i in FOUND:
-        assert abs(diff[i]) > 3 * se[i], (i, report, float(diff[i] / se[i]))
-    # no false positives: the parameters not injected stay where the baseline put them
-    z = identify.compare(f, f0, use_stat=True)
-    others = [i for i in np.flatnonzero(est.active) if i not in INJECTED and i != P_GNSS_LATENCY]
-    assert np.all(z[others] < 3.0), report
-
-
-@pytest.mark.parametrize("param, value", [
-    (P_TIME_OFFSET, +0.005), (P_TIME_OFFSET, -0.005), (P_MISALIGN.start, 0.3 * DEG),
-    (P_MISALIGN.start + 1, -0.3 * DEG), (P_MISALIGN.start + 2, 0.3 * DEG), (P_GYRO_SCALE.stop - 1, -0.003),
-    (P_LEVER_ARM.start + 1, 0.1)], ids=["stamps+5ms", "stamps-5ms", "roll", "pitch", "yaw", "gyro_z", "antenna_y"])
-def test_drive_single_effect_recovered_to_tolerance(drive_baseline, param, value):
-    """One undeclared effect injected into the real drive: the fit moves that parameter by the
-    injected amount within its tolerance, and no other parameter by 1.5 sd or more (the antenna
-    y case moves the IMU offset and the clock drift by 1.2-1.3 sd since the fit replays are exact
-    at the GNSS epochs, docs/calibration.md; every other case stays below 1 sd). The absolute
-    values are known only to their sd (e.g. the IMU time offset to ~7 ms), but the change between
-    two fits of the same drive is a paired comparison in which the drive's own noise cancels
-    (measured 2026-11-23: stamps +6.7 / -5.6 ms for +-5 ms, roll +0.2985 deg, pitch -0.280 deg,
-    yaw +0.303 deg for +-0.3 deg, gyro z -0.298 % for -0.3 %, antenna y +0.101 m for +0.1 m; the
-    largest move of another parameter 0.72 sd, 1.28 sd (clock drift) in the antenna case)."""
-    est, f0, start = drive_baseline
-    inj = np.zeros(N_PARAMS)
-    inj[param] = value
-    f = _fit_from_baseline(est, inject(est.ds, EffectSet.from_vector(inj)), start)
-    diff = f.theta - f0.theta
-    assert abs(diff[param] - value) < TOLERANCE[param], (param, value, diff[param])
-    others = [i for i in np.flatnonzero(est.active) if i != param]
-    assert np.all(np.abs(diff[others]) < 1.5 * f.sd_stat[others]), {int(i): float(diff[i] / f.sd_stat[i]) for i in others}

@@ -39,7 +39,10 @@ reports its clock unsynchronised (``adjtimex``: TIME_ERROR / STA_UNSYNC, set by 
 Emulation only (``v2xpos emulate``; never on a vehicle): a recording's receiver time lies in the
 past, so a bench trial shifts (and with ``--speed`` scales) the host clock onto it:
 ``now_gps_s = emulation_speed * unix_to_gps_seconds(time.time()) + host_time_offset_s``, with the
-two numbers the emulator prints. Both default to the identity (0 and 1).
+two numbers the emulator prints. Both default to the identity (0 and 1). ``max_offset_s`` is a
+tolerance on the host clock, in host seconds: at ``emulation_speed`` k a host (or emulator) timing
+error of d seconds appears as k d on the emulated GPS time, so the offset is checked against
+k ``max_offset_s``.
 """
 from __future__ import annotations
 
@@ -178,8 +181,9 @@ class HostGnssClock(SessionClock):
         if not math.isfinite(mn) or age > self.stale_after_s:
             return False, f"no receiver time within {self.stale_after_s:g} s"
         off = mn - self.latency_floor_s
-        if abs(off) > self.max_offset_s:
-            return False, f"host - receiver offset {off * 1e3:.1f} ms beyond +-{self.max_offset_s * 1e3:.0f} ms"
+        limit_s = self.max_offset_s * self.speed
+        if abs(off) > limit_s:
+            return False, f"host - receiver offset {off * 1e3:.1f} ms beyond +-{limit_s * 1e3:.0f} ms"
         if leap_bad:
             return False, "receiver GPS-UTC differs from the leap-second table"
         if self.require_kernel_sync:
