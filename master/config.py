@@ -86,10 +86,15 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from v2xpos.config import (INTEGRITY_KEYS, ConfigError, SourceConfig, check_keys, config_dir, corrections_from_table,
-                           integrity_from_table, link_from_table, load_toml, take, verification_path)
+from v2xpos.config import (ConfigError, SourceConfig, check_keys, config_dir, corrections_from_table,
+                           link_from_table, load_toml, take, validity_from_table)
 from v2xpos.link import LinkConfig
-from v2xpos.schema import check_choice
+from v2xpos.schema import Key, check_choice
+
+VALIDITY_KEYS = (Key("max_sigma_h_m", float, 0.10), Key("max_sigma_yaw_deg", float, 1.0),
+                 Key("require_consistency", bool, True), Key("max_clock_disagreement_ms", float, 50.0))
+"""The master's own ``[validity]`` keys (when a computed result is VALID), read with the own filter's
+keys by ``v2xpos.config.validity_from_table``."""
 
 
 @dataclass
@@ -157,18 +162,14 @@ class MasterConfig:
     def from_dict(cls, d: dict, path: str = "<dict>") -> "MasterConfig":
         check_keys(d, {"service", "link", "source", "output", "scene", "record", "security", "grading", "corrections",
                        "validity"}, path)
-        va = take(d, "validity", dict, {}, path)
         wv = f"{path}: [validity]"
-        check_keys(va, {"max_sigma_h_m", "max_sigma_yaw_deg", "require_consistency", "max_clock_disagreement_ms",
-                        *INTEGRITY_KEYS}, wv)
-        filter_integrity = integrity_from_table(va, wv, config_dir(path))
-        verification_out = (verification_path(va, wv, config_dir(path))
-                            if take(va, "write_verification", bool, False, wv) else None)
-        max_clock_ms = take(va, "max_clock_disagreement_ms", float, 50.0, wv)
+        validity = validity_from_table(take(d, "validity", dict, {}, path), wv, config_dir(path), VALIDITY_KEYS)
+        va = validity.service
+        max_clock_ms = va["max_clock_disagreement_ms"]
         if not 0 < max_clock_ms <= 60000:
             raise ConfigError(f"{wv}.max_clock_disagreement_ms: {max_clock_ms} outside (0, 60000]")
-        max_sigma_h = take(va, "max_sigma_h_m", float, 0.10, wv)
-        max_sigma_yaw = take(va, "max_sigma_yaw_deg", float, 1.0, wv)
+        max_sigma_h = va["max_sigma_h_m"]
+        max_sigma_yaw = va["max_sigma_yaw_deg"]
         if not max_sigma_h > 0 or not max_sigma_yaw > 0:
             raise ConfigError(f"{wv}: max_sigma_h_m and max_sigma_yaw_deg must be > 0")
         gr = take(d, "grading", dict, {}, path)
@@ -229,9 +230,9 @@ class MasterConfig:
             max_age_s=take(sec, "max_age_s", float, 5.0, ws),
             future_tolerance_s=take(sec, "future_tolerance_s", float, 0.05, ws), replay_window=window,
             corrections=corrections_from_table(d, path), max_sigma_h_m=max_sigma_h, max_sigma_yaw_deg=max_sigma_yaw,
-            require_consistency=take(va, "require_consistency", bool, True, wv),
-            max_clock_disagreement_s=max_clock_ms / 1e3, filter_integrity=filter_integrity,
-            verification_out=verification_out, path=path)._resolved()
+            require_consistency=va["require_consistency"], max_clock_disagreement_s=max_clock_ms / 1e3,
+            filter_integrity=validity.filter_integrity, verification_out=validity.verification_out,
+            path=path)._resolved()
 
     def _resolved(self) -> "MasterConfig":
         """Relative file paths made absolute against the config file's directory (``config_dir``), as

@@ -447,26 +447,15 @@ class MasterService:
             final["imu_grades_final"] = grades_final
             final["realtime_priority"] = self.cfg.realtime_priority if self.realtime else 0
             if self.cfg.verification_out is not None and self.source is not None:
-                final["verification"] = self._write_verification()
+                from v2xpos.datasets.verification import write_session_record
+                final["verification"], said = write_session_record(self.source, self.cfg.verification_out,
+                                                                   f"session of {self.cfg.master_id}")
+                print(f"master: {said}", file=sys.stderr, flush=True)
             self._write_outputs(final)
             self._close()
             if isinstance(sub, InlineDispatch):
                 sub.close_verifier()
         return final
-
-    def _write_verification(self) -> dict | None:
-        """The own set-up's ``[verification]`` record at the end of the session (``[validity]
-        write_verification``); a failure to write is reported, never fatal."""
-        from v2xpos.datasets.verification import session_verification
-        path = self.cfg.verification_out
-        try:
-            record = session_verification(self.source, path, f"session of {self.cfg.master_id}")
-        except OSError as exc:
-            print(f"master: [validity].verification_file {path}: not written: {exc}", file=sys.stderr, flush=True)
-            return None
-        if record is None:
-            return None
-        return {"path": str(path), "verified": record.verified, "protection_m": record.protection_m}
 
     def _collect_final_grades(self, timeout_s: float = FINAL_GRADES_TIMEOUT_S) -> bool:
         """Stop the grading worker and wait for its final grades (master/grading.py: it publishes

@@ -38,8 +38,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from v2xpos.config import (ConfigError, LinkImpairment, SourceConfig, check_keys, config_dir,  # noqa: F401
-                           INTEGRITY_KEYS, corrections_from_table, impairment_from_table, integrity_from_table,
-                           link_from_table, load_toml, take, verification_path)
+                           corrections_from_table, impairment_from_table, link_from_table, load_toml, take,
+                           validity_from_table)
 from v2xpos.link import LinkConfig
 
 
@@ -68,8 +68,7 @@ class SlaveConfig:
     @classmethod
     def from_dict(cls, d: dict, path: str = "<dict>") -> "SlaveConfig":
         check_keys(d, {"service", "link", "source", "impairment", "security", "corrections", "validity"}, path)
-        va = take(d, "validity", dict, {}, path)
-        check_keys(va, set(INTEGRITY_KEYS), f"{path}: [validity]")
+        validity = validity_from_table(take(d, "validity", dict, {}, path), f"{path}: [validity]", config_dir(path))
         s = take(d, "service", dict, {}, path)
         w = f"{path}: [service]"
         check_keys(s, {"fleet", "vehicle_id", "rate_hz", "duration_s", "publish_imu"}, w)
@@ -87,9 +86,7 @@ class SlaveConfig:
                   key_file=take(sec, "key_file", str, None, f"{path}: [security]"),
                   publish_imu=take(s, "publish_imu", bool, False, w),
                   corrections=corrections_from_table(d, path),
-                  filter_integrity=integrity_from_table(va, f"{path}: [validity]", config_dir(path)),
-                  verification_out=(verification_path(va, f"{path}: [validity]", config_dir(path))
-                                    if take(va, "write_verification", bool, False, f"{path}: [validity]") else None),
+                  filter_integrity=validity.filter_integrity, verification_out=validity.verification_out,
                   path=path)
         if cfg.key_file:                      # relative to the config file, as every path in it
             cfg.key_file = str(config_dir(path) / Path(cfg.key_file).expanduser())

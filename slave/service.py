@@ -72,22 +72,6 @@ def _say(vehicle_id: str):
     return lambda text: print(f"slave {vehicle_id}: {text}", file=sys.stderr, flush=True)
 
 
-def _write_verification(source, path, vehicle_id: str, say) -> dict | None:
-    """The set-up's ``[verification]`` record at the end of a session (``[validity]
-    write_verification``); a failure to write is reported, never fatal (the session's data is out)."""
-    from v2xpos.datasets.verification import session_verification
-    try:
-        record = session_verification(source, path, f"session of {vehicle_id}")
-    except OSError as exc:
-        say(f"[validity].verification_file {path}: not written: {exc}")
-        return None
-    if record is None:
-        say(f"[validity].verification_file {path}: not written: the filter never started")
-        return None
-    say(f"verification record {path}: verified={record.verified} protection {record.protection_m:.3f} m")
-    return {"path": str(path), "verified": record.verified, "protection_m": record.protection_m}
-
-
 def run_slave(cfg: SlaveConfig, stop: _Stop | None = None, quiet: bool = False) -> dict:
     """Run until the configured duration ends, the source ends, or ``stop.flag``; returns the counters."""
     stop = stop or _Stop()
@@ -143,7 +127,10 @@ def run_slave(cfg: SlaveConfig, stop: _Stop | None = None, quiet: bool = False) 
             sink.close()
         counters["source_status"] = source.status()
         if cfg.verification_out is not None and counters.get("phase") in ("run", "done"):
-            counters["verification"] = _write_verification(source, cfg.verification_out, cfg.vehicle_id, say)
+            from v2xpos.datasets.verification import write_session_record
+            counters["verification"], said = write_session_record(source, cfg.verification_out,
+                                                                  f"session of {cfg.vehicle_id}")
+            say(said)
         if clock is not None:
             counters["clock"] = clock.status()
             clock.close()

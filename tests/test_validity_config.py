@@ -71,3 +71,26 @@ def test_a_session_writes_its_verification_record_and_the_next_one_starts_from_i
     (tmp_path / "B.verification.toml").write_text("[verification]\nverifed = true\n")
     with pytest.raises(ConfigError, match=r"B.verification.toml.*'verifed'.*did you mean 'verified'"):
         SlaveConfig.from_dict({"validity": table, "source": SOURCE}, str(tmp_path / "slave.toml"))
+
+
+def test_a_services_end_of_session_record_is_reported_and_never_fatal(tmp_path):
+    """Both services write their record through ``write_session_record``: the summary they report
+    and a line saying what happened; a record that cannot be written, or a filter that never
+    started, leaves nothing written and is said, not raised."""
+    from types import SimpleNamespace
+    from v2xpos.datasets.verification import read_verification_file, write_session_record
+    flt = SimpleNamespace(initialized=True, separation=SimpleNamespace(protection_m=0.1, active=True, excluded=False),
+                          cfg=SimpleNamespace(alert_limit_m=0.3), consistency=SimpleNamespace(failed=False))
+    source = SimpleNamespace(filter=flt)
+    path = tmp_path / "A.verification.toml"
+    summary, said = write_session_record(source, path, "session of A")
+    assert summary == {"path": str(path), "verified": True, "protection_m": 0.1}
+    assert said == f"verification record {path}: verified=True protection 0.100 m"
+    assert read_verification_file(path).drive == "session of A"
+    (tmp_path / "a_file").write_text("")
+    blocked = tmp_path / "a_file" / "A.verification.toml"
+    summary, said = write_session_record(source, blocked, "session of A")
+    assert summary is None and said.startswith(f"[validity].verification_file {blocked}: not written: ")
+    flt.initialized = False
+    assert write_session_record(source, path, "s") == (
+        None, f"[validity].verification_file {path}: not written: the filter never started")

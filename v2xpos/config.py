@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from collections.abc import Sequence
 from typing import Any
 
 from v2xpos.compat import tomllib
@@ -112,7 +113,8 @@ def corrections_from_table(d: dict, path: str):
         raise ConfigError(str(exc)) from None
 
 
-INTEGRITY_KEYS = ("alert_limit_m", "integrity_risk", "verification_file", "write_verification")
+INTEGRITY_KEYS = (schema.Key("alert_limit_m", float, None), schema.Key("integrity_risk", float, None),
+                  schema.Key("verification_file", str, None), schema.Key("write_verification", bool, False))
 """The ``[validity]`` keys that configure the vehicle's own filter (``InsConfig``): its horizontal
 protection level is held against ``alert_limit_m`` at ``integrity_risk``; ``verification_file``
 keeps the ``[verification]`` record of its set-up between sessions (read at the start: a verified
@@ -120,41 +122,48 @@ set-up starts with the prior of a change, not of a blunder; written at the end w
 ``write_verification``) -- docs/integrity.md."""
 
 
-def integrity_from_table(table: dict, where: str, base_dir: Path | None = None) -> dict:
-    """``InsConfig`` overrides from a service's ``[validity]`` table: ``alert_limit_m`` (0, 10] m,
+@dataclass(frozen=True)
+class Validity:
+    """A service's ``[validity]`` table, read once (``validity_from_table``)."""
+    filter_integrity: dict           # InsConfig overrides of the own filter (only what is given)
+    verification_out: Path | None    # where the session's [verification] record is written; None: not asked
+    service: dict                    # the service's own [validity] keys by name, defaults filled in
+
+
+def validity_from_table(table: Any, where: str, base_dir: Path | None = None,
+                        service_keys: Sequence[schema.Key] = ()) -> Validity:
+    """A service's ``[validity]`` table against ``INTEGRITY_KEYS`` and the service's own
+    ``service_keys`` (``v2xpos.schema.read_table``: unknown keys refused with a "did you mean", types
+    checked, defaults filled). The filter's overrides: ``alert_limit_m`` (0, 10] m,
     ``integrity_risk`` (0, 0.1], and ``setup_verified`` when ``verification_file`` (relative to
-    ``base_dir``) holds a verified record; only what is given (the filter's defaults otherwise).
-    ConfigError naming ``where`` and the key, or the file."""
-    out = {}
-    limit = take(table, "alert_limit_m", float, None, where)
+    ``base_dir``) holds a verified record; the record is written back at the end of the session
+    when ``write_verification`` (which needs the file). ConfigError naming ``where`` and the key,
+    or the file."""
+    values = schema.read_table(table, (*service_keys, *INTEGRITY_KEYS), where, ConfigError)
+    overrides = {}
+    limit = values["alert_limit_m"]
     if limit is not None:
         if not 0 < limit <= 10.0:
             raise ConfigError(f"{where}.alert_limit_m: {limit} outside (0, 10] m")
-        out["alert_limit_m"] = float(limit)
-    risk = take(table, "integrity_risk", float, None, where)
+        overrides["alert_limit_m"] = float(limit)
+    risk = values["integrity_risk"]
     if risk is not None:
         if not 0 < risk <= 0.1:
             raise ConfigError(f"{where}.integrity_risk: {risk} outside (0, 0.1]")
-        out["integrity_risk"] = float(risk)
-    path = verification_path(table, where, base_dir)
-    if path is not None:
+        overrides["integrity_risk"] = float(risk)
+    name = values["verification_file"]
+    if values["write_verification"] and name is None:
+        raise ConfigError(f"{where}.write_verification: needs verification_file (where to write the record)")
+    path = None
+    if name is not None:
+        path = Path(name).expanduser()
+        path = path if path.is_absolute() or base_dir is None else Path(base_dir) / path
         from v2xpos.datasets.verification import VerificationError, read_verification_file
         try:
             record = read_verification_file(path)
         except VerificationError as exc:
             raise ConfigError(f"{where}.verification_file: {exc}") from None
         if record is not None and record.verified:
-            out["setup_verified"] = True
-    return out
-
-
-def verification_path(table: dict, where: str, base_dir: Path | None = None) -> Path | None:
-    """The ``[validity]`` ``verification_file`` resolved against ``base_dir`` (None when absent);
-    ``write_verification = true`` without a file is a ConfigError."""
-    name = take(table, "verification_file", str, None, where)
-    if take(table, "write_verification", bool, False, where) and name is None:
-        raise ConfigError(f"{where}.write_verification: needs verification_file (where to write the record)")
-    if name is None:
-        return None
-    p = Path(name).expanduser()
-    return p if p.is_absolute() or base_dir is None else Path(base_dir) / p
+            overrides["setup_verified"] = True
+    return Validity(filter_integrity=overrides, verification_out=path if values["write_verification"] else None,
+                    service={k.name: values[k.name] for k in service_keys})

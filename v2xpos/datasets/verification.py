@@ -144,3 +144,18 @@ def session_verification(source: Any, path: str | Path, drive: str) -> Verificat
     record = record_from_filter(flt, drive, f"{sw['name']} {sw['version']}{rev}")
     write_verification_file(path, record)
     return record
+
+
+def write_session_record(source: Any, path: str | Path, drive: str) -> tuple[dict | None, str]:
+    """A service's end of session (``[validity] write_verification``): :func:`session_verification`
+    to ``path``, never fatal (the session's data is out whatever happens to its record). Returns the
+    summary the service reports (``path``, ``verified``, ``protection_m``; None when nothing was
+    written: the file could not be written, or the filter never started) and a line saying which."""
+    try:
+        record = session_verification(source, path, drive)
+    except OSError as exc:
+        return None, f"[validity].verification_file {path}: not written: {exc}"
+    if record is None:
+        return None, f"[validity].verification_file {path}: not written: the filter never started"
+    return ({"path": str(path), "verified": record.verified, "protection_m": record.protection_m},
+            f"verification record {path}: verified={record.verified} protection {record.protection_m:.3f} m")

@@ -67,8 +67,9 @@ against the gyro); a lag would bias the time offset, and positions are the outag
 EXACT_EPOCHS = True
 """Fit replays bring the state exactly to each GNSS epoch and apply the vehicle constraints mid-way
 between epochs (``runner.replay``): with the constraints at chunk ends and the GNSS update
-extrapolated from the last sample, the replayed cost jumped by 50-140 whenever a stamp shift moved
-a GNSS epoch past an IMU sample (a simulated drive, 2026-11-23), as much as a 2 ms offset costs."""
+extrapolated from the last sample, the replayed cost jumped whenever a stamp shift moved a GNSS
+epoch past an IMU sample, by as much as a few milliseconds of offset cost (docs/calibration.md,
+Exact epochs in the fit replays)."""
 
 TUNE_PREDICTOR = True
 """Fit replays run a filter whose noise matches the recording (``Estimator.tune``, ``tuning.py``):
@@ -189,8 +190,8 @@ class Estimator:
         lever_sd = p[P_LEVER_ARM].copy()
         # a vertical antenna offset moves the antenna only through roll and pitch, which a car
         # hardly has: online it trades against the IMU height (antenna height = IMU height - l_z)
-        # and a loose prior lets both wander (convoy_dev B: l_z +1.18 +- 0.18 m with the 0.5 m
-        # prior, 2026-11-24); it starts from the declaration, as the live filter does
+        # and a loose prior lets both wander (on a convoy follower l_z ran far beyond the 0.5 m
+        # prior); it starts from the declaration, as the live filter does
         lever_sd[2] = float(self.ds.lever_arm_sd_m)
         cfg = config_for(self.ds, self.profile, effect_initial_sd={"lever_arm": lever_sd,
                                                                    "imu_time_offset": float(p[P_TIME_OFFSET]),
@@ -226,7 +227,8 @@ class Estimator:
         # the second-difference estimate bounds the in-band white noise from above (it weighs
         # high-frequency vibration up to 16/6 times): below the filter's default it shows the
         # default is too large and replaces it; above it, the excess may be out-of-band vibration
-        # and the default stays (drive_0708: 5.6e-3 measured, 6e-4..1.2e-3 in band at its stops)
+        # and the default stays (a driving vehicle's vibration can put it several times above the
+        # in-band noise its stops show; docs/calibration.md, Allan deviation at the stops)
         if np.isfinite(gyro) and gyro > 0:
             self.config["gyro_noise_rps_rthz"] = min(gyro, d.gyro_noise_rps_rthz)
         if np.isfinite(accel) and accel > 0:
@@ -329,9 +331,9 @@ class Estimator:
             if self.tune_predictor and k == 0:
                 # the predictor is tuned once, at the starting point, and then held: every later
                 # replay (Jacobian, refinement, elimination) runs the same filter, so that costs and
-                # weights stay comparable. (Re-tuning at every iterate was tried: on convoy_dev B it
-                # inflated the lever-arm and time-offset sds 2-3 times and the elimination dropped
-                # them; 2026-11-24, docs/calibration.md.)
+                # weights stay comparable. (Re-tuning at every iterate was tried: it inflated the
+                # lever-arm and time-offset sds and the elimination dropped them; docs/calibration.md,
+                # What the fit needs from its predictor.)
                 self.tune(theta, iterations=2)
             rows0 = self.linearize(theta, keep_weights=k > 0)
             c0 = float(np.nansum(align(self.base_rows, rows0) ** 2))
@@ -370,28 +372,25 @@ class Estimator:
         with it (Dennis & Schnabel 1983, "Numerical Methods for Unconstrained Optimization and
         Nonlinear Equations", secs. 5.4 and 10.2).
 
-        Why not a secant (Broyden 1965) update of J, as until 2026-11-24: (1) Broyden's update is the
-        least change of J in the Frobenius norm of the raw parameter units, so it is not invariant to
-        their scaling: with seconds, ppm, radians and metres a clock-drift step of a few ppm
-        dominated |dtheta|^2 and the rank-one corrections landed in the drift column. (2) Scaled
-        versions (least change in the metric of the prior covariance, or of the information
-        J^T J + P0^-1, which is invariant to linear reparametrisation) do not help, because the
-        secant difference r(theta + s) - r(theta) - J s over the refinement's steps (0.2-5 ms, a few
-        ppm, fractions of a mrad) is not a derivative of the replays: measured on drive_0708 it was
-        50-70 % of |J s| (the replays are not smooth at that scale; a difference quotient needs a step
-        large against that noise, More & Wild 2012, ACM TOMS 38(3)). (3) The update depends on the
-        path, so two fits of the same drive, one with an injected effect, end at different points of
-        J^T r = 0: the estimate is then not equivariant under ``inject``/``correct``, which the
-        replayed residuals are (r_injected(theta + e) = r(theta)). Measured (drive_0708, one
-        effect injected, largest move of another parameter in sd): raw-unit update 1.80 sd (roll,
-        pitch fail), prior metric 3.14 sd (stamps +5 ms came out -8.7 ms), information metric 0.96
-        sd but stamps +5 ms came out +0.4 ms; no update 0.11 sd.
+        Why not a secant (Broyden 1965) update of J (docs/calibration.md, Method and why): (1) Broyden's
+        update is the least change of J in the Frobenius norm of the raw parameter units, so it is not
+        invariant to their scaling: with seconds, ppm, radians and metres a clock-drift step of a few
+        ppm dominated |dtheta|^2 and the rank-one corrections landed in the drift column. (2) Scaled
+        versions (least change in the metric of the prior covariance, or of the information J^T J +
+        P0^-1, which is invariant to linear reparametrisation) do not help, because the secant
+        difference r(theta + s) - r(theta) - J s over the refinement's steps (milliseconds, a few ppm,
+        fractions of a mrad) is not a derivative of the replays but a large part of |J s| (the replays
+        are not smooth at that scale; a difference quotient needs a step large against that noise, More
+        & Wild 2012, ACM TOMS 38(3)). (3) The update depends on the path, so two fits of the same drive,
+        one with an injected effect, end at different points of J^T r = 0: the estimate is then not
+        equivariant under ``inject``/``correct``, which the replayed residuals are (r_injected(theta +
+        e) = r(theta)); every metric tried for the update (raw units, the prior's, the information's)
+        moved some paired single-effect test, no update none.
         Why the Jacobian at the final iterate: the chord iterations converge to the point where the
         stored (one-sided, linearisation-point) J satisfies J^T r + P0^-1 theta = 0, which is not a
-        stationary point of the replayed cost when J changes between there and here; on drive_0708
-        the step with the central-difference Jacobian at the chord point lowered the replayed cost
-        11,844 -> 11,708 (the chord and raw-Broyden points 11,844 / 11,841; the Gauss-Newton start
-        11,835). Cost: two replays per active parameter. Both steps are equivariant under
+        stationary point of the replayed cost when J changes between there and here; the step with
+        the central-difference Jacobian at the chord point lowers the replayed cost further. Cost:
+        two replays per active parameter. Both steps are equivariant under
         ``inject``/``correct``, so paired fits move only by the injected effect."""
         theta = theta_start.copy()
         rows, out = self.rows(ds, theta, "refine start")

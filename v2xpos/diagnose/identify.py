@@ -240,10 +240,9 @@ def applied(prob: LinearProblem, f: Fit) -> Fit:
 
     In the joint (final) model the not-significant parameters stay free; a significant effect's
     value there is conditional on their joint estimates, and writing those as 0 while keeping that
-    value moves it by ``-H_ss^-1 H_sn theta_n``. Measured on a convoy recording (follower B): the
-    clock drift at -64 +- 43 ppm (not significant, truth 0) held the IMU offset at -23.6 ms and the
-    lateral lever arm at 0.392 m (correlations -0.67 with the drift, 0.7 with the unobservable roll);
-    with the not-applied effects at 0: -28.7 ms (truth about -30) and 0.270 m (0.3).
+    value moves it by ``-H_ss^-1 H_sn theta_n``: on a convoy follower a not-significant clock drift,
+    correlated with the IMU offset, and the unobservable roll, correlated with the lateral lever
+    arm, held both away from the truth; with the not-applied effects at 0 both came near it.
     The sd is the root mean square error of this restricted estimate, sqrt(sd^2 + shift^2), with
     sd that of the final model and shift = applied - joint value. Holding a not-applied effect at
     0 when it is really theta_n != 0 biases the applied value by K theta_n (K = H_ss^-1 H_sn), the
@@ -251,9 +250,9 @@ def applied(prob: LinearProblem, f: Fit) -> Fit:
     Vizcarrondo & Wallace 1968, JASA 63(322)), and the shift K theta_n_hat is the data's estimate
     of the bias. The marginal sd (the consider covariance H_ss^-1 + K C_nn K^T, Bierman 1977,
     "Factorization Methods for Discrete Sequential Estimation", ch. VIII) covers the bias only
-    when theta_n is within its own sd of 0: in the coverage Monte-Carlo a mounting roll of ~1 deg
-    (never significant: it carries the 0.5 deg cross-slope sd) held at 0 moved the lateral lever
-    arm by 3-4 sd and the gyro z scale by 8 sd (2026-11-24, docs/calibration.md). When the
+    when theta_n is within its own sd of 0: in the coverage Monte-Carlo a mounting roll (never
+    significant: the cross-slope sd hides it) held at 0 moved the lateral lever arm and the gyro z
+    scale by several of their sds (docs/calibration.md, Applied values and their sd). When the
     not-applied effects are truly 0 the shift is noise of the same size as the difference of the
     marginal and conditional sds, so the sd is conservative by at most sqrt(2). Significance is
     decided before (``Estimator.confirm``), in the model in which the effect was tested."""

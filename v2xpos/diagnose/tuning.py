@@ -103,12 +103,8 @@ def rescaled_config(config: dict, base: dict, factors: dict[str, float]) -> dict
 # n / sqrt(tau) lies on or above the measured sigma(tau) at every tau up to the horizon predicts
 # at least the measured drift there (``AllanAtStops.covering``). The stops of a drive bound the horizon the
 # recording can show (tau <= stop / 4); beyond it the Gauss-Markov bias states carry the wander.
-# Measured 2026-11-24 (docs/calibration.md, Measured): on the generated recordings the gyro at the
-# stops is white (sigma(1 s) 0.8-1.0e-4 rad/s against 8.7e-5 from second differences, no tau with
-# a 3-sd excess), and against the simulator's truth while driving the error is white to tau = 20 s
-# once an IMU time offset of -5.4 ms (the logger's delay, seed 10 A) is removed: no bias
-# instability for the noise to cover there. drive_0708's stops show sigma(1 s) 6e-4 rad/s, far
-# below its second-difference density (5.6e-3: vibration while driving), which is capped anyway.
+# What the recordings' stops show, and when an entry is written: docs/calibration.md, "What the
+# IMU noise must cover (Allan deviation at the stops)".
 BIAS_INSTABILITY_FACTOR = 0.664
 """sqrt(2 ln 2 / pi): the flat floor of the Allan deviation is 0.664 x the bias instability
 (IEEE Std 952-1997, Annex C.1.4; El-Sheimy et al. 2008, Table 1)."""

@@ -33,8 +33,8 @@ So the monitor keeps these facts per vehicle (``ConsistencyMonitor``):
 * **a false-alarm rate per hour**: the level of each test is ``false_alarm_per_hour`` divided by
   the number of tests in an hour (6 statistics per block, 720 blocks): P(any false alarm in an
   hour) <= sum of the levels (Bonferroni's inequality, valid whatever the tests' correlation).
-  For 1e-3 per hour the mean test's limit is 5.17 sd (it was 3, i.e. 0.27 % per window, about a
-  dozen false alarms an hour for an exactly consistent filter);
+  For 1e-3 per hour the mean test's limit is 5.17 sd (a fixed 3 sd, 0.27 % per window, would
+  give about a dozen false alarms an hour for an exactly consistent filter);
 * **what an alarm means**: a block NIS beyond its limit says the covariance understates the
   spread of the innovations -- a real RTK receiver's sds are pessimistic on average and optimistic
   in bursts (docs/integrity.md) -- and is answered by

@@ -482,7 +482,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
         """A stop's gyro-bias estimate as the measurement of the gyro bias states for its window's
         samples (R its covariance); ``est.applied`` says it was used. One estimate of each bias and
         each sample counted once: the ZARU, which measures the same rate means, is held while the
-        window averages (``_update_zupt``), and an estimate published late (its stop shown level
+        window averages (``_update_zupt``), and an estimate published late (its stop judged level
         only at a later stop, ``est.late``) is not applied, the ZARU having had those samples. The
         accelerometer estimate is not applied: over the same samples the ZUPT measured the
         specific force (a velocity that stays zero), the same information about tilt and bias; it

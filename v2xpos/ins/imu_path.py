@@ -183,10 +183,9 @@ class ImuPath:
           the corrections in this regressor it carried the noise of the previous epochs'
           innovations, with which the next innovation is negatively correlated (its prediction
           contains the previous correction): an errors-in-variables bias (Fuller 1987 ch. 1) of the
-          time offset, always positive. Measured 2026-11-24 (online states, ``calibrate``'s priors):
-          convoy_dev B -16.9 -> -27.2 ms (offline -28.8 +- 1.4 at the end of the drive), A +25.7 ->
-          +5.3 ms (offline -6 +- 6); the same acceleration in the velocity latency's column too made
-          drive_0708's replay outages worse (2.51 -> 2.61 m h RMS), this split 2.53 m.
+          time offset, always positive. The GNSS velocity latency's column keeps the filter's
+          velocity change: the strapdown's there made the replay outages worse (docs/calibration.md,
+          Online agreement, item 4).
         """
         v_now = self.nav[3:6].copy()
         if self._v_prev_chunk is not None and t_end_s > self._t_prev_chunk:

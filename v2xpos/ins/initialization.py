@@ -53,11 +53,9 @@ def antenna_fix_inverse_jacobian(layout, C_nb: np.ndarray, lever_arm_m: np.ndarr
     Below that speed H has no timing column (the time offset is treated as not observable); a
     timing column in G then tells the filter that the IMU point holds ``v dt`` of time-offset error
     which the next fixes' model says is not in their prediction, so every innovation after the
-    reset is partly read as a time offset. Measured 2026-11-24 on walk_0827 (heading reset at
-    0.55 m/s, the time offset's prior sd 300 ms): with the timing columns the time offset left its
-    prior within 0.5 s of the reset while still below the speed threshold (-42 ms, sd 300 -> 80
-    ms), and 11 s later two fixes were gated out (position NIS 32 and 51); without them none
-    (NIS at most 19 there)."""
+    reset is partly read as a time offset: after a heading reset below the speed threshold (a
+    walker's) the time offset left its prior while still unobservable, and later fixes were gated
+    out; without the columns they were not (docs/ins.md, Initialisation, item 5)."""
     G = np.zeros((3, layout.n))
     G[:, ATT:ATT + 3] = -skew(C_nb @ lever_arm_m)
     if not heading_known:
@@ -81,8 +79,8 @@ def position_from_antenna_covariance(P: np.ndarray, G: np.ndarray, pos_sd_m: np.
     ``H dx`` equals the fix's R, as it must right after the fix. Setting ``P_pp = R`` with no
     cross terms instead claims the *IMU point* known to the fix's centimetres whatever the lever
     arm and attitude; the next fixes, which measure only ``p + C l``, then "determine" the lever
-    arm at once (convoy_dev B, 2026-11-24: its sd fell from 0.5 to 0.03 m in the first second at a
-    stop, the true offset 0.5 m away, and the online state never left 0). Returns a new array."""
+    arm at once, even at a stop, far from the true offset, and the online lever-arm state never
+    moves again (docs/ins.md, Initialisation, item 5). Returns a new array."""
     P = P.copy()
     P[POS:POS + 3, :] = 0.0
     P[:, POS:POS + 3] = 0.0
@@ -262,13 +260,10 @@ class Initialization:
         accelerometer bias, which the levelling ties to it through ``g x phi = -C b`` with the
         estimated C -- are transformed as ``phi' = R_z(a) phi`` (P <- T P T^T, T the identity with
         ``turn`` in the attitude block); the yaw row is set afterwards. Without it the tilt's
-        correlations stayed in the axes of the arbitrary pre-turn yaw (up to 180 deg away):
-        measured 2026-11-24 on a generated two-car pair with an undeclared 0.8 m antenna lever arm
-        (tests/test_integrity_recordings.py, heading turned by ~150 deg at the reset), with the
-        antenna-fix covariance of the start the rows the filter reported VALID after its
-        exclusion were within 3 sd in x only 69 % of the time; turned, 100 %, moving
-        horizontal RMS 0.042 -> 0.017 m; on walk_0827 the position NIS 10.5-12 s after the reset
-        fell from 12-19 to 5-8."""
+        correlations stayed in the axes of the arbitrary pre-turn yaw (up to 180 deg away), and
+        the fault-tolerant solution missed an undeclared antenna lever arm: the rows the filter
+        reported VALID after its exclusion were often outside 3 sd (tests/test_integrity_recordings.py
+        ``[lever]``; docs/ins.md, Initialisation, item 4)."""
         self.C_nb = turn @ self.C_nb
         T = np.eye(self.layout.n)
         T[ATT:ATT + 3, ATT:ATT + 3] = turn

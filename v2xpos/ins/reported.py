@@ -16,9 +16,8 @@ Gamma = [[1, 0, -sin p], [0, cos r, sin r cos p], [0, -sin r, cos r cos p]] (Gro
 for the Euler-rate relation)). Hence the reported covariance is ``J P J^T`` with J the 9 x n
 matrix of these rows (Bar-Shalom, Li & Kirubarajan 2001 sec. 1.4.15, the covariance of a linear
 function of a Gaussian vector). Taking only ``diag(P)`` of the attitude block, as before, ignored
-that NHC fixes the *vehicle* heading (phi_D + dm_yaw strongly anti-correlated: on generated
-convoys the IMU-body yaw sd was 0.5 deg while the vehicle yaw was known to 0.2 deg), and that at
-15 m/s a time-offset sd of 3 ms is 4.5 cm along track.
+that NHC fixes the *vehicle* heading (phi_D + dm_yaw strongly anti-correlated: the vehicle yaw
+is known better than the IMU's), and that at 15 m/s a time-offset sd of 3 ms is 4.5 cm along track.
 """
 from __future__ import annotations
 

@@ -22,20 +22,33 @@ gravity direction over the stop, ``-(mean f - b_a) / |mean f - b_a|`` (b_a the f
 accelerometer bias state); roll ``atan2(u_y, u_z)``, pitch ``-asin(u_x)`` (Groves 2013 eqs.
 5.101-5.102). Their covariance: the bias error db turns ``u_b`` by ``rho = -[u_b x] db / g``, the
 mounting error dm enters through ``R(m - dm)``; (db, dm) and their correlation are the filter's
-covariance, and the Jacobian of (roll, pitch) in (rho, dm) is taken by central differences. The
-stop is level when the probability under these Gaussian errors that |pitch| <
-``level_pitch_max_rad`` (``Phi((lim - x)/s) - Phi((-lim - x)/s)``), times the same for the roll
-when the roll's sd is below ``level_roll_max_rad``, is at least ``level_probability_min``. So a
-tilt estimated beyond a limit is never level (its probability is below one half), nor is a stop
-whose grade is too uncertain to tell: with the mounting at its 10-degree prior the probability is
-at most 0.16. The roll enters only when it is known: a car's roll mounting is not observable from
-its motion (the vehicle constraints see a velocity along the vehicle's x axis, which a roll leaves
-unchanged; the sd stays near its prior on a generated drive), so without a declared or calibrated
-mounting the crossfall cannot be judged, and the verdict is the grade's; the roll and its sd are
-still stated. The mounting is constant and each stop's mean specific force is kept, so a stop not
-shown level is judged again at every later stop for ``level_pending_max_s`` with the filter's
+covariance, and the Jacobian of (roll, pitch) in (rho, dm) is taken by central differences.
+
+What needs level, with the filter's attitude: nothing in the estimates. The gyro bias needs only an
+IMU that stands still (the Earth rate is removed with the attitude); the accelerometer bias is
+taken with the filter's attitude, not with an assumed level, and is off by g times that attitude's
+error at any grade (below). A grade changes them only in second order: g sin(theta) on a horizontal
+axis meets the gyro's g-sensitivity and the accelerometer's scale and cross-axis errors (0.05 g at
+a 5 % grade: 5e-3 deg/s at 0.1 deg/s/g, 5 mm/s^2 at 1 %), and on a grade a car whose brake is
+let go creeps with an acceleration up to g sin(theta) that the per-frame static test does not see
+(only the filter's speed does, once the creep has lasted).
+That is why a hill stop is left out; nothing is lost by it, the ZARU and the ZUPT take its samples
+as at any stop. The level verdict is therefore a test whose costly error is the false "not level":
+a valid stop and its check are lost, and on real roads -- a crossfall of 1.5 to 2.5 % (0.9 to
+1.4 deg), a roll mounting the motion does not show (the vehicle constraints see a velocity along
+the vehicle's x axis, which a roll leaves unchanged) and so known only to about a degree -- a rule
+that wants the stop *shown* level loses most stops. A false "level" (a grade a little beyond the
+limit) keeps estimates that are right within their sds. So a stop is **not level only when its
+tilt is beyond the limits with confidence**: P(|roll| < ``level_roll_max_rad``) times P(|pitch| <
+``level_pitch_max_rad``), each tilt x ~ N(estimate, sd^2) (``Phi((lim - x)/s) - Phi((-lim - x)/s)``;
+roll and pitch errors taken as independent), is at most ``1 - level_confidence``. A tilt known
+to a tenth of a degree beyond the limit (a 5 % grade: 2.9 deg) is not level; an unknown one is
+not shown to be tilted and is level (a tilt sd of 10 deg gives 0.16 per axis), except when the
+prior itself makes a tilt beyond the limits likely on both axes (both mounting angles at their
+10-degree prior: 0.16 x 0.16 = 0.025). The mounting is constant and each stop's mean specific
+force is kept, so a stop not level is judged again at every later stop for ``level_pending_max_s`` with the filter's
 mounting and bias of then (the accelerometer bias drift over that time, <= 5e-3 m/s^2 in the
-default model, turns u_b by 0.03 deg), and its estimate is published when the stop is shown level
+default model, turns u_b by 0.03 deg), and its estimate is published when the stop is then level
 (``late``).
 
 **Estimate** over window 2: the means of w and f, their standard errors by batch means over
@@ -71,7 +84,7 @@ bias the filter's levelling built; ``*_nis`` are the normalised squared differen
 bias, no sample counted twice): ``InsFilter._update_static_calibration`` and docs/ins.md.
 
 ``estimates`` keeps every published estimate (the IMU-grading work reads the bias stability between
-stops), ``not_level`` the verdicts of the stops not (yet) shown level, ``latest`` the last estimate
+stops), ``not_level`` the verdicts of the stops not (yet) level, ``latest`` the last estimate
 made, published or not (the filter's start uses it).
 """
 from __future__ import annotations
@@ -102,8 +115,8 @@ class StaticCalibrationConfig:
     accel_norm_dev_max_mps2: float = 0.8     # per frame
     level_roll_max_rad: float = math.radians(2.0)    # the vehicle's roll and pitch at a level stop
     level_pitch_max_rad: float = math.radians(2.0)   # (a 5 % grade is 2.9 deg)
-    level_probability_min: float = 0.5       # P(within the limits) under the tilt's uncertainty
-    level_pending_max_s: float = 600.0       # a stop not shown level is judged again at later stops this long
+    level_confidence: float = 0.95           # not level when P(beyond the limits) is at least this
+    level_pending_max_s: float = 600.0       # a stop not level is judged again at later stops this long
     window1_s: float = 1.0
     window2_s: float = 1.0                   # least length of window 2 ...
     window2_max_s: float = 10.0              # ... which lasts while the stop does, up to this
@@ -142,8 +155,9 @@ def standalone_prior(cfg: StaticCalibrationConfig) -> StopPrior:
 @dataclass
 class StopTilt:
     """The level verdict of a stop whose window 1 spans [t_start_s, t_end_s]: the vehicle's (roll,
-    pitch) [rad], their sds, the probability that the stop is level and the verdict, made with the
-    filter's knowledge at ``t_judged_s``."""
+    pitch) [rad], their sds, the probability that both are within the limits and the verdict (not
+    level when that probability is at most ``1 - level_confidence``), made with the filter's
+    knowledge at ``t_judged_s``."""
     t_start_s: float
     t_end_s: float
     tilt_rad: np.ndarray
@@ -163,7 +177,10 @@ class StaticBiasEstimate:
     """One stop: the time span [s] of window 2, gyro bias [rad/s] and accelerometer bias [m/s^2] in
     b axes, the standard errors of the window's means (``*_sem_*``), the estimates' covariances
     (sems floored, attitude and Earth-rate terms added; module docstring), the number of frames,
-    whether the filter's attitude removed gravity (``attitude``) and the level verdict. With an
+    whether the filter's attitude removed gravity (``attitude``) and the level verdict.
+    ``accel_attitude_sd_mps2``: the part of the accelerometer estimate's sd that is the gravity
+    removed with an uncertain attitude, g times the tilt's sd on the horizontal axes (without an
+    attitude: the prior of the horizontal components, which the stop does not measure). With an
     attitude, ``filter_*`` are the filter's bias states at the start of window 2 and
     ``*_difference_sd_*`` the sds of estimate minus state. ``late``: published at a later stop that
     showed this one level; ``applied``: the filter used it (``InsFilter._update_static_calibration``,
@@ -179,6 +196,7 @@ class StaticBiasEstimate:
     accel_cov: np.ndarray
     attitude: bool
     tilt: StopTilt
+    accel_attitude_sd_mps2: np.ndarray = field(default_factory=lambda: np.zeros(3))
     filter_gyro_bias_rps: np.ndarray | None = None
     filter_accel_bias_mps2: np.ndarray | None = None
     gyro_difference_sd_rps: np.ndarray | None = None
@@ -201,6 +219,7 @@ class StaticBiasEstimate:
              "gyro_bias_rps": self.gyro_bias_rps.tolist(), "accel_bias_mps2": self.accel_bias_mps2.tolist(),
              "gyro_sem_rps": self.gyro_sem_rps.tolist(), "accel_sem_mps2": self.accel_sem_mps2.tolist(),
              "gyro_sd_rps": self.gyro_sd_rps.tolist(), "accel_sd_mps2": self.accel_sd_mps2.tolist(),
+             "accel_attitude_sd_mps2": self.accel_attitude_sd_mps2.tolist(),
              "frames": self.frames, "attitude": self.attitude, "late": self.late, "applied": self.applied,
              "level": self.tilt.as_dict()}
         if self.filter_gyro_bias_rps is not None:
@@ -237,15 +256,12 @@ def tilt_covariance(down_b: np.ndarray, mounting_rpy_rad: np.ndarray, cov_rho_mi
 
 
 def level_probability(tilt_rad: np.ndarray, tilt_sd_rad: np.ndarray, max_rad: np.ndarray) -> float:
-    """P(|pitch| < max) times, if the roll's sd is below its limit, P(|roll| < max), each tilt
-    x ~ N(estimate, sd^2) (sd 0: certain); a roll known worse than its limit cannot be judged and
-    is left out (module docstring). Arrays are (roll, pitch)."""
+    """P(|roll| < max and |pitch| < max), each tilt x ~ N(estimate, sd^2) (sd 0: certain), the two
+    independent. Arrays are (roll, pitch)."""
     def inside(x: float, s: float, lim: float) -> float:
         return float(norm.cdf((lim - x) / s) - norm.cdf((-lim - x) / s)) if s > 0 else float(abs(x) < lim)
-    p = inside(float(tilt_rad[1]), float(tilt_sd_rad[1]), float(max_rad[1]))
-    if tilt_sd_rad[0] < max_rad[0]:
-        p *= inside(float(tilt_rad[0]), float(tilt_sd_rad[0]), float(max_rad[0]))
-    return p
+    return inside(float(tilt_rad[0]), float(tilt_sd_rad[0]), float(max_rad[0])) * \
+        inside(float(tilt_rad[1]), float(tilt_sd_rad[1]), float(max_rad[1]))
 
 
 def gravity_tilt_jacobian(C_nb: np.ndarray, gravity_mps2: float) -> np.ndarray:
@@ -278,7 +294,7 @@ def judge_level(cfg: StaticCalibrationConfig, mean_f_b: np.ndarray, gravity_mps2
     tilt = vehicle_tilt(u, p.mounting_rpy_rad)
     sd = np.sqrt(np.maximum(np.diag(tilt_covariance(u, p.mounting_rpy_rad, cov)), 0.0))
     prob = level_probability(tilt, sd, np.array([cfg.level_roll_max_rad, cfg.level_pitch_max_rad]))
-    return StopTilt(t_start_s, t_end_s, tilt, sd, prob, prob >= cfg.level_probability_min, t_judged_s)
+    return StopTilt(t_start_s, t_end_s, tilt, sd, prob, prob > 1.0 - cfg.level_confidence, t_judged_s)
 
 
 def bias_estimate(cfg: StaticCalibrationConfig, f: np.ndarray, w: np.ndarray, gravity_mps2: float, p: StopPrior,
@@ -309,12 +325,14 @@ def bias_estimate(cfg: StaticCalibrationConfig, f: np.ndarray, w: np.ndarray, gr
     if p.C_nb is not None:
         ba = mf + g * u
         A = gravity_tilt_jacobian(p.C_nb, g)
-        accel_cov = r_a + A @ p.cov[PRIOR_ATT, PRIOR_ATT] @ A.T
+        attitude_cov = A @ p.cov[PRIOR_ATT, PRIOR_ATT] @ A.T
+        accel_cov = r_a + attitude_cov
     else:
         ba = p.accel_bias_mps2 + (g - float(np.linalg.norm(mf - p.accel_bias_mps2))) * u
-        accel_cov = horizontal @ p.cov[PRIOR_BA, PRIOR_BA] @ horizontal + float(u @ r_a @ u) * np.outer(u, u)
+        attitude_cov = horizontal @ p.cov[PRIOR_BA, PRIOR_BA] @ horizontal
+        accel_cov = attitude_cov + float(u @ r_a @ u) * np.outer(u, u)
     est = StaticBiasEstimate(t_start_s, t_end_s, mw - earth_b, ba, sw, sf, len(f), gyro_cov, accel_cov,
-                             p.C_nb is not None, tilt)
+                             p.C_nb is not None, tilt, np.sqrt(np.maximum(np.diag(attitude_cov), 0.0)))
     if p.C_nb is not None:
         compare_with_filter(est, p, r_a, g)
     return est
@@ -341,7 +359,7 @@ def compare_with_filter(est: StaticBiasEstimate, p: StopPrior, accel_noise_cov: 
 
 @dataclass
 class _PendingStop:
-    """A stop whose level is not yet shown: its verdict, the mean specific force and the gravity
+    """A stop not (yet) judged level: its verdict, the mean specific force and the gravity
     of its windows, and its estimate (None while window 2 runs or if it was too short)."""
     tilt: StopTilt
     mean_f_b: np.ndarray
@@ -400,7 +418,7 @@ class StaticCalibrator:
         caller's cue that the vehicle is not standing (ends the stop); ``prior``: what the caller
         knows, or a function giving it (called only at the end of a window 1); None:
         ``standalone_prior``. Returns the estimates published in this chunk (this stop's, and
-        earlier stops' shown level now)."""
+        earlier stops' judged level now)."""
         if not self.cfg.enabled or len(t_s) == 0:
             return []
         if moving:
@@ -489,7 +507,7 @@ class StaticCalibrator:
         return []
 
     def _revisit(self, p: StopPrior, t_s: float) -> list[StaticBiasEstimate]:
-        """Judge the pending stops again with what the filter knows now: those shown level leave
+        """Judge the pending stops again with what the filter knows now: those now level leave
         ``not_level`` and their estimates are published (``late``); those older than
         ``level_pending_max_s`` are judged no more (their verdict stays in ``not_level``)."""
         c = self.cfg

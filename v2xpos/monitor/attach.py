@@ -6,11 +6,11 @@ result when ``[output.zenoh] enabled``, the default), and once per target one of
 state messages (``v2xpos.wire.state_key``) for its outline, after which that subscription is
 undeclared.
 
-Cost: the subscriptions use zenoh FIFO channels drained every ``drain_period_s`` by one thread --
-no Python callback per sample (measured on the shared 2-core machine at 6,400 results/s: a
-callback subscriber cost the process 11.7 % of one core, the FIFO drain 6.9 %, most of it zenoh's
-own receive threads). Per sample the drain reads the target id from the msgpack body and keeps the
-body; decoding with validation happens at refresh, once per target (``MonitorState``).
+Cost: the subscriptions use zenoh FIFO channels drained every ``drain_period_s`` by one thread -- no
+Python callback per sample (a callback per sample costs the process clearly more CPU than the drain,
+most of which is zenoh's own receive threads). Per sample the drain reads the target id from the
+msgpack body and keeps the body; decoding with validation happens at refresh, once per target
+(``MonitorState``).
 """
 from __future__ import annotations
 

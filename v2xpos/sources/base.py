@@ -38,7 +38,7 @@ class SourceContext:
     ``v2xpos.link.Link`` once open (sources that synchronise over the network use it); stop:
     returns True when the service is asked to stop (long waits poll it); filter_overrides:
     ``InsConfig`` fields the service's configuration sets for the vehicle's filter (its
-    ``[validity]`` alert limit and integrity risk, ``v2xpos.config.integrity_from_table``).
+    ``[validity]`` alert limit and integrity risk, ``v2xpos.config.validity_from_table``).
     """
     vehicle_id: str
     fleet: str = "demo"
