@@ -47,7 +47,7 @@ from master.dispatch import InlineDispatch, StartupHold
 from master.outputs import OutputContext, make_output, master_status, summary_provenance
 from master.pipeline import RECORD_FIELDS, MasterPipeline, PipelineConfig
 from v2xpos.config import ConfigError, config_dir
-from v2xpos.launch import freeze_setup_heap
+from v2xpos.launch import apply_realtime_priority, freeze_setup_heap
 from v2xpos.link import Link, LinkUnavailable
 from v2xpos.sources import SourceContext, SourceError, make_source
 from v2xpos.wire import STATE_KEY_ALL, alive_key, grades_key, status_key
@@ -62,23 +62,6 @@ NAV_TICK_S = 0.01
 EXIT_INTERRUPTED = 130
 """Exit code of a service stopped by a signal (README: exit codes)."""
 """The own source is advanced every 10 ms of session time."""
-
-
-def apply_realtime_priority(priority: int) -> bool:
-    """Put the calling thread under SCHED_RR at ``priority`` (1-99) before the service creates its
-    threads and worker processes, which inherit it (Linux sched(7)): other processes on the same
-    computer -- in the demo, the simulated vehicles -- can then not preempt the pipeline. Needs
-    CAP_SYS_NICE or an rtprio limit; if not granted the master runs at normal priority and says
-    so. The kernel keeps 5 % of each period for normal tasks (sched_rt_runtime_us)."""
-    if priority <= 0:
-        return False
-    try:
-        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(priority))
-        return True
-    except (AttributeError, OSError) as exc:
-        print(f"master: realtime_priority {priority} not granted ({exc}); running at normal priority",
-              file=sys.stderr)
-        return False
 
 
 def _background_priority() -> None:
@@ -361,7 +344,7 @@ class MasterService:
                 loop.add_signal_handler(sig, self._on_signal)
             except (NotImplementedError, RuntimeError):  # not the main thread (tests)
                 pass
-        self.realtime = apply_realtime_priority(self.cfg.realtime_priority)
+        self.realtime = apply_realtime_priority(self.cfg.realtime_priority, "master")
         if self.cfg.grading:
             self._start_grading()
         self.phase = "source"

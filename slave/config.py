@@ -55,6 +55,7 @@ class SlaveConfig:
     impairment: LinkImpairment = field(default_factory=LinkImpairment)
     key_file: str | None = None
     publish_imu: bool = False
+    realtime_priority: int = 0
     corrections: object | None = None
     filter_integrity: dict = field(default_factory=dict)   # [validity]: the filter's alert limit / integrity risk
     verification_out: Path | None = None                    # [validity]: write the set-up's record here at the end
@@ -71,10 +72,13 @@ class SlaveConfig:
         validity = validity_from_table(take(d, "validity", dict, {}, path), f"{path}: [validity]", config_dir(path))
         s = take(d, "service", dict, {}, path)
         w = f"{path}: [service]"
-        check_keys(s, {"fleet", "vehicle_id", "rate_hz", "duration_s", "publish_imu"}, w)
+        check_keys(s, {"fleet", "vehicle_id", "rate_hz", "duration_s", "publish_imu", "realtime_priority"}, w)
         rate = take(s, "rate_hz", float, 100.0, w)
         if not 0.1 <= rate <= 1000.0:
             raise ConfigError(f"{w}.rate_hz: {rate} outside 0.1..1000 Hz")
+        rt = take(s, "realtime_priority", int, 0, w)
+        if not 0 <= rt <= 99:
+            raise ConfigError(f"{w}.realtime_priority: {rt} outside 0..99")
         sec = take(d, "security", dict, {}, path)
         check_keys(sec, {"key_file"}, f"{path}: [security]")
         cfg = cls(fleet=take(s, "fleet", str, "demo", w), vehicle_id=take(s, "vehicle_id", str, "t1", w),
@@ -84,7 +88,7 @@ class SlaveConfig:
                   source=SourceConfig.from_table(take(d, "source", dict, {}, path), f"{path}: [source]"),
                   impairment=impairment_from_table(take(d, "impairment", dict, {}, path), f"{path}: [impairment]"),
                   key_file=take(sec, "key_file", str, None, f"{path}: [security]"),
-                  publish_imu=take(s, "publish_imu", bool, False, w),
+                  publish_imu=take(s, "publish_imu", bool, False, w), realtime_priority=rt,
                   corrections=corrections_from_table(d, path),
                   filter_integrity=validity.filter_integrity, verification_out=validity.verification_out,
                   path=path)

@@ -43,7 +43,7 @@ import numpy as np
 
 from slave.config import ConfigError, SlaveConfig
 from v2xpos.config import config_dir
-from v2xpos.launch import freeze_setup_heap
+from v2xpos.launch import apply_realtime_priority, freeze_setup_heap
 from v2xpos.link import Link, LinkUnavailable
 from v2xpos.sources import SourceContext, SourceError, Stopped, make_source, run_until_stopped
 from v2xpos.wire import StateMessage, encode_imu_payload, encode_state, imu_key, state_key, vehicle_status_key, alive_key
@@ -77,6 +77,7 @@ def run_slave(cfg: SlaveConfig, stop: _Stop | None = None, quiet: bool = False) 
     stop = stop or _Stop()
     stopped = lambda: stop.flag  # noqa: E731
     say = _say(cfg.vehicle_id)
+    realtime = apply_realtime_priority(cfg.realtime_priority, f"slave {cfg.vehicle_id}")
     ctx = SourceContext(vehicle_id=cfg.vehicle_id, fleet=cfg.fleet, role="slave", config_dir=config_dir(cfg.path),
                         stop=stopped, filter_overrides=dict(cfg.filter_integrity))
     try:
@@ -93,7 +94,8 @@ def run_slave(cfg: SlaveConfig, stop: _Stop | None = None, quiet: bool = False) 
         except (OSError, ValueError) as exc:
             raise ConfigError(f"{cfg.path}: [security].key_file: {exc}") from None
     counters = {"vehicle_id": cfg.vehicle_id, "source": source.name, "states": 0, "queued": 0, "sent": 0,
-                "imu_msgs": 0, "late_ms_max": 0.0, "phase": "warm_up"}
+                "imu_msgs": 0, "late_ms_max": 0.0, "phase": "warm_up",
+                "realtime_priority": cfg.realtime_priority if realtime else 0}
     link = clock = sink = None
     try:
         run_until_stopped(source.warm_up, stopped)

@@ -82,7 +82,7 @@ def test_realtime_priority_applied_or_refused_with_a_message(capsys):
     import os
     import threading
 
-    from master.service import apply_realtime_priority
+    from v2xpos.launch import apply_realtime_priority
     assert apply_realtime_priority(0) is False
     result = {}
 

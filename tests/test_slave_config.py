@@ -29,6 +29,7 @@ def test_shipped_configs_load():
 @pytest.mark.parametrize("text, where", [
     ("[service]\nrate_hz = 'fast'\n", "[service].rate_hz"),
     ("[service]\nrate_hz = 5000\n", "[service].rate_hz"),
+    ("[service]\nrealtime_priority = 100\n", "[service].realtime_priority"),
     ("[service]\nvehicle = 't1'\n", "unknown key"),
     ("[link]\nmode = 'broker'\n", "[link]"),
     ("[source]\ntype = 'magic'\n", "[source].type"),

@@ -32,6 +32,25 @@ def freeze_setup_heap() -> None:
     gc.set_threshold(50_000, 50, 100)
 
 
+def apply_realtime_priority(priority: int, who: str = "service") -> bool:
+    """Put the calling thread under SCHED_RR at ``priority`` (1-99) before the service creates its
+    threads and worker processes, which inherit it (Linux sched(7)): other processes on the same
+    computer -- the simulated vehicles of the demo, the test jobs of a shared bench -- can then not
+    hold the service's loop off the CPU for hundreds of milliseconds (states that miss the master's
+    timeout). Needs CAP_SYS_NICE or an rtprio limit; if not granted the service runs at normal
+    priority and says so (``who`` names it). The kernel keeps 5 % of each period for normal tasks
+    (sched_rt_runtime_us). 0: the scheduling is left alone."""
+    if priority <= 0:
+        return False
+    try:
+        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(priority))
+        return True
+    except (AttributeError, OSError) as exc:
+        print(f"{who}: realtime_priority {priority} not granted ({exc}); running at normal priority",
+              file=sys.stderr)
+        return False
+
+
 def free_tcp_port() -> int:
     """A TCP port on 127.0.0.1 that is free now (asked from the OS)."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:

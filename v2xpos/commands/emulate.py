@@ -77,6 +77,13 @@ def toml_text(doc: dict) -> str:
     return "\n".join(out)
 
 
+BENCH_REALTIME_PRIORITY = 10
+"""``[service] realtime_priority`` of the configs ``emulate`` writes: a bench is a shared computer,
+and a service starved of the CPU for 200 ms by other jobs shows its states as TIMEOUT at the master
+(``v2xpos.launch.apply_realtime_priority``; without the privilege the services say so and run at
+normal priority)."""
+
+
 def service_configs(emu: Emulator, out_dir: Path, router: str, fleet: str, floors: dict) -> dict[str, Path]:
     """Write ``master.toml`` (the first recording's vehicle, the router on ``router``) and one
     ``slave_<id>.toml`` per other recording into ``out_dir`` (made absolute: the services resolve
@@ -88,12 +95,13 @@ def service_configs(emu: Emulator, out_dir: Path, router: str, fleet: str, floor
     for k, vid in enumerate(ids):
         source = source_table(emu, vid, floors.get(vid))
         if k == 0:
-            doc = {"service": {"fleet": fleet, "master_id": vid, "known_vehicles": ids[1:]},
+            doc = {"service": {"fleet": fleet, "master_id": vid, "known_vehicles": ids[1:],
+                               "realtime_priority": BENCH_REALTIME_PRIORITY},
                    "link": {"mode": "router", "listen": [router]}, "source": source,
                    "record": {"results_csv": "results.csv", "summary_json": "master_summary.json"}}
             path = out_dir / "master.toml"
         else:
-            doc = {"service": {"fleet": fleet, "vehicle_id": vid},
+            doc = {"service": {"fleet": fleet, "vehicle_id": vid, "realtime_priority": BENCH_REALTIME_PRIORITY},
                    "link": {"mode": "client", "connect": [router], "connect_timeout_ms": 60000}, "source": source}
             path = out_dir / f"slave_{vid}.toml"
         path.write_text("# written by v2xpos emulate: emulated devices (clock.host_time_offset_s and emulation_speed "
