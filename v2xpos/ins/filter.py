@@ -8,9 +8,10 @@ The class runs named steps; the ideas live in their own modules:
   acceleration for the models, the stop calibration (``static_calibration``), the divergence
   check, covariance propagation (``ekf``, Q_c from ``noise``), the consistency test's motion
   (``consistency``), and at ``constraint_rate_hz`` ZUPT/ZARU when static or the car's NHC;
-* measurements: GNSS position/velocity and wheel speed from the caller; every model is a pure
-  builder of (H, d, R) in ``updates`` and goes through ``_update`` (gated ``ekf.kalman_update``,
-  then ``_apply``);
+* measurements: GNSS position/velocity, dual-antenna heading and wheel speed from the caller;
+  every model is a pure builder of (H, d, R) in ``updates`` (or the caller's own: ``correct``)
+  and goes through ``_update`` (gated ``ekf.kalman_update``, then ``_apply``); ``predict`` and
+  ``correct`` are the two generic steps (robot_localization's ``FilterBase``);
 * start, alignment and resets: ``initialization``; what is reported: ``outputs``; settings:
   ``config.InsConfig``.
 
@@ -286,6 +287,46 @@ class InsFilter(ImuPath, Initialization, Outputs):
             self.on_update(res, self)
         return res
 
+    # ------------------------------------------------------------------ generic steps
+    def predict(self) -> None:
+        """Bring the error covariance to the filter's time: P <- Phi P Phi^T + Q_d over the IMU
+        samples since the last propagation (Phi from the error dynamics summed by ``process_imu``,
+        which already moved the nominal state with every sample), with the fault-tolerant twin and
+        the smoother's recorder told (robot_localization's ``predict``; KF-GINS's
+        ``insPropagation`` covariance half). Idempotent: a second call at the same time does
+        nothing."""
+        self._flush_covariance()
+
+    def correct(self, kind: str, t_s: float, measurement: updates.Measurement | tuple) -> UpdateResult:
+        """One measurement at the filter's time (robot_localization's ``correct``):
+        ``measurement`` = (H, d, R) of a model, ``d = h(x_est) - z ~ H dx + v``, v ~ N(0, R), dx the
+        error state (estimate minus truth) in ``layout``'s columns (``updates`` module docstring).
+        ``predict``, then the gated Kalman update with closed-loop feedback, the consistency
+        tests, the residual log and the hooks (``_update``). Counts ``<kind>`` or
+        ``<kind>_rejected``. A malformed measurement (shapes that do not fit the layout, a
+        non-finite entry, R not symmetric positive definite) is counted in ``malformed_inputs`` and
+        not used; before initialisation nothing is used. A model built outside the library goes
+        through here unchanged (docs/extending.md, section 3)."""
+        try:
+            H, d, R = (np.asarray(x, dtype=float) for x in measurement)
+            m = d.reshape(-1).shape[0]
+            d = d.reshape(m)
+            if H.shape != (m, self.layout.n) or R.shape != (m, m) or m == 0:
+                raise ValueError("shapes")
+            if not (np.all(np.isfinite(H)) and np.all(np.isfinite(d)) and np.all(np.isfinite(R))
+                    and np.allclose(R, R.T)):
+                raise ValueError("values")
+            np.linalg.cholesky(R)
+        except (TypeError, ValueError, np.linalg.LinAlgError):
+            return self._malformed_input(kind, f"{kind} measurement", t_s)
+        if not self.initialized:
+            return UpdateResult(kind, t_s, False, np.nan, reason="not initialised")
+        self.predict()
+        r = self._update(kind, t_s, H, d, R)
+        key = kind if r.accepted else f"{kind}_rejected"
+        self.counts[key] = self.counts.get(key, 0) + 1
+        return r
+
     def _setup_prior(self) -> float:
         """P(the declared set-up is wrong) before this drive's data (``integrity``): the rate of a
         set-up changing since it was verified on an earlier drive, or of a blunder in one never
@@ -531,10 +572,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
             self.counts["heading_sets"] = self.counts.get("heading_sets", 0) + 1
             return self._heading_from_baseline(t_s, heading_rad, sd_rad, baseline)
         m = updates.dual_antenna_heading(self.layout, self.C_nb, self.misalignment_dcm(), baseline, heading_rad, sd_rad)
-        r = self._update("heading", t_s, *m)
-        key = "heading" if r.accepted else "heading_rejected"
-        self.counts[key] = self.counts.get(key, 0) + 1
-        return r
+        return self.correct("heading", t_s, m)
 
     def update_wheel_speed(self, t_s: float, speed_mps: float) -> UpdateResult:
         """Odometer: forward speed of the vehicle [m/s] at GPS time t_s (Shin 2001 sec. 4.3)."""
@@ -549,6 +587,4 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self._flush_covariance()
         m = updates.odometer(self.layout, self.C_nb, self.misalignment_dcm(), self.nav[3:6], self.acc_ned_mps2,
                              self.fx.odometer_scale, t_s - self.t_s, speed_mps, self.cfg.odometer_sd_mps)
-        r = self._update("odometer", t_s, *m)
-        self.counts["odometer" if r.accepted else "odometer_rejected"] += 1
-        return r
+        return self.correct("odometer", t_s, m)
