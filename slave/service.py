@@ -118,7 +118,7 @@ def run_slave(cfg: SlaveConfig, stop: _Stop | None = None, quiet: bool = False) 
         except TimeoutError as exc:
             raise ConfigError(f"{cfg.path}: [source]: {exc}") from None
         counters["phase"] = "run"
-        freeze_setup_heap()
+        freeze_setup_heap(young_collections=False)
         _loop(cfg, source, clock, link, signer, stop, counters, quiet, sink)
         counters["phase"] = "done"
     except Stopped:
