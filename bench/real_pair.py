@@ -300,11 +300,13 @@ def score_pair(results_csv: Path, target: str, truth: PairTruth) -> dict:
 
 # ---------------------------------------------------------------------------------------- running
 def run_pair(dataset: Path, delay_s: float, work: Path, link: bool = False, speed: float = 5.0,
-             log=sys.stderr, smooth: bool = False, outages: tuple = ()) -> tuple[Path, str, dict]:
+             log=None, smooth: bool = False, outages: tuple = ()) -> tuple[Path, str, dict]:
     """Build the pair at ``delay_s`` in ``work`` (B without GNSS in ``outages``, ``restamp_dataset``)
     and run it through the master pipeline; returns (results.csv, B's id, the run's facts). With
     ``smooth`` the in-process run is the smoothed one (``master.smoothed_convoy``): results.csv from
-    the smoothed states, results_forward.csv beside it from the forward ones."""
+    the smoothed states, results_forward.csv beside it from the forward ones. ``log``: progress
+    lines (default the current ``sys.stderr``)."""
+    log = sys.stderr if log is None else log
     from master.convoy import dataset_identity, run_in_process, run_processes
     from v2xpos.datasets.loader import read_descriptor
     name = str(read_descriptor(dataset).get("name") or "A")

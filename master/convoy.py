@@ -107,9 +107,11 @@ def _status_watch(fleet: str, master_id: str, port: int):
     return link, latest
 
 
-def run_processes(out: Path, master: tuple, slaves: list[tuple], speed: float, log=sys.stderr,
+def run_processes(out: Path, master: tuple, slaves: list[tuple], speed: float, log=None,
                   timeout_s: float | None = None, mcap: bool = False) -> dict:
-    """Run the convoy as processes; returns exit codes, durations and the master's summary."""
+    """Run the convoy as processes; returns exit codes, durations and the master's summary.
+    ``log``: progress lines (default the current ``sys.stderr``)."""
+    log = sys.stderr if log is None else log      # resolved per call: a stream bound at import may be closed
     from v2xpos.datasets.loader import load_dataset
     configs = write_configs(out, master, slaves, speed, mcap=mcap)
     from v2xpos.compat import tomllib
@@ -175,11 +177,13 @@ def _watch_until_done(procs: ServiceProcesses, master: tuple, mcfg: dict, port: 
             watch.close()
 
 
-def run_in_process(out: Path, master: tuple, slaves: list[tuple], rate_hz: float = 100.0, log=sys.stderr,
+def run_in_process(out: Path, master: tuple, slaves: list[tuple], rate_hz: float = 100.0, log=None,
                    smooth: bool = False) -> dict:
     """The same recordings through the same pipeline in one process, no link: every slave state is
     evaluated against the master's state at the same session time (latency 0). Writes results.csv.
-    ``smooth``: from every vehicle's smoothed states instead (``master.smoothed_convoy``)."""
+    ``smooth``: from every vehicle's smoothed states instead (``master.smoothed_convoy``). ``log``:
+    progress lines (default the current ``sys.stderr``)."""
+    log = sys.stderr if log is None else log      # resolved per call: a stream bound at import may be closed
     if smooth:
         from master.smoothed_convoy import run_in_process_smoothed
         return run_in_process_smoothed(out, master, slaves, rate_hz, log)

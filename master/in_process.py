@@ -9,13 +9,15 @@ STATUS_PERIOD_S = 5.0
 """Seconds between progress lines."""
 
 
-def feed_pipeline(sink, master_id: str, msrc, ssrc: dict, rate_hz: float = 100.0, log=sys.stderr,
+def feed_pipeline(sink, master_id: str, msrc, ssrc: dict, rate_hz: float = 100.0, log=None,
                   before_handle=None) -> dict:
     """The in-process convoy's loop: session time in steps of 10 ms from the later start to the
     master's end; at each step every source (``advance(t)`` -> new NavStates, ``t_begin_gps_s``,
     ``t_end_gps_s``, ``geometry``, ``kind``) is advanced, and every slave state (at most ``rate_hz``
     per slave) goes through the master pipeline against the master's latest state into ``sink``.
-    ``before_handle(master_state, slave_id, slave_state)``: called before each."""
+    ``before_handle(master_state, slave_id, slave_state)``: called before each. ``log``: progress
+    lines (default the current ``sys.stderr``)."""
+    log = sys.stderr if log is None else log      # resolved per call: a stream bound at import may be closed
     from master.pipeline import MasterPipeline, PipelineConfig
     from v2xpos.wire import StateMessage, encode_state, state_key
     pipe = MasterPipeline(PipelineConfig(fleet="convoy", master_id=master_id, known_vehicles=tuple(ssrc)), [sink])

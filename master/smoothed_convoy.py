@@ -181,9 +181,10 @@ def smoothed_flags(states: list[NavState], last_gnss_t_s: np.ndarray, window_s: 
 
 
 def run_in_process_smoothed(out: Path, master: tuple, slaves: list[tuple], rate_hz: float = 100.0,
-                            log=sys.stderr) -> dict:
+                            log=None) -> dict:
     """The smoothed in-process convoy (module docstring); returns the pipeline's counts per run and
-    the smoother's per vehicle."""
+    the smoother's per vehicle. ``log``: progress lines (default the current ``sys.stderr``)."""
+    log = sys.stderr if log is None else log      # resolved per call: a stream bound at import may be closed
     from master.in_process import feed_pipeline
     from v2xpos.output.results_csv import ResultsCsvWriter
     out.mkdir(parents=True, exist_ok=True)

@@ -53,8 +53,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run_demo(vehicles: int = 4, duration_s: float = 40.0, latency_ms: float = 100.0, jitter_ms: float = 5.0,
              seed: int = 0, out: str | Path = "out/demo", source: str = "ins", pedestrian: bool = True,
              degradations: bool = True, spikes: bool = True, live: bool = True, port: int = 0,
-             plots: bool = True, log=sys.stderr, rtk_vertical_factor: float = 1.0) -> dict:
-    """Run the multi-process demo and return the report dict (also written to out/report.json)."""
+             plots: bool = True, log=None, rtk_vertical_factor: float = 1.0) -> dict:
+    """Run the multi-process demo and return the report dict (also written to out/report.json).
+    ``log``: progress lines (default the current ``sys.stderr``)."""
+    log = sys.stderr if log is None else log      # resolved per call: a stream bound at import may be closed
     # absolute: the services resolve every path in their configs against the config's directory
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)

@@ -27,7 +27,8 @@ from v2xpos.monitor.table import fit_number
 
 class LiveTable:
     def __init__(self, link_cfg: LinkConfig, fleet: str, master_id: str, scenario=None,
-                 out: TextIO = sys.stdout, plain_every_s: float = 5.0):
+                 out: TextIO | None = None, plain_every_s: float = 5.0):
+        out = sys.stdout if out is None else out      # resolved per call: a stream bound at import may be closed
         self.link = Link(link_cfg)
         self.scenario = scenario
         self.out = out

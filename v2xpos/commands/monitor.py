@@ -39,7 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 class _TableOut:
     """Redraws in place on a terminal; on a pipe or file prints one block every PLAIN_EVERY_S."""
 
-    def __init__(self, out=sys.stdout, rows: int = 64, endpoint: str = "", fleet: str = "", master: str | None = None):
+    def __init__(self, out=None, rows: int = 64, endpoint: str = "", fleet: str = "", master: str | None = None):
+        out = sys.stdout if out is None else out      # resolved per call: a stream bound at import may be closed
         self.out = out
         self.rows = rows
         self.tty = out.isatty()
