@@ -23,16 +23,16 @@ PROJECT_ROOT = Path(__file__).resolve().parents[1]
 def freeze_setup_heap(young_collections: bool = True) -> None:
     """Call once a service is set up, before its real-time loop: what exists now (modules, numba's
     compiled kernels, the filter's configuration) leaves the cyclic collector's scans. A full
-    collection over the whole heap of a service with numba and zenoh loaded takes 30-90 ms of CPU
-    at a random moment -- states held that long miss their time at the master; after the freeze it
-    scans only what the loop itself made.
+    collection over the whole heap of a service with numba and zenoh loaded takes tens of
+    milliseconds of CPU at a random moment -- states held that long miss their time at the master;
+    after the freeze it scans only what the loop itself made.
 
     ``young_collections``: also make the young collections rarer (thresholds 50,000 / 50 / 100,
     the master's message path, whose objects die young). Not for a loop whose objects survive a
     young collection: the middle generation then holds up to 50 x 50,000 objects before it is
     scanned, one long pause. The demo's simulated slaves fell behind with those thresholds (their
-    states reached the master 160-390 ms late against ~110 ms); with the freeze alone they keep
-    up, so the slaves use the freeze alone."""
+    states reached the master later than the demo's latency budget); with the freeze alone they
+    keep up, so the slaves use the freeze alone."""
     import gc
     gc.collect()
     gc.freeze()
