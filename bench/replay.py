@@ -40,8 +40,8 @@ def run_bench(args: argparse.Namespace) -> int:
           f"profile {args.profile}")
     cfg = config_for(ds, args.profile)
     f = InsFilter(cfg)
-    f_b = np.ascontiguousarray(ds.imu.acc_mps2 @ cfg.imu_to_body.T)
-    w_b = np.ascontiguousarray(ds.imu.gyro_rps @ cfg.imu_to_body.T)
+    f_b = np.ascontiguousarray(ds.imu.acc_mps2 @ cfg.setup.imu_to_body.T)
+    w_b = np.ascontiguousarray(ds.imu.gyro_rps @ cfg.setup.imu_to_body.T)
     t = np.ascontiguousarray(ds.imu.t_s, dtype=float)
     nav = np.array([ds.gnss.lla[0][0], ds.gnss.lla[0][1], ds.gnss.lla[0][2], 0, 0, 0], float)
     A = np.zeros((f.layout.n, f.layout.n))
@@ -59,7 +59,7 @@ def run_bench(args: argparse.Namespace) -> int:
         P = propagate_covariance(P * 0 + np.eye(f.layout.n), A * 0, f.q_c, 0.1)
     t_cov = (time.perf_counter() - t1) / reps
     print(f"  covariance propagation ({f.layout.n} states): {t_cov * 1e6:.1f} us per call, "
-          f"every {cfg.cov_every} samples -> {cfg.cov_every / t_cov:,.0f} samples/s")
+          f"every {cfg.numerics.cov_every} samples -> {cfg.numerics.cov_every / t_cov:,.0f} samples/s")
     best = None
     for _ in range(max(1, args.repeat)):
         r = replay(ds, OutageSchedule(), progress=False, keep_series=False, profile=args.profile)

@@ -78,7 +78,7 @@ class MasterService:
         self.cfg = cfg
         self.ctx = SourceContext(vehicle_id=cfg.master_id, fleet=cfg.fleet, role="master",
                                  config_dir=config_dir(cfg.path), stop=self._stopping,
-                                 filter_overrides=dict(cfg.filter_integrity))
+                                 filter_overrides={"integrity": dict(cfg.filter_integrity)})
         self.source = None
         from v2xpos.security import TrustList, load_trust_list
         try:

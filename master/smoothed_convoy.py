@@ -18,7 +18,7 @@ validity limits.
 Flags: a forward state's consistency and verification flags vouch for the data up to it; a
 smoothed state also uses the data after it -- above all, in a GNSS gap, the fixes that close the
 gap. So a smoothed state is consistent (verified) only while the forward filter was, from it
-until one consistency-test window (``InsConfig.consistency_window_s``, the time the test takes to
+until one consistency-test window (``InsConfig.consistency.consistency_window_s``, the time the test takes to
 judge an innovation) after the first GNSS position used after it; its reason is the first failing
 state's (``smoothed_flags``). The smoother computes no protection level of its own: a smoothed
 state carries none (NaN). Without
@@ -93,7 +93,7 @@ class SmoothedVehicle:
         self.t_begin_gps_s, self.t_end_gps_s = src.t_begin_gps_s, src.t_end_gps_s
         self.forward: list[NavState] = []
         release, last_fix, last_gnss, timing = [], [], [], []
-        window_s = f.cfg.consistency_window_s
+        window_s = f.cfg.consistency.consistency_window_s
         i_dt = f.layout.at("imu_time_offset")
         for t_k in np.asarray(src.ds.imu.t_s, float):
             for st in src.advance(float(t_k)):

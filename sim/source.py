@@ -74,10 +74,10 @@ class _SimSensors:
 
 
 def filter_noise(imu_grade: str, margin: float = 3.0) -> dict:
-    """InsConfig stochastic model from the simulated IMU's specification (``ImuErrorModel.preset``,
-    the datasheet of the unit): white noise densities x ``margin``, bias priors at 3x the preset's
-    1-sigma turn-on bias, bias instability at the preset's bias / 3 (floors keep the model sane for
-    the ideal preset)."""
+    """InsConfig stochastic model (fields of its ``imu`` group) from the simulated IMU's
+    specification (``ImuErrorModel.preset``, the datasheet of the unit): white noise densities x
+    ``margin``, bias priors at 3x the preset's 1-sigma turn-on bias, bias instability at the
+    preset's bias / 3 (floors keep the model sane for the ideal preset)."""
     rng = np.random.default_rng(0)
     draws = [ImuErrorModel.preset(imu_grade, rng) for _ in range(200)]
     spec = draws[0]
@@ -106,12 +106,13 @@ class InsSimSource:
         # the simulated vehicle as declared (identity mounting, its lever arm) in the plain profile,
         # with the filter noise of its IMU's datasheet (``filter_noise``) and the effect states asked for
         self.filter = InsFilter(vehicle_config(plat, np.eye(3), np.asarray(actor.lever_arm_m, float), 0.1,
-                                               profile="plain", effects=tuple(effects), cov_every=cov_every,
+                                               profile="plain", effects={"states": tuple(effects)},
+                                               numerics={"cov_every": cov_every},
                                                # a simulated vehicle is exactly as declared: nothing for
                                                # turning to verify and a failed test is a false alarm,
                                                # lifted when it passes again (docs/integrity.md)
-                                               verify_turn_deg=0.0, consistency_reverify=True,
-                                               **filter_noise(actor.imu_grade)))
+                                               consistency={"verify_turn_deg": 0.0, "consistency_reverify": True},
+                                               imu=filter_noise(actor.imu_grade)))
         self.driver = InsDriver(self.filter, emit_states=True)
         self._init_rng = np.random.default_rng(actor.seed + 7)
         self.initialized = False

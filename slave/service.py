@@ -79,7 +79,7 @@ def run_slave(cfg: SlaveConfig, stop: _Stop | None = None, quiet: bool = False) 
     say = _say(cfg.vehicle_id)
     realtime = apply_realtime_priority(cfg.realtime_priority, f"slave {cfg.vehicle_id}")
     ctx = SourceContext(vehicle_id=cfg.vehicle_id, fleet=cfg.fleet, role="slave", config_dir=config_dir(cfg.path),
-                        stop=stopped, filter_overrides=dict(cfg.filter_integrity))
+                        stop=stopped, filter_overrides={"integrity": dict(cfg.filter_integrity)})
     try:
         source = run_until_stopped(make_source, stopped, cfg.source.table, f"{cfg.path}: [source]", ctx)
     except SourceError as exc:

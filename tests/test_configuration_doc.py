@@ -15,8 +15,9 @@ from v2xpos.compat import tomllib
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "configuration.md"
-DOCUMENTED_ELSEWHERE = (".calibration",)
-"""Tables documented on another page (the ``[calibration]`` table: docs/calibration.md)."""
+DOCUMENTED_ELSEWHERE = (".calibration", "InsConfig.")
+"""Tables documented on another page (the ``[calibration]`` table: docs/calibration.md; the
+filter's ``InsConfig`` groups, given in Python by a source: v2xpos/ins/config.py, docs/ins.md)."""
 
 
 def _documented() -> set[str]:

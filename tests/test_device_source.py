@@ -130,8 +130,8 @@ def test_device_config_is_validated_with_where_and_key():
                                        "gnss_lever_arm_m": {"value": [0.02, 0.0, 0.0], "sd": [0.01, 0.01, 0.02]}}},
                       "[source]", ctx)
     try:
-        assert src.cfg.initial_time_offset_s == -0.025                  # the calibration reaches the filter
-        np.testing.assert_allclose(src.cfg.lever_arm_m, [0.12, 0.0, -0.2])
+        assert src.cfg.effects.initial_time_offset_s == -0.025                  # the calibration reaches the filter
+        np.testing.assert_allclose(src.cfg.setup.lever_arm_m, [0.12, 0.0, -0.2])
         assert src.kind == "pedestrian" and isinstance(src.make_clock(ctx), HostGnssClock)
         assert src.advance(src.make_clock(ctx).now_gps_s()) == []      # no data: no state, no crash
         st = src.status()
@@ -323,7 +323,7 @@ def _parked_device_source(table_extra: dict):
     table = {"gnss": {"format": "ubx", "tcp": "127.0.0.1:9"}, "imu": "receiver", "platform": "car", "imu_to_body": "identity", "lever_arm_m": [0.3, 0.0, -1.2],
              **table_extra}
     v = check_table(table, where)
-    cfg = ins_config("car", v["imu_to_body"], v["lever"], v["lever_sd"], integrity=True)
+    cfg = ins_config("car", v["imu_to_body"], v["lever"], v["lever_sd"], service=True)
     gnss = DeviceStream("gnss", "ubx", None, lambda r: None)
     src = DeviceSource(gnss, None, cfg, HostGnssClock(), heading_baseline_m=v["heading_baseline"])
     t0 = 1.4e9

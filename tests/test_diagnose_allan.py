@@ -94,7 +94,7 @@ def test_the_written_table_makes_the_filter_cover_the_allan_deviation_at_the_sto
 
     def model(table):
         cfg = ins_config("car", np.eye(3), np.zeros(3), 0.02, table)
-        return cfg.gyro_noise_rps_rthz / np.sqrt(allan.tau_s[ok])
+        return cfg.imu.gyro_noise_rps_rthz / np.sqrt(allan.tau_s[ok])
 
     white_only = _table(imu, gnss, with_allan=False)
     assert "imu_gyro_allan_rps_rthz" not in white_only.effects

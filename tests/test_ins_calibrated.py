@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from v2xpos.datasets.calibration import CalibrationEntry, CalibrationTable
-from v2xpos.ins import InsConfig
+from v2xpos.ins.config import ImuModel
 from v2xpos.ins.calibrated import ins_config
 from v2xpos.rotation import dcm_from_euler
 
@@ -25,28 +25,29 @@ def _table() -> CalibrationTable:
 
 def test_without_calibration_is_the_declared_config():
     cfg = ins_config("car", B, LEVER, 0.05, None)
-    assert np.array_equal(cfg.imu_to_body, B) and np.array_equal(cfg.lever_arm_m, LEVER)
-    assert cfg.initial_time_offset_s == 0.0 and cfg.initial_effects == {}
-    assert cfg.effect_initial_sd["lever_arm"] == 0.05
+    assert np.array_equal(cfg.setup.imu_to_body, B) and np.array_equal(cfg.setup.lever_arm_m, LEVER)
+    assert cfg.effects.initial_time_offset_s == 0.0 and cfg.effects.initial_effects == {}
+    assert cfg.effects.effect_initial_sd["lever_arm"] == 0.05
 
 
 def test_calibration_sets_mounting_lever_arm_and_effect_states():
     cfg = ins_config("car", B, LEVER, 0.05, _table())
-    assert np.allclose(cfg.imu_to_body, dcm_from_euler(*np.radians([0.4, -0.6, -1.0])) @ B)
-    assert np.allclose(cfg.lever_arm_m, LEVER + [0.5, 0.3, 0.0])
-    assert np.allclose(cfg.effect_initial_sd["lever_arm"], [0.02, 0.03, 0.1])
-    assert np.allclose(cfg.effect_initial_sd["misalignment"], np.radians([0.3, 0.05, 0.05]))
-    assert cfg.initial_time_offset_s == -0.03 and cfg.effect_initial_sd["imu_time_offset"] == 0.002
-    assert cfg.initial_effects["imu_clock_drift"] == pytest.approx(20e-6)
-    assert cfg.effect_initial_sd["imu_clock_drift"] == pytest.approx(5e-6)
-    assert cfg.initial_effects["gnss_latency_s"] == 0.01
-    assert np.allclose(cfg.initial_effects["gyro_scale"], [0, 0, -0.007])
+    assert np.allclose(cfg.setup.imu_to_body, dcm_from_euler(*np.radians([0.4, -0.6, -1.0])) @ B)
+    assert np.allclose(cfg.setup.lever_arm_m, LEVER + [0.5, 0.3, 0.0])
+    assert np.allclose(cfg.effects.effect_initial_sd["lever_arm"], [0.02, 0.03, 0.1])
+    assert np.allclose(cfg.effects.effect_initial_sd["misalignment"], np.radians([0.3, 0.05, 0.05]))
+    assert cfg.effects.initial_time_offset_s == -0.03 and cfg.effects.effect_initial_sd["imu_time_offset"] == 0.002
+    assert cfg.effects.initial_effects["imu_clock_drift"] == pytest.approx(20e-6)
+    assert cfg.effects.effect_initial_sd["imu_clock_drift"] == pytest.approx(5e-6)
+    assert cfg.effects.initial_effects["gnss_latency_s"] == 0.01
+    assert np.allclose(cfg.effects.initial_effects["gyro_scale"], [0, 0, -0.007])
     # the misalignment is folded into the mounting: its state starts at zero
-    assert np.allclose(cfg.initial_misalignment_rad, 0.0)
+    assert np.allclose(cfg.effects.initial_misalignment_rad, 0.0)
     # overrides win, dictionaries are merged
-    cfg2 = ins_config("car", B, LEVER, 0.05, _table(), effects=(), effect_initial_sd={"imu_time_offset": 0.5})
-    assert cfg2.effects == () and cfg2.effect_initial_sd["imu_time_offset"] == 0.5
-    assert np.allclose(cfg2.effect_initial_sd["lever_arm"], [0.02, 0.03, 0.1])
+    cfg2 = ins_config("car", B, LEVER, 0.05, _table(),
+                      effects={"states": (), "effect_initial_sd": {"imu_time_offset": 0.5}})
+    assert cfg2.effects.states == () and cfg2.effects.effect_initial_sd["imu_time_offset"] == 0.5
+    assert np.allclose(cfg2.effects.effect_initial_sd["lever_arm"], [0.02, 0.03, 0.1])
 
 
 def test_measured_imu_noise_replaces_the_default():
@@ -54,14 +55,15 @@ def test_measured_imu_noise_replaces_the_default():
     t.effects["imu_gyro_noise_rps_rthz"] = CalibrationEntry(8.7e-5, 1e-6)
     t.effects["imu_accel_noise_mps2_rthz"] = CalibrationEntry(1.0e-3, 1e-5)
     cfg = ins_config("car", B, LEVER, 0.05, t)
-    assert cfg.gyro_noise_rps_rthz == pytest.approx(InsConfig.imu_gyro_noise_scale * 8.7e-5)
-    assert cfg.accel_noise_mps2_rthz == pytest.approx(InsConfig.imu_accel_noise_scale * 1.0e-3)
-    assert ins_config("car", B, LEVER, 0.05, _table()).gyro_noise_rps_rthz == ins_config("car", B, LEVER, 0.05).gyro_noise_rps_rthz
+    assert cfg.imu.gyro_noise_rps_rthz == pytest.approx(ImuModel.imu_gyro_noise_scale * 8.7e-5)
+    assert cfg.imu.accel_noise_mps2_rthz == pytest.approx(ImuModel.imu_accel_noise_scale * 1.0e-3)
+    assert (ins_config("car", B, LEVER, 0.05, _table()).imu.gyro_noise_rps_rthz
+            == ins_config("car", B, LEVER, 0.05).imu.gyro_noise_rps_rthz)
 
 
 def test_generic_platform_gets_timing_states_for_a_clock_drift():
     cfg = ins_config("generic", np.eye(3), np.zeros(3), 0.1, _table())
-    assert "imu_clock_drift" in cfg.effects and "imu_time_offset" in cfg.effects
+    assert "imu_clock_drift" in cfg.effects.states and "imu_time_offset" in cfg.effects.states
 
 
 @pytest.mark.slow
@@ -102,20 +104,21 @@ def test_applied_in_the_filter_equals_rewriting_the_recording():
 
 def test_every_filter_takes_the_same_noise_margin_over_a_calibrated_noise():
     """The calibration's measured IMU noise and the online meter's are the same quantity: a
-    service's filter (integrity=True) and an offline one (replay, calibrate's "after") apply the
+    service's filter (service=True) and an offline one (replay, calibrate's "after") apply the
     same margin and cap to it."""
     from v2xpos.datasets.calibration import parse_calibration
     table = parse_calibration({"imu_gyro_noise_rps_rthz": {"value": 1e-4, "sd": 1e-6},
                                "imu_accel_noise_mps2_rthz": {"value": 1e-3, "sd": 1e-5}}, "test: [calibration]")
     offline = ins_config("car", B, LEVER, 0.05, table)
-    service = ins_config("car", B, LEVER, 0.05, table, integrity=True)
-    assert offline.gyro_noise_rps_rthz == service.gyro_noise_rps_rthz
-    assert offline.accel_noise_mps2_rthz == service.accel_noise_mps2_rthz
-    assert service.gyro_noise_rps_rthz == pytest.approx(InsConfig.imu_gyro_noise_scale * 1e-4)
-    assert service.accel_noise_mps2_rthz == pytest.approx(InsConfig.imu_accel_noise_scale * 1e-3)
-    assert not service.imu_noise_from_data
+    service = ins_config("car", B, LEVER, 0.05, table, service=True)
+    assert offline.imu.gyro_noise_rps_rthz == service.imu.gyro_noise_rps_rthz
+    assert offline.imu.accel_noise_mps2_rthz == service.imu.accel_noise_mps2_rthz
+    assert service.imu.gyro_noise_rps_rthz == pytest.approx(ImuModel.imu_gyro_noise_scale * 1e-4)
+    assert service.imu.accel_noise_mps2_rthz == pytest.approx(ImuModel.imu_accel_noise_scale * 1e-3)
+    assert not service.imu.imu_noise_from_data
     loud = parse_calibration({"imu_gyro_noise_rps_rthz": {"value": 1e-2, "sd": 1e-4}}, "test: [calibration]")
-    assert ins_config("car", B, LEVER, 0.05, loud, integrity=True).gyro_noise_rps_rthz == InsConfig.gyro_noise_rps_rthz
+    assert (ins_config("car", B, LEVER, 0.05, loud, service=True).imu.gyro_noise_rps_rthz
+            == ImuModel.gyro_noise_rps_rthz)
 
 
 @pytest.mark.slow

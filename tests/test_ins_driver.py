@@ -26,11 +26,10 @@ def drive():
     return tr, imu, gn
 
 
-def make_filter(tr, imu, **cfg) -> tuple[InsFilter, dict]:
-    """A car filter without timing states (the delays stay what the config says) and its start."""
-    kw = dict(platform="car", effects=())
-    kw.update(cfg)
-    f = InsFilter(InsConfig(**kw))
+def make_filter(tr, imu, **effects) -> tuple[InsFilter, dict]:
+    """A car filter without timing states (the delays stay what the config says; ``effects``: fields
+    of its ``effects`` group) and its start."""
+    f = InsFilter(InsConfig(setup={"platform": "car"}, effects={"states": (), **effects}))
     t0 = float(imu.t_s[0])
     s = tr.sample(t0)
     return f, dict(t_s=t0, lla=s["lla"][0], v_ned_mps=s["v_ned_mps"][0], rpy_rad=s["rpy_rad"][0])

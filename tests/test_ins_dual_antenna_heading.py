@@ -18,7 +18,7 @@ G_MPS2 = 9.80665
 
 def _parked_filter(seconds: float = 12.0) -> InsFilter:
     """A car standing level, IMU 100 Hz, RTK fixes 10 Hz: started at the stop, heading pending."""
-    f = InsFilter(ins_config("car", np.eye(3), LEVER_M, 0.02, integrity=True))
+    f = InsFilter(ins_config("car", np.eye(3), LEVER_M, 0.02, service=True))
     rng = np.random.default_rng(3)
     for k in range(1, int(seconds * 100) + 1):
         t = k * 0.01

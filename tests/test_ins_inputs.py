@@ -18,7 +18,7 @@ DATA = SHARED_DATA
 
 def _started_filter():
     tr = static(2.0)
-    f = InsFilter(InsConfig(platform="car"))
+    f = InsFilter(InsConfig(setup={"platform": "car"}))
     f.initialize(tr.t_s[0], tr.lla[0], np.zeros(3), np.zeros(3))
     imu = simulate_imu(tr)
     return f, tr, imu
@@ -185,9 +185,9 @@ def test_filter_far_off_after_a_long_gap_resets_position():
     f, tr, imu = _started_filter()
     f.process_imu_batch(imu.t_s, imu.acc_mps2, imu.gyro_rps)
     far = geo.ned_to_lla(np.array([300.0, 0.0, 0.0]), tr.lla[-1])
-    for k in range(f.cfg.gnss_max_consecutive_rejections + 1):
+    for k in range(f.cfg.gnss.gnss_max_consecutive_rejections + 1):
         res = f.update_gnss(tr.t_s[-1], far, np.full(3, 0.02), FixStatus.FIXED)
-    assert f.counts["gnss_pos_rejected"] == f.cfg.gnss_max_consecutive_rejections
+    assert f.counts["gnss_pos_rejected"] == f.cfg.gnss.gnss_max_consecutive_rejections
     assert f.counts["position_resets"] == 1 and "reset" in res.reason
     assert np.linalg.norm(geo.lla_to_ned(f.lla, far)) < 0.1
     assert f.update_gnss(tr.t_s[-1], far, np.full(3, 0.02), FixStatus.FIXED).accepted

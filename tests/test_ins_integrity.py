@@ -162,7 +162,7 @@ def test_reported_vehicle_yaw_sd_uses_the_misalignment_correlation():
     from v2xpos.ins.ekf import ATT
     from v2xpos.ins import InsConfig, InsFilter
     from v2xpos.ins.reported import reported_covariance, reported_jacobian
-    flt = InsFilter(InsConfig(platform="car"))
+    flt = InsFilter(InsConfig(setup={"platform": "car"}))
     i = flt.layout.at("misalignment")
     assert i >= 0
     P = np.eye(flt.layout.n) * 1e-6
@@ -181,15 +181,15 @@ def test_a_consistency_failure_changes_no_state_and_reopens_a_verified_setup():
     changes no state (a jump would move every vehicle's reported point), and a set-up verified on
     an earlier drive goes back to the prior of an unverified one."""
     from v2xpos.ins import InsConfig, InsFilter
-    flt = InsFilter(InsConfig(platform="car", lever_arm_sd_m=0.02, fault_tolerant_solution=True,
-                              setup_verified=True))
+    flt = InsFilter(InsConfig(setup={"platform": "car", "lever_arm_sd_m": 0.02},
+                              integrity={"fault_tolerant_solution": True, "setup_verified": True}))
     flt.initialize(100.0, np.array([0.7, 0.2, 300.0]), np.array([10.0, 0.0, 0.0]), np.zeros(3))
-    assert flt.separation.prior == flt.cfg.setup_change_prior
+    assert flt.separation.prior == flt.cfg.integrity.setup_change_prior
     P, nav = flt.P.copy(), flt.nav.copy()
     flt._on_inconsistency()
     np.testing.assert_array_equal(flt.P, P)
     np.testing.assert_array_equal(flt.nav, nav)
-    assert flt.separation.prior == flt.cfg.setup_fault_prior
+    assert flt.separation.prior == flt.cfg.integrity.setup_fault_prior
     assert flt.counts["verification_reopened"] == 1
 
 
@@ -317,8 +317,8 @@ def test_an_exclusion_takes_the_fault_tolerant_solution():
     """RAIM exclusion: the separation test's alarm makes the filter take the twin's state and
     covariance (the estimate that never relied on the declared lever arm)."""
     from v2xpos.ins.filter import InsConfig, InsFilter
-    flt = InsFilter(InsConfig(platform="car", lever_arm_sd_m=0.02, undeclared_lever_arm_sd_m=0.5,
-                              fault_tolerant_solution=True))
+    flt = InsFilter(InsConfig(setup={"platform": "car", "lever_arm_sd_m": 0.02},
+                              integrity={"undeclared_lever_arm_sd_m": 0.5, "fault_tolerant_solution": True}))
     flt.initialize(100.0, np.array([0.7, 0.2, 300.0]), np.array([10.0, 0.0, 0.0]), np.zeros(3))
     sep = flt.separation
     assert sep.active
@@ -342,10 +342,11 @@ def _yaw_var_after(scale_model: str, yaw_rate_rps: float, seconds: float = 20.0,
     "estimated" (a state), "consider" (Schmidt consider state) or "none" (white noise only)."""
     from v2xpos.ins import InsConfig, InsFilter
     from v2xpos.ins.ekf import ATT
-    cfg = InsConfig(platform="car", effects=("gyro_scale",) if scale_model == "estimated" else (),
-                    consider_gyro_scale=scale_model == "consider", constraints_on_request=True,
-                    apply_static_calibration=False, gyro_noise_rps_rthz=1e-4,
-                    effect_initial_sd={"gyro_scale": 0.01})
+    cfg = InsConfig(setup={"platform": "car"},
+                    effects={"states": ("gyro_scale",) if scale_model == "estimated" else (),
+                             "effect_initial_sd": {"gyro_scale": 0.01}},
+                    imu={"consider_gyro_scale": scale_model == "consider", "gyro_noise_rps_rthz": 1e-4},
+                    constraints={"constraints_on_request": True}, stops={"apply_static_calibration": False})
     flt = InsFilter(cfg)
     flt.initialize(100.0, np.array([0.7, 0.2, 300.0]), np.array([10.0, 0.0, 0.0]), np.zeros(3),
                    att_sd_rad=np.radians([0.1, 0.1, 0.1]))
@@ -377,20 +378,20 @@ def test_an_unknown_gyro_scale_grows_the_yaw_sigma_in_turns_only(scale_model):
 
 
 def test_the_service_filter_estimates_the_gyro_scale_and_keeps_heading_noise_at_the_measured_one():
-    """``ins_config(integrity=True)``: gyro scale estimated (the datasheet-class prior, or the
+    """``ins_config(service=True)``: gyro scale estimated (the datasheet-class prior, or the
     calibration's value and sd), heading white noise the measured one while roll/pitch keep the
     margin (docs/integrity.md); the meter applies the factor per body axis."""
     from v2xpos.datasets.calibration import CalibrationEntry, CalibrationTable
     from v2xpos.ins.calibrated import ins_config
     from v2xpos.ins.effects import DEFAULT_INITIAL_SD
-    cfg = ins_config("car", np.eye(3), np.zeros(3), 0.02, integrity=True)
-    assert "gyro_scale" in cfg.effects
-    assert cfg.effect_initial_sd["gyro_scale"] == DEFAULT_INITIAL_SD["gyro_scale"]
+    cfg = ins_config("car", np.eye(3), np.zeros(3), 0.02, service=True)
+    assert "gyro_scale" in cfg.effects.states
+    assert cfg.effects.effect_initial_sd["gyro_scale"] == DEFAULT_INITIAL_SD["gyro_scale"]
     cal = CalibrationTable({"gyro_scale": CalibrationEntry((0.0, 0.0, -0.007), (0.0, 0.0, 0.0005))}, source="x.toml")
-    cfg_cal = ins_config("car", np.eye(3), np.zeros(3), 0.02, calibration=cal, integrity=True)
-    assert list(cfg_cal.effects).count("gyro_scale") == 1
-    np.testing.assert_allclose(cfg_cal.effect_initial_sd["gyro_scale"], [0.0, 0.0, 0.0005])
-    assert "gyro_scale" not in ins_config("car", np.eye(3), np.zeros(3), 0.02).effects
+    cfg_cal = ins_config("car", np.eye(3), np.zeros(3), 0.02, calibration=cal, service=True)
+    assert list(cfg_cal.effects.states).count("gyro_scale") == 1
+    np.testing.assert_allclose(cfg_cal.effects.effect_initial_sd["gyro_scale"], [0.0, 0.0, 0.0005])
+    assert "gyro_scale" not in ins_config("car", np.eye(3), np.zeros(3), 0.02).effects.states
     rng = np.random.default_rng(5)
     dt = 0.01
     meter = ImuNoiseMeter(window_s=10.0, gyro_scale=(7.0, 7.0, 1.0))

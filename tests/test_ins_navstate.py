@@ -37,9 +37,9 @@ def run():
     s = tr.sample(gn.t_s)
     gn.vel_ned_mps = (s["v_ned_mps"] + np.einsum("nij,nj->ni", s["C_nb"], np.cross(s["w_nb_b_rps"], LEVER_ARM_M))
                       + np.random.default_rng(14).normal(0, gm.vel_sd_mps, (len(gn.t_s), 3)))
-    filters = {ce: InsFilter(InsConfig(platform="car", lever_arm_m=LEVER_ARM_M, cov_every=ce,
-                                       gyro_noise_rps_rthz=3 * np.radians(0.3) / 60,
-                                       accel_noise_mps2_rthz=3 * 150e-6 * 9.81))
+    filters = {ce: InsFilter(InsConfig(setup={"platform": "car", "lever_arm_m": LEVER_ARM_M}, numerics={"cov_every": ce},
+                                       imu={"gyro_noise_rps_rthz": 3 * np.radians(0.3) / 60,
+                                            "accel_noise_mps2_rthz": 3 * 150e-6 * 9.81}))
                for ce in (10, 1)}
     out = {ce: [] for ce in filters}
     for ce, f in filters.items():
@@ -115,7 +115,7 @@ def test_default_car_effects_stay_at_truth_on_error_free_data(run):
 
 def test_first_interval_after_initialize_is_integrated():
     """initialize() at t0 and a first sample at t0 + 10 ms: the state moves to t0 + 10 ms."""
-    f = InsFilter(InsConfig(platform="generic", effects=()))
+    f = InsFilter(InsConfig(setup={"platform": "generic"}, effects={"states": ()}))
     t0 = 1.4e9
     lla0 = np.array([np.radians(40.0), np.radians(-105.0), 1600.0])
     f.initialize(t0, lla0, np.array([SPEED_MPS, 0.0, 0.0]), np.zeros(3))

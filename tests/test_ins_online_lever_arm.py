@@ -27,9 +27,9 @@ def _predicted_antenna(f: InsFilter, t_s: float, lla: np.ndarray) -> updates.Mea
     """The filter's own GNSS position model at its current state (the open yaw column kept out,
     as ``InsFilter._update`` does while the heading is unknown)."""
     v = f.nav[3:6]
-    timing = not f.static and float(v @ v) > f.cfg.timing_min_speed_mps ** 2
+    timing = not f.static and float(v @ v) > f.cfg.gnss.timing_min_speed_mps ** 2
     m = updates.gnss_position(f.layout, f.nav, f.C_nb, f.fx.lever_arm_m, v, f._gap_s(t_s), lla,
-                              np.full(3, FIX_SD_M), f.cfg.gnss_pos_sd_floor_m, timing)
+                              np.full(3, FIX_SD_M), f.cfg.gnss.gnss_pos_sd_floor_m, timing)
     if not f.heading_known:
         m.H[:, ATT + 2] = 0.0
     return m
@@ -44,7 +44,8 @@ def resets() -> dict:
     gn = simulate_gnss(tr, GnssErrorModel(rate_hz=10.0, lever_arm_m=TRUE_LEVER_ARM_M), rng=np.random.default_rng(2))
     s = tr.sample(gn.t_s)
     vel = s["v_ned_mps"] + np.einsum("nij,nj->ni", s["C_nb"], np.cross(s["w_nb_b_rps"], TRUE_LEVER_ARM_M))
-    f = InsFilter(InsConfig(platform="car", lever_arm_m=DECLARED_LEVER_ARM_M, lever_arm_sd_m=LEVER_PRIOR_SD_M))
+    f = InsFilter(InsConfig(setup={"platform": "car", "lever_arm_m": DECLARED_LEVER_ARM_M,
+                                   "lever_arm_sd_m": LEVER_PRIOR_SD_M}))
     i_l = f.layout.at("lever_arm")
     out = {}
     gi = 0

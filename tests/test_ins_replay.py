@@ -59,7 +59,7 @@ def test_walk_0827_pedestrian_with_float_section():
     ds = _dataset("walk_0827/dataset.toml")
     res = replay(ds, OutageSchedule(15.0, 45.0, 40.0), progress=False)
     s = res.summary
-    assert res.filter.cfg.platform == "pedestrian" and s["counts"]["nhc"] == 0
+    assert res.filter.cfg.setup.platform == "pedestrian" and s["counts"]["nhc"] == 0
     assert s["malformed_lines"] == ds.malformed_lines and s["imu_samples"] == len(ds.imu)
     fix = np.asarray(ds.gnss.fix)
     assert (fix == 4).sum() > 100   # the float section is in the data and goes through the filter

@@ -46,7 +46,7 @@ class Recorder(ReplayHook):
 def test_hooks_see_every_epoch_in_order_and_no_gnss_inside_outages(dataset):
     outages, n_scheduled = outage_windows(SCHEDULE, dataset)
     assert len(outages) == n_scheduled >= 2
-    f = InsFilter(InsConfig(platform="car", imu_to_body=CAR_MOUNT))
+    f = InsFilter(InsConfig(setup={"platform": "car", "imu_to_body": CAR_MOUNT}))
     rec = Recorder()
     run_replay(f, dataset, outages, [rec])
     t_gnss = np.asarray(dataset.gnss.t_s)
@@ -71,7 +71,8 @@ def test_hooks_see_every_epoch_in_order_and_no_gnss_inside_outages(dataset):
 
 
 def test_exact_epochs_puts_the_state_at_each_epoch_and_constraints_between(dataset):
-    f = InsFilter(InsConfig(platform="car", imu_to_body=CAR_MOUNT, effects=(), constraints_on_request=True))
+    f = InsFilter(InsConfig(setup={"platform": "car", "imu_to_body": CAR_MOUNT}, effects={"states": ()},
+                            constraints={"constraints_on_request": True}))
     rec = Recorder()
     run_replay(f, dataset, [], [rec], wheel=False, outage_end_events=False, exact_epochs=True)
     lag = np.array([t - tf for t, _, _, tf in rec.epochs if np.isfinite(tf)])
@@ -83,16 +84,18 @@ def test_exact_epochs_puts_the_state_at_each_epoch_and_constraints_between(datas
     gap = np.min(np.abs(t_nhc[:, None] - t_gnss[None, :]), axis=1)
     assert np.all(gap > 0.05)
     with pytest.raises(ValueError):
-        run_replay(InsFilter(InsConfig(platform="car", imu_to_body=CAR_MOUNT)), dataset, [], exact_epochs=True)
+        run_replay(InsFilter(InsConfig(setup={"platform": "car", "imu_to_body": CAR_MOUNT})), dataset, [],
+                   exact_epochs=True)
 
 
 @pytest.mark.slow
 def test_replay_and_fit_replay_are_the_same_loop(dataset):
     """The declared model through ``v2xpos replay`` and through calibrate's fit replay (no
     odometer, outages not thinned) gives the same innovations, update for update."""
-    cfg = dict(platform="car", imu_to_body=CAR_MOUNT, lever_arm_m=np.zeros(3), lever_arm_sd_m=0.1, effects=())
-    res = replay(dataset, SCHEDULE, cfg=InsConfig(**cfg), progress=False, keep_series=False)
-    fit = runner.replay(dataset, SCHEDULE, config={k: v for k, v in cfg.items() if k != "effects"})
+    setup = dict(platform="car", imu_to_body=CAR_MOUNT, lever_arm_m=np.zeros(3), lever_arm_sd_m=0.1)
+    res = replay(dataset, SCHEDULE, cfg=InsConfig(setup=setup, effects={"states": ()}), progress=False,
+                 keep_series=False)
+    fit = runner.replay(dataset, SCHEDULE, config={"setup": setup})
     pos = [r for r in res.filter.residuals if r.kind == "gnss_pos"]
     g = fit.log["gnss_pos"]
     assert len(pos) == len(g) > 100

@@ -21,8 +21,8 @@ def drive():
 def test_ideal_imu_mechanization_reproduces_truth(drive):
     """Second-order strapdown on error-free samples: mm-level after 2 minutes of driving."""
     imu = simulate_imu(drive)
-    f = InsFilter(InsConfig(platform="generic", effects=(), static_acc_std_max_mps2=-1.0,
-                            apply_static_calibration=False))
+    f = InsFilter(InsConfig(setup={"platform": "generic"}, effects={"states": ()},
+                            stops={"static_acc_std_max_mps2": -1.0, "apply_static_calibration": False}))
     f.initialize(drive.t_s[0], drive.lla[0], drive.v_ned_mps[0], drive.rpy_rad[0])
     f.process_imu_batch(imu.t_s, imu.acc_mps2, imu.gyro_rps)
     err = geo.lla_to_ned(f.lla, drive.lla[-1])
@@ -36,13 +36,14 @@ def test_stationary_imu_holds_position_with_zupt():
     tr = static(120.0)
     model = ImuErrorModel.preset("automotive", np.random.default_rng(5))
     imu = simulate_imu(tr, model, rng=np.random.default_rng(6))
-    f = InsFilter(InsConfig(platform="car"))
+    f = InsFilter(InsConfig(setup={"platform": "car"}))
     f.initialize(tr.t_s[0], tr.lla[0], np.zeros(3), tr.rpy_rad[0])
     f.process_imu_batch(imu.t_s, imu.acc_mps2, imu.gyro_rps)
     assert f.counts["zupt"] > 1000
     drift = np.linalg.norm(geo.lla_to_ned(f.lla, tr.lla[0]))
     assert drift < 0.1
-    free = InsFilter(InsConfig(platform="generic", static_acc_std_max_mps2=-1.0, apply_static_calibration=False))
+    free = InsFilter(InsConfig(setup={"platform": "generic"},
+                               stops={"static_acc_std_max_mps2": -1.0, "apply_static_calibration": False}))
     free.initialize(tr.t_s[0], tr.lla[0], np.zeros(3), tr.rpy_rad[0])
     free.process_imu_batch(imu.t_s, imu.acc_mps2, imu.gyro_rps)
     assert np.linalg.norm(geo.lla_to_ned(free.lla, tr.lla[0])) > 10 * drift   # the detector is what holds it
@@ -54,7 +55,7 @@ def test_rtk_aided_drive_is_centimetre_accurate_through_public_api(drive):
     declared to 1 cm (with the default 10 cm prior the IMU point wanders with the lever-arm state)."""
     imu = simulate_imu(drive, ImuErrorModel.preset("automotive", np.random.default_rng(3)), imu_to_body=CAR_MOUNT)
     gn = simulate_gnss(drive, GnssErrorModel(rate_hz=10.0))
-    f = InsFilter(InsConfig(platform="car", imu_to_body=CAR_MOUNT, lever_arm_sd_m=0.01))
+    f = InsFilter(InsConfig(setup={"platform": "car", "imu_to_body": CAR_MOUNT, "lever_arm_sd_m": 0.01}))
     truth = drive.sample(gn.t_s)
     errs, gi = [], 0
     for k in range(len(imu)):

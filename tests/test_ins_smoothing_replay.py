@@ -148,7 +148,7 @@ def test_recorder_on_the_services_filter():
     from v2xpos.ins.replay import replay
     from v2xpos.ins.replay_engine import OutageSchedule
     ds = load_for_command(str(DRIVE), "replay")
-    r = replay(ds, OutageSchedule(length_s=0.0), cfg=dataset_ins_config(ds, integrity=True), progress=False,
+    r = replay(ds, OutageSchedule(length_s=0.0), cfg=dataset_ins_config(ds, service=True), progress=False,
                keep_series=False, smooth=True)
     rec, c = r.filter.recorder, r.filter.counts
     assert "gyro_scale" in r.filter.layout.effects

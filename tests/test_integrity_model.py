@@ -31,15 +31,16 @@ def test_a_verified_setup_starts_with_the_prior_of_a_change(tmp_path):
     from v2xpos.ins.calibrated import ins_config
     from v2xpos.datasets.verification import VerificationRecord
     from v2xpos.ins import InsFilter
-    plain = ins_config("car", np.eye(3), np.zeros(3), 0.02, integrity=True)
-    verified = ins_config("car", np.eye(3), np.zeros(3), 0.02, integrity=True,
+    plain = ins_config("car", np.eye(3), np.zeros(3), 0.02, service=True)
+    verified = ins_config("car", np.eye(3), np.zeros(3), 0.02, service=True,
                           verification=VerificationRecord(verified=True))
-    unverified = ins_config("car", np.eye(3), np.zeros(3), 0.02, integrity=True,
+    unverified = ins_config("car", np.eye(3), np.zeros(3), 0.02, service=True,
                             verification=VerificationRecord(verified=False))
-    assert not plain.setup_verified and verified.setup_verified and not unverified.setup_verified
-    assert InsFilter(verified).separation.prior == verified.setup_change_prior
-    assert InsFilter(plain).separation.prior == plain.setup_fault_prior
-    assert verified.setup_change_prior < plain.setup_fault_prior
+    assert (not plain.integrity.setup_verified and verified.integrity.setup_verified
+            and not unverified.integrity.setup_verified)
+    assert InsFilter(verified).separation.prior == verified.integrity.setup_change_prior
+    assert InsFilter(plain).separation.prior == plain.integrity.setup_fault_prior
+    assert verified.integrity.setup_change_prior < plain.integrity.setup_fault_prior
 
 
 def test_the_loader_reads_the_verification_table(tmp_path):
@@ -64,13 +65,14 @@ def test_reasons_follow_the_filter_state():
     TIME_OFFSET_CONVERGING while the IMU time offset's prior dominates the position sd at speed,
     SETUP_UNVERIFIED before a turn with the set-up hypothesis running, OK once verified."""
     from v2xpos.ins import InsConfig, InsFilter
-    timing = InsFilter(InsConfig(platform="car", lever_arm_sd_m=0.02, fault_tolerant_solution=True))
+    timing = InsFilter(InsConfig(setup={"platform": "car", "lever_arm_sd_m": 0.02},
+                                 integrity={"fault_tolerant_solution": True}))
     timing.initialize(100.0, np.array([0.7, 0.2, 300.0]), np.array([10.0, 0.0, 0.0]), np.zeros(3))
     timing.consistency.t_settled_s = -math.inf
     timing._test_separation(100.0)
     assert timing.integrity_reason() == FilterReason.TIME_OFFSET_CONVERGING    # 10 m/s x 0.3 s prior
-    flt = InsFilter(InsConfig(platform="car", lever_arm_sd_m=0.02, fault_tolerant_solution=True,
-                              effect_initial_sd={"imu_time_offset": 1e-3}))
+    flt = InsFilter(InsConfig(setup={"platform": "car", "lever_arm_sd_m": 0.02}, integrity={"fault_tolerant_solution": True},
+                              effects={"effect_initial_sd": {"imu_time_offset": 1e-3}}))
     assert flt.integrity_reason() == FilterReason.ALIGNING
     flt.initialize(100.0, np.array([0.7, 0.2, 300.0]), np.array([10.0, 0.0, 0.0]), np.zeros(3))
     flt.heading_known = False
@@ -79,7 +81,7 @@ def test_reasons_follow_the_filter_state():
     flt.last_gnss_t_s = 100.0                                        # a fix just used: not coasting
     flt.consistency.t_settled_s = -math.inf
     flt._test_separation(100.0)
-    assert flt.consistency.protection_m > flt.cfg.alert_limit_m     # the lever arm is open before a turn
+    assert flt.consistency.protection_m > flt.cfg.integrity.alert_limit_m     # the lever arm is open before a turn
     assert flt.integrity_reason() == FilterReason.SETUP_UNVERIFIED
     nav = flt.nav_state()
     assert nav.reason == FilterReason.SETUP_UNVERIFIED and not nav.verified
@@ -87,7 +89,7 @@ def test_reasons_follow_the_filter_state():
     flt.consistency.fail(101.0, "gnss_vel")
     assert flt.integrity_reason() == FilterReason.TEST_VELOCITY
     flt.consistency.failed = False
-    flt.consistency.set_protection(0.1, flt.cfg.alert_limit_m)
+    flt.consistency.set_protection(0.1, flt.cfg.integrity.alert_limit_m)
     assert flt.integrity_reason() == FilterReason.OK and flt.nav_state().verified
 
 

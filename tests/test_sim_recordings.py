@@ -433,8 +433,8 @@ def test_follower_truth_is_what_the_mechanization_integrates():
     assert rec.vehicles[1].lane_change is not None
     assert np.abs(follower.rpy_rad[:, 1]).max() > 0.01 and np.abs(follower.rpy_rad[:, 0]).max() > 0.005
     imu = simulate_imu(follower)
-    f = InsFilter(InsConfig(platform="generic", effects=(), static_acc_std_max_mps2=-1.0,
-                            apply_static_calibration=False))
+    f = InsFilter(InsConfig(setup={"platform": "generic"}, effects={"states": ()},
+                            stops={"static_acc_std_max_mps2": -1.0, "apply_static_calibration": False}))
     f.initialize(follower.t_s[0], follower.lla[0], follower.v_ned_mps[0], follower.rpy_rad[0])
     f.process_imu_batch(imu.t_s, imu.acc_mps2, imu.gyro_rps)
     assert np.linalg.norm(geo.lla_to_ned(f.lla, follower.lla[-1])) < 0.03

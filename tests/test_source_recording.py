@@ -107,9 +107,9 @@ def test_recording_source_applies_the_recordings_calibration_table():
     ds.calibration = parse_calibration({"gnss_lever_arm_m": {"value": [0.4, -0.2, 0.0], "sd": [0.01, 0.01, 0.02]},
                                         "imu_time_offset_s": {"value": -0.02, "sd": 0.001}}, "test: [calibration]")
     cal = ins_config_for(ds)
-    assert np.allclose(cal.lever_arm_m - plain.lever_arm_m, [0.4, -0.2, 0.0])
-    assert cal.initial_time_offset_s == -0.02
-    assert np.allclose(cal.lever_arm_m, config_for(ds).lever_arm_m)
+    assert np.allclose(cal.setup.lever_arm_m - plain.setup.lever_arm_m, [0.4, -0.2, 0.0])
+    assert cal.effects.initial_time_offset_s == -0.02
+    assert np.allclose(cal.setup.lever_arm_m, config_for(ds).setup.lever_arm_m)
 
 
 class KeepStates(ReplayHook):

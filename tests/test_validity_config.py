@@ -10,7 +10,7 @@ import pytest
 from master.config import MasterConfig
 from slave.config import SlaveConfig
 from v2xpos.config import ConfigError
-from v2xpos.ins.config import InsConfig
+from v2xpos.ins.config import IntegrityModel
 from tests.shared_data import SHARED_DATA, require_shared
 
 DEV_A = SHARED_DATA / "convoy_dev" / "A" / "dataset.toml"
@@ -33,12 +33,13 @@ def test_validity_keys_configure_the_filter_and_are_checked(cls):
 def test_the_recording_source_builds_its_filter_with_the_services_limits():
     require_shared(DEV_A)
     from v2xpos.sources import SourceContext, make_source
-    ctx = SourceContext("A", config_dir=Path("."), filter_overrides={"alert_limit_m": 0.55, "integrity_risk": 1e-7})
+    ctx = SourceContext("A", config_dir=Path("."),
+                        filter_overrides={"integrity": {"alert_limit_m": 0.55, "integrity_risk": 1e-7}})
     src = make_source(dict(SOURCE), "[source]", ctx)
-    assert (src.filter.cfg.alert_limit_m, src.filter.cfg.integrity_risk) == (0.55, 1e-7)
+    assert (src.filter.cfg.integrity.alert_limit_m, src.filter.cfg.integrity.integrity_risk) == (0.55, 1e-7)
     plain = make_source(dict(SOURCE), "[source]", SourceContext("A", config_dir=Path(".")))
-    assert (plain.filter.cfg.alert_limit_m, plain.filter.cfg.integrity_risk) == (InsConfig.alert_limit_m,
-                                                                                  InsConfig.integrity_risk)
+    assert ((plain.filter.cfg.integrity.alert_limit_m, plain.filter.cfg.integrity.integrity_risk)
+            == (IntegrityModel.alert_limit_m, IntegrityModel.integrity_risk))
 
 
 def test_a_session_writes_its_verification_record_and_the_next_one_starts_from_it(tmp_path):
@@ -66,8 +67,8 @@ def test_a_session_writes_its_verification_record_and_the_next_one_starts_from_i
     nxt = SlaveConfig.from_dict({"validity": table, "source": SOURCE}, str(tmp_path / "slave.toml"))
     assert nxt.filter_integrity.get("setup_verified") is True
     verified = make_source(dict(SOURCE), "[source]", SourceContext("B", config_dir=tmp_path,
-                                                                   filter_overrides=nxt.filter_integrity))
-    assert verified.filter.cfg.setup_verified
+                                                                   filter_overrides={"integrity": nxt.filter_integrity}))
+    assert verified.filter.cfg.integrity.setup_verified
     (tmp_path / "B.verification.toml").write_text("[verification]\nverifed = true\n")
     with pytest.raises(ConfigError, match=r"B.verification.toml.*'verifed'.*did you mean 'verified'"):
         SlaveConfig.from_dict({"validity": table, "source": SOURCE}, str(tmp_path / "slave.toml"))
@@ -80,7 +81,8 @@ def test_a_services_end_of_session_record_is_reported_and_never_fatal(tmp_path):
     from types import SimpleNamespace
     from v2xpos.datasets.verification import read_verification_file, write_session_record
     flt = SimpleNamespace(initialized=True, separation=SimpleNamespace(protection_m=0.1, active=True, excluded=False),
-                          cfg=SimpleNamespace(alert_limit_m=0.3), consistency=SimpleNamespace(failed=False))
+                          cfg=SimpleNamespace(integrity=SimpleNamespace(alert_limit_m=0.3)),
+                          consistency=SimpleNamespace(failed=False))
     source = SimpleNamespace(filter=flt)
     path = tmp_path / "A.verification.toml"
     summary, said = write_session_record(source, path, "session of A")

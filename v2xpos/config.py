@@ -125,7 +125,7 @@ set-up starts with the prior of a change, not of a blunder; written at the end w
 @dataclass(frozen=True)
 class Validity:
     """A service's ``[validity]`` table, read once (``validity_from_table``)."""
-    filter_integrity: dict           # InsConfig overrides of the own filter (only what is given)
+    filter_integrity: dict           # overrides of the own filter's InsConfig.integrity group (only what is given)
     verification_out: Path | None    # where the session's [verification] record is written; None: not asked
     service: dict                    # the service's own [validity] keys by name, defaults filled in
 

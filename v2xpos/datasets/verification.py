@@ -3,7 +3,7 @@ arm, IMU mounting, and the effects of a ``[calibration]`` table) verified on an 
 
 A vehicle's filter carries the hypothesis that its declared set-up is wrong (``v2xpos.ins.integrity``)
 with a prior probability: that of a blunder for a set-up never checked, that of a change since for
-one verified before (``InsConfig.setup_fault_prior`` / ``setup_change_prior``). A lever-arm error
+one verified before (``InsConfig.integrity.setup_fault_prior`` / ``setup_change_prior``). A lever-arm error
 shows only when the vehicle turns, so an unverified vehicle is vouched for only after its first
 turns; a verified one from its first metres. The record says what was verified, on which drive,
 to which protection level::
@@ -92,7 +92,7 @@ def record_from_filter(flt: Any, drive: str, software: str | None = None) -> Ver
     import datetime
     sep = getattr(flt, "separation", None)
     pl = float(sep.protection_m) if sep is not None and sep.active else math.nan
-    limit = float(flt.cfg.alert_limit_m)
+    limit = float(flt.cfg.integrity.alert_limit_m)
     ok = (sep is not None and sep.active and not sep.excluded and math.isfinite(pl) and pl <= limit
           and not flt.consistency.failed)
     return VerificationRecord(verified=bool(ok), drive=str(drive),

@@ -110,9 +110,10 @@ def calibrate_dataset(ds: Dataset, schedule: OutageSchedule, progress: bool = Tr
         sig = EffectSet.from_vector(np.where(f.significant, f.theta, 0.0))
         source = str(getattr(ds, "source", "") or ds.name)
         noise = None
-        if "gyro_noise_rps_rthz" in est.config:
+        tuned = est.config.get("imu", {})
+        if "gyro_noise_rps_rthz" in tuned:
             # the predictor's IMU noise (``Estimator.tune``) goes back into the vehicle with the fit
-            noise = (est.config["gyro_noise_rps_rthz"], est.config["accel_noise_mps2_rthz"], len(ds.imu.t_s))
+            noise = (tuned["gyro_noise_rps_rthz"], tuned["accel_noise_mps2_rthz"], len(ds.imu.t_s))
         # the Allan deviation at the stops: what the process noise must cover beyond the white part
         allan = allan_at_stops(ds.imu, ds.gnss)
         cover = None

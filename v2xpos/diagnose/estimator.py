@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from v2xpos.ins.config import overridden
 from v2xpos.ins.profiles import DEFAULT_PROFILE
 from v2xpos.types import Dataset
 
@@ -58,7 +59,7 @@ def default_prior_sd(ds: Dataset) -> np.ndarray:
 
 
 
-CALIBRATION_REPLAY_CONFIG = {"gate_probability": 1.0}
+CALIBRATION_REPLAY_CONFIG = {"gnss": {"gate_probability": 1.0}}
 """Replays that feed the fit run without the chi-square gate (a gate decision that flips between
 two replays makes the innovation sequence jump and spoils the finite differences) and without the
 receiver's velocities when they lag the positions: an RTK engine's velocity may be a smoothed,
@@ -136,7 +137,7 @@ class Estimator:
         self.active = active_parameters(ds.platform)
         self.schedule: OutageSchedule | None = CALIBRATION_OUTAGES
         self.velocity_lag: tuple | None = None
-        self.config = dict(CALIBRATION_REPLAY_CONFIG)
+        self.config = overridden({}, CALIBRATION_REPLAY_CONFIG)
         self.exact_epochs = EXACT_EPOCHS
         self.confirm_log: list = []      # (effect, half-cost rises, kappa, z in the model) per test
         self.tune_predictor = TUNE_PREDICTOR
@@ -163,7 +164,7 @@ class Estimator:
             self.coarse_report = {"from": "[calibration] table of the dataset"}
             self.check_velocity_lag(th)
             return th
-        cfg = config_for(self.ds, self.profile, effects=("lever_arm", "imu_time_offset", "misalignment"))
+        cfg = config_for(self.ds, self.profile, effects={"states": ("lever_arm", "imu_time_offset", "misalignment")})
         self.bar.start("online effect states (starting point)")
         res = ins_replay(self.ds, InsSchedule(0.0, 0.0, 0.0), cfg=cfg, progress=self.progress, keep_series=False)
         self.bar.done()
@@ -193,9 +194,8 @@ class Estimator:
         # and a loose prior lets both wander (on a convoy follower l_z ran far beyond the 0.5 m
         # prior); it starts from the declaration, as the live filter does
         lever_sd[2] = float(self.ds.lever_arm_sd_m)
-        cfg = config_for(self.ds, self.profile, effect_initial_sd={"lever_arm": lever_sd,
-                                                                   "imu_time_offset": float(p[P_TIME_OFFSET]),
-                                                                   "misalignment": p[P_MISALIGN].copy()})
+        cfg = config_for(self.ds, self.profile, effects={"effect_initial_sd": {
+            "lever_arm": lever_sd, "imu_time_offset": float(p[P_TIME_OFFSET]), "misalignment": p[P_MISALIGN].copy()}})
         self.bar.start("online effect states (agreement)")
         res = ins_replay(self.ds, InsSchedule(0.0, 0.0, 0.0), cfg=cfg, progress=self.progress, keep_series=False)
         self.bar.done()
@@ -230,10 +230,12 @@ class Estimator:
         # and the default stays (a driving vehicle's vibration can put it several times above the
         # in-band noise its stops show; docs/calibration.md, Allan deviation at the stops)
         if np.isfinite(gyro) and gyro > 0:
-            self.config["gyro_noise_rps_rthz"] = min(gyro, d.gyro_noise_rps_rthz)
+            self.config = overridden(self.config, {"imu": {
+                "gyro_noise_rps_rthz": min(gyro, d.imu.gyro_noise_rps_rthz)}})
         if np.isfinite(accel) and accel > 0:
-            self.config["accel_noise_mps2_rthz"] = min(accel, d.accel_noise_mps2_rthz)
-        base = {k: getattr(d, k) for k in ("gnss_pos_sd_floor_m", "gnss_vel_sd_scale", "gnss_vel_sd_floor_mps")}
+            self.config = overridden(self.config, {"imu": {
+                "accel_noise_mps2_rthz": min(accel, d.imu.accel_noise_mps2_rthz)}})
+        base = {k: getattr(d.gnss, k) for k in ("gnss_pos_sd_floor_m", "gnss_vel_sd_scale", "gnss_vel_sd_floor_mps")}
         history = []
         for k in range(iterations):
             out = self._replay(self.ds, theta, f"tuning {k + 1}")
@@ -241,7 +243,7 @@ class Estimator:
             history.append(fac)
             self.config = rescaled_config(self.config, base, fac)
         self.tuning = {"gyro_noise_rps_rthz": gyro, "accel_noise_mps2_rthz": accel, "factors": history,
-                       "config": {k: v for k, v in self.config.items()}}
+                       "config": overridden({}, self.config)}
         return self.tuning
 
     def check_velocity_lag(self, theta: np.ndarray) -> None:
@@ -252,7 +254,7 @@ class Estimator:
         self.velocity_lag = velocity_lag(self.ds.imu, self.ds.gnss, C)
         if self.velocity_lag is not None:
             lag, sd = self.velocity_lag
-            self.config["use_gnss_velocity"] = not (abs(lag) > 3.0 * sd)
+            self.config = overridden(self.config, {"gnss": {"use_gnss_velocity": not (abs(lag) > 3.0 * sd)}})
 
     def replayed_residuals(self, ds: Dataset, theta: np.ndarray, label: str) -> np.ndarray:
         """Residuals of a replay at theta on the rows of the linearisation point; rows missing in

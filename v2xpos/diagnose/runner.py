@@ -12,6 +12,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
+from v2xpos.ins.config import overridden
 from v2xpos.ins.profiles import dataset_config
 from v2xpos.ins.replay_engine import OutageSchedule, ReplayHook, outage_windows, run_replay
 from v2xpos.types import Dataset
@@ -44,7 +45,7 @@ def replay(ds: Dataset, schedule: OutageSchedule | None = None, config: dict | N
            exact_epochs: bool = False) -> ReplayOutcome:
     """Run the declared model over ``ds``; ``schedule=None`` uses every GNSS epoch.
 
-    config: InsConfig overrides of the vehicle's ``fit`` profile (``v2xpos.ins.profiles``: the
+    config: InsConfig overrides (group -> dict of fields) of the vehicle's ``fit`` profile (``v2xpos.ins.profiles``: the
     dataset's platform, mounting and lever arm, no effect states, no calibration table).
     exact_epochs: ``run_replay(exact_epochs=True)``: the state exactly at every GNSS epoch and the
     vehicle constraints mid-way between epochs, so that a shift of the IMU stamps changes the
@@ -56,7 +57,7 @@ def replay(ds: Dataset, schedule: OutageSchedule | None = None, config: dict | N
     from v2xpos.ins import InsFilter
     kw = dict(config or {})
     if exact_epochs:
-        kw["constraints_on_request"] = True
+        kw = overridden(kw, {"constraints": {"constraints_on_request": True}})
     filt = InsFilter(dataset_config(ds, "fit", **kw))
     rec = ResidualRecorder(kinds=RECORDED_KINDS)
     wall0 = time.perf_counter()

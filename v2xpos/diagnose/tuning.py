@@ -76,8 +76,9 @@ def innovation_scale(log: ResidualLog) -> dict[str, float]:
 
 def rescaled_config(config: dict, base: dict, factors: dict[str, float]) -> dict:
     """``config`` with the GNSS position / velocity noise multiplied by its factor (the covariance by
-    factor^2: the fix scales and the floors); ``base`` holds the InsConfig defaults of the fields."""
-    c = dict(config)
+    factor^2: the fix scales and the floors; ``InsConfig`` overrides, group -> fields, the GNSS ones
+    in ``gnss``); ``base`` holds the InsConfig defaults of the fields."""
+    c = dict(config.get("gnss", {}))
     f = factors
     if "gnss_pos" in f:
         scale = c.get("fix_sd_scale", dict(DEFAULT_FIX_SD_SCALE))
@@ -86,12 +87,12 @@ def rescaled_config(config: dict, base: dict, factors: dict[str, float]) -> dict
     if "gnss_vel" in f:
         c["gnss_vel_sd_scale"] = c.get("gnss_vel_sd_scale", base["gnss_vel_sd_scale"]) * f["gnss_vel"]
         c["gnss_vel_sd_floor_mps"] = c.get("gnss_vel_sd_floor_mps", base["gnss_vel_sd_floor_mps"]) * f["gnss_vel"]
-    return c
+    return {**config, "gnss": c}
 
 
 # ------------------------------------------------------------------ Allan deviation at stops
 # What the written table's IMU noise must cover. The filter models the gyro as white noise (its
-# attitude process noise, ``InsConfig.gyro_noise_rps_rthz``) plus a bias that is a first-order
+# attitude process noise, ``InsConfig.imu.gyro_noise_rps_rthz``) plus a bias that is a first-order
 # Gauss-Markov state (``gyro_bias_sd_rps`` 1e-4 rad/s, ``gyro_bias_tau_s`` 600 s: over seconds a
 # rate random walk of 5.8e-6 rad/s/sqrt(s)). The second differences (``imu_noise_density``) see
 # only the white part; an outage integrates the error over 15 s, so whatever the Allan deviation

@@ -3,7 +3,7 @@
 Public interface::
 
     from v2xpos.ins import InsFilter, InsConfig
-    f = InsFilter(InsConfig(platform="car", imu_to_body=..., lever_arm_m=..., lever_arm_sd_m=0.1))
+    f = InsFilter(InsConfig(setup={"platform": "car", "imu_to_body": ..., "lever_arm_m": ..., "lever_arm_sd_m": 0.1}))
     f.initialize(t_s, lla, v_ned_mps, rpy_rad)        # optional; else aligned from data
     f.process_imu(t_s, acc_mps2, gyro_rps)
     res = f.update_gnss(t_s, lla, sd_ned_m, fix, vel_ned_mps=None, vel_sd_ned_mps=None)

@@ -4,7 +4,7 @@ One function, :func:`ins_config`, used by ``v2xpos replay``, ``v2xpos calibrate`
 ``recording`` and ``device`` sources and any live vehicle config, so that a calibration is applied
 the same way to a recording and to a live stream: it never rewrites samples, it sets the filter's
 mounting, lever arm and the *starting values and 1-sigma* of its own effect states
-(``InsConfig.initial_time_offset_s``, ``initial_misalignment_rad``, ``initial_effects``,
+(``InsConfig.effects.initial_time_offset_s``, ``initial_misalignment_rad``, ``initial_effects``,
 ``effect_initial_sd``), which the filter then keeps refining online within those sds.
 
 Conventions are those of ``v2xpos calibrate`` and ``v2xpos.datasets.calibration`` (every entry is
@@ -42,7 +42,7 @@ import numpy as np
 from v2xpos.rotation import dcm_from_euler
 
 from .effects import PLATFORM_EFFECTS
-from .config import InsConfig
+from .config import ImuModel, InsConfig, overridden
 
 _TIMING_STATES = ("imu_time_offset", "imu_clock_drift")
 
@@ -52,18 +52,19 @@ def _vec(v: Any) -> np.ndarray:
 
 
 def ins_config(platform: str, imu_to_body: np.ndarray, lever_arm_m: np.ndarray, lever_arm_sd_m: float,
-               calibration: Any = None, integrity: bool = False, verification: Any = None,
+               calibration: Any = None, service: bool = False, verification: Any = None,
                **overrides: Any) -> InsConfig:
     """``InsConfig`` of a vehicle from its declared mounting and antenna lever arm and an optional
     ``CalibrationTable`` (``v2xpos.datasets.calibration``; None = declared values only) and an
     optional ``VerificationRecord`` (``v2xpos.datasets.verification``: a set-up verified on an earlier
-    drive starts with the prior of a change since, ``InsConfig.setup_change_prior``).
+    drive starts with the prior of a change since, ``InsConfig.integrity.setup_change_prior``).
 
     platform: "car", "pedestrian" or anything else (-> "generic"); imu_to_body: declared nominal
     ``v_body = imu_to_body v_imu``; lever_arm_m: declared antenna position from the IMU [m, vehicle
-    frame x fwd, y right, z down] with 1-sigma lever_arm_sd_m; overrides: any other ``InsConfig``
-    field (they win over the calibration, e.g. ``effects=()`` for a filter without effect states).
-    integrity: the filter of a service whose states feed the master's results (docs/integrity.md):
+    frame x fwd, y right, z down] with 1-sigma lever_arm_sd_m; overrides: ``InsConfig`` groups, each a
+    dict of some of its fields (they win over the calibration field by field, e.g. ``effects={"states":
+    ()}`` for a filter without effect states; ``config.overridden``).
+    service: the filter of a service whose states feed the master's results (docs/integrity.md):
     the IMU white noise is measured online from the samples (``v2xpos.ins.noise.ImuNoiseMeter``)
     unless the calibration carries the noise measured offline by the same estimator -- that one
     wins, it was tuned together with the rest of the table --, a failed consistency test
@@ -72,19 +73,21 @@ def ins_config(platform: str, imu_to_body: np.ndarray, lever_arm_m: np.ndarray, 
     """
     plat = platform if platform in ("car", "pedestrian") else "generic"
     B = np.asarray(imu_to_body, float).reshape(3, 3)
-    kw: dict[str, Any] = dict(platform=plat, imu_to_body=B, lever_arm_m=_vec(lever_arm_m),
-                              lever_arm_sd_m=float(lever_arm_sd_m))
+    kw: dict[str, dict[str, Any]] = {"setup": dict(platform=plat, imu_to_body=B, lever_arm_m=_vec(lever_arm_m),
+                                                   lever_arm_sd_m=float(lever_arm_sd_m))}
     if calibration is not None and calibration.effects:
-        kw.update(_calibrated_fields(plat, B, _vec(lever_arm_m), float(lever_arm_sd_m), calibration))
+        kw = overridden(kw, _calibrated_fields(plat, B, _vec(lever_arm_m), float(lever_arm_sd_m), calibration))
+    imu, effects = kw.setdefault("imu", {}), kw.setdefault("effects", {})
+    integ = kw.setdefault("integrity", {})
     if verification is not None and getattr(verification, "verified", False):
-        kw["setup_verified"] = True             # verified on an earlier drive (``datasets.verification``)
-    if integrity:
-        kw["imu_noise_from_data"] = "gyro_noise_rps_rthz" not in kw and "accel_noise_mps2_rthz" not in kw
-        kw["fault_tolerant_solution"] = True     # the set-up hypothesis and the protection level
+        integ["setup_verified"] = True          # verified on an earlier drive (``datasets.verification``)
+    if service:
+        imu["imu_noise_from_data"] = "gyro_noise_rps_rthz" not in imu and "accel_noise_mps2_rthz" not in imu
+        integ["fault_tolerant_solution"] = True  # the set-up hypothesis and the protection level
         # the heading error of a gyro scale error grows with the angle turned: estimated, from the
         # calibration's value and sd or the datasheet-class prior (docs/integrity.md)
-        effects = tuple(kw.get("effects") or PLATFORM_EFFECTS[plat])
-        kw["effects"] = effects + (("gyro_scale",) if "gyro_scale" not in effects else ())
+        states = tuple(effects.get("states") or PLATFORM_EFFECTS[plat])
+        effects["states"] = states + (("gyro_scale",) if "gyro_scale" not in states else ())
     # The calibration's noise is the sensor's white noise, as the online meter measures it; every
     # filter that runs with the table takes the same margin over it and the same cap
     # (docs/integrity.md, "The IMU noise behind it"): the bare measured noise leaves out what the
@@ -95,34 +98,37 @@ def ins_config(platform: str, imu_to_body: np.ndarray, lever_arm_m: np.ndarray, 
     # (docs/calibration.md, Known shortfalls).
     for key, scale in (("gyro_noise_rps_rthz", "imu_gyro_noise_scale"),
                        ("accel_noise_mps2_rthz", "imu_accel_noise_scale")):
-        if key in kw:
-            kw[key] = min(getattr(InsConfig, scale) * kw[key], getattr(InsConfig, key))
-    for key in ("effect_initial_sd", "initial_effects"):
-        if key in overrides and key in kw:
-            overrides[key] = {**kw[key], **overrides[key]}
-    kw.update(overrides)
-    return InsConfig(**kw)
+        if key in imu:
+            imu[key] = min(getattr(ImuModel, scale) * imu[key], getattr(ImuModel, key))
+    over = dict(overrides.get("effects", {}))
+    for key in ("effect_initial_sd", "initial_effects"):     # merged with the calibration's, entry by entry
+        if key in over and key in effects:
+            over[key] = {**effects[key], **over[key]}
+    return InsConfig(**overridden(kw, {**overrides, **({"effects": over} if over else {})}))
 
 
 def _calibrated_fields(platform: str, B: np.ndarray, lever: np.ndarray, lever_sd: float, cal: Any) -> dict:
+    """The groups of ``InsConfig`` a calibration table sets (module docstring)."""
     eff = cal.effects
-    out: dict[str, Any] = {}
+    setup: dict[str, Any] = {}
+    imu: dict[str, Any] = {}
     sd0: dict[str, Any] = {}
     init: dict[str, Any] = {}
+    time_offset_s = None
     states = list(PLATFORM_EFFECTS[platform])
     if "imu_misalignment_deg" in eff:
         e = eff["imu_misalignment_deg"]
-        out["imu_to_body"] = dcm_from_euler(*np.radians(_vec(e.value))) @ B
+        setup["imu_to_body"] = dcm_from_euler(*np.radians(_vec(e.value))) @ B
         sd0["misalignment"] = np.radians(_vec(e.sd))
     if "gnss_lever_arm_m" in eff:
         e = eff["gnss_lever_arm_m"]
-        out["lever_arm_m"] = lever + _vec(e.value)
+        setup["lever_arm_m"] = lever + _vec(e.value)
         sd = _vec(e.sd)
-        out["lever_arm_sd_m"] = float(np.max(sd))
+        setup["lever_arm_sd_m"] = float(np.max(sd))
         sd0["lever_arm"] = sd
     if "imu_time_offset_s" in eff:
         e = eff["imu_time_offset_s"]
-        out["initial_time_offset_s"] = float(e.value)
+        time_offset_s = float(e.value)
         sd0["imu_time_offset"] = float(e.sd)
     if "imu_clock_drift_ppm" in eff:
         e = eff["imu_clock_drift_ppm"]
@@ -145,16 +151,16 @@ def _calibrated_fields(platform: str, B: np.ndarray, lever: np.ndarray, lever_sd
         # covers the deviation measured at the stops (``v2xpos.diagnose.tuning.AllanAtStops``)
         v = [float(eff[k].value) for k in keys if k in eff and float(eff[k].value) > 0]
         if v:
-            out[field_name] = max(v)
-    out["effects"] = tuple(states)
-    out["effect_initial_sd"] = sd0
-    out["initial_effects"] = init
-    return out
+            imu[field_name] = max(v)
+    effects = {"states": tuple(states), "effect_initial_sd": sd0, "initial_effects": init}
+    if time_offset_s is not None:
+        effects["initial_time_offset_s"] = time_offset_s
+    return {"setup": setup, "imu": imu, "effects": effects}
 
 
-def dataset_ins_config(dataset: Any, integrity: bool = False, **overrides: Any) -> InsConfig:
+def dataset_ins_config(dataset: Any, service: bool = False, **overrides: Any) -> InsConfig:
     """:func:`ins_config` of a loaded ``Dataset`` (its declared values and ``Dataset.calibration``)."""
     return ins_config(dataset.platform, dataset.imu_to_body, dataset.lever_arm_m, dataset.lever_arm_sd_m,
-                      getattr(dataset, "calibration", None), integrity=integrity,
+                      getattr(dataset, "calibration", None), service=service,
                       verification=getattr(dataset, "verification", None), **overrides)
 

@@ -201,7 +201,7 @@ class InsDriver:
         self.reorder_window_s = float(reorder_window_s) if self.live else 0.0
         self.snapshot_every_s = float(snapshot_every_s)
         self.max_wait_s = float(max_wait_s)
-        self.wheel_min_interval_s = (1.0 / f.cfg.constraint_rate_hz if wheel_min_interval_s is None
+        self.wheel_min_interval_s = (1.0 / f.cfg.constraints.constraint_rate_hz if wheel_min_interval_s is None
                                      else float(wheel_min_interval_s))
         self.imu_progress = imu_progress
         update_hooks = [h for h in self.hooks if overrides(h, "on_update")]
@@ -579,7 +579,7 @@ def push_dataset(drv: InsDriver, dataset: Dataset, *, imu: tuple | None = None, 
         drv.push_gnss(t, gn.lla[k], gn.sd_ned_m[k], FixStatus(int(fix[k])), None if vel is None else vel[k],
                       None if vel_sd is None else vel_sd[k], index=int(k),
                       used=True if gnss_used is None else gnss_used(t))
-    if wheel and dataset.wheel is not None and drv.f.cfg.platform == "car":
+    if wheel and dataset.wheel is not None and drv.f.cfg.setup.platform == "car":
         for t, v in zip(np.asarray(dataset.wheel.t_s, float), np.asarray(dataset.wheel.speed_mps, float)):
             drv.push_wheel(float(t), float(v))
 
@@ -592,7 +592,7 @@ def warm_up(cfg: Any) -> None:
     d = InsDriver(f, emit_states=True, complete=True)
     lla = np.array([math.radians(45.0), math.radians(7.0), 300.0])
     d.initialize(0.0, lla, np.zeros(3), np.zeros(3))
-    g_imu = np.asarray(cfg.imu_to_body, float).T @ np.array([0.0, 0.0, -9.80665])
+    g_imu = np.asarray(cfg.setup.imu_to_body, float).T @ np.array([0.0, 0.0, -9.80665])
     t = 0.01 * np.arange(1, 31)
     d.push_imu_block(t, np.tile(g_imu, (len(t), 1)), np.zeros((len(t), 3)))
     d.push_gnss(0.3, lla, np.full(3, 0.02), FixStatus.FIXED, np.zeros(3), np.full(3, 0.05))

@@ -20,7 +20,7 @@ Conventions (shared with ``v2xpos calibrate``):
 * ``gyro_scale`` / ``accel_scale``: per body axis, measured = (1 + s) true.
 * ``odometer_scale``: wheel speed measured = (1 + s) true forward speed.
 
-Each effect is a random constant with an optional random walk (``InsConfig.effect_random_walk``).
+Each effect is a random constant with an optional random walk (``InsConfig.effects.effect_random_walk``).
 """
 from __future__ import annotations
 

@@ -59,7 +59,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
     ``nav`` = (lat rad, lon rad, h m, v_N, v_E, v_D m/s) of the IMU point (``NAV_*`` indices);
     ``C_nb`` body -> NED; ``corr`` the compensation of the raw samples (gyro/accel bias and scale,
     ``COR_*``); ``fx`` the other effect values (``effects.EffectValues``); ``P`` the error-state
-    covariance in ``layout`` (with ``cfg.consider_gyro_scale`` the gyro scale block, ``consider``, is
+    covariance in ``layout`` (with ``cfg.imu.consider_gyro_scale`` the gyro scale block, ``consider``, is
     in it but never estimated: ``ekf.kalman_update``); ``A`` the error dynamics summed since the last propagation;
     ``mem`` the strapdown's memory of the previous sample; ``acc_ned_mps2`` the smoothed
     acceleration of the measurement models and ``acc_strapdown_ned_mps2`` the strapdown's own (the
@@ -75,9 +75,10 @@ class InsFilter(ImuPath, Initialization, Outputs):
     def __init__(self, cfg: InsConfig | None = None):
         self.cfg = cfg or InsConfig()
         c = self.cfg
-        self.layout = StateLayout.build(tuple(c.effects) + (("gyro_scale",) if c.consider_gyro_scale else ()))
+        imu, ct, it = c.imu, c.consistency, c.integrity
+        self.layout = StateLayout.build(tuple(c.effects.states) + (("gyro_scale",) if imu.consider_gyro_scale else ()))
         i_sg = self.layout.at("gyro_scale")
-        self.consider = slice(i_sg, i_sg + 3) if c.consider_gyro_scale else None
+        self.consider = slice(i_sg, i_sg + 3) if imu.consider_gyro_scale else None
         n = self.layout.n
         self.P = np.zeros((n, n))
         self.nav = np.zeros(6)
@@ -86,24 +87,24 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self.mem = np.zeros(MEM_SIZE)
         self.A = np.zeros((n, n))
         self.q_c = process_noise_density(self.layout, c)
-        gyro_scale = (c.imu_gyro_noise_scale, c.imu_gyro_noise_scale, c.imu_yaw_gyro_noise_scale)
-        self.noise_meter = (ImuNoiseMeter(c.imu_noise_window_s, gyro_scale, c.imu_accel_noise_scale,
-                                          c.gyro_noise_rps_rthz, c.accel_noise_mps2_rthz) if c.imu_noise_from_data else None)
-        self.consistency = ConsistencyMonitor(c.consistency_window_s, c.consistency_false_alarm_per_hour,
-                                              c.verify_turn_deg, reverify=c.consistency_reverify,
-                                              release_windows=c.consistency_release_windows,
-                                              detectable_m=c.verify_detectable_lever_arm_m)
+        gyro_scale = (imu.imu_gyro_noise_scale, imu.imu_gyro_noise_scale, imu.imu_yaw_gyro_noise_scale)
+        self.noise_meter = (ImuNoiseMeter(imu.imu_noise_window_s, gyro_scale, imu.imu_accel_noise_scale,
+                                          imu.gyro_noise_rps_rthz, imu.accel_noise_mps2_rthz) if imu.imu_noise_from_data else None)
+        self.consistency = ConsistencyMonitor(ct.consistency_window_s, ct.consistency_false_alarm_per_hour,
+                                              ct.verify_turn_deg, reverify=ct.consistency_reverify,
+                                              release_windows=ct.consistency_release_windows,
+                                              detectable_m=ct.verify_detectable_lever_arm_m)
         i_l = self.layout.at("lever_arm")
-        self.separation = (FaultTolerantSolution(i_l, c.undeclared_lever_arm_sd_m, c.integrity_false_alarm_per_hour,
-                                                 self._setup_prior(), c.integrity_risk, consider=self.consider,
+        self.separation = (FaultTolerantSolution(i_l, it.undeclared_lever_arm_sd_m, it.integrity_false_alarm_per_hour,
+                                                 self._setup_prior(), it.integrity_risk, consider=self.consider,
                                                  widen=self._declared_effects())
-                           if c.fault_tolerant_solution and i_l >= 0 and c.undeclared_lever_arm_sd_m > 0 else None)
+                           if it.fault_tolerant_solution and i_l >= 0 and it.undeclared_lever_arm_sd_m > 0 else None)
         self._t_motion_s: float | None = None
         self.kidx = self.layout.kernel_index()
-        self.fx = EffectValues(c.lever_arm_m)
-        self.fx.imu_time_offset_s = float(c.initial_time_offset_s)
-        self.fx.misalignment_rad = np.asarray(c.initial_misalignment_rad, float).reshape(3).copy()
-        for name, value in c.initial_effects.items():
+        self.fx = EffectValues(c.setup.lever_arm_m)
+        self.fx.imu_time_offset_s = float(c.effects.initial_time_offset_s)
+        self.fx.misalignment_rad = np.asarray(c.effects.initial_misalignment_rad, float).reshape(3).copy()
+        for name, value in c.effects.initial_effects.items():
             if name in ("gyro_scale", "accel_scale"):
                 k = COR_SG if name == "gyro_scale" else COR_SA
                 self.corr[k:k + 3] = np.asarray(value, float).reshape(3)
@@ -127,8 +128,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self._course_tracker = CourseTracker()
         self._course_sd_rad = 0.0
         self._mis_cache: tuple | None = None
-        self.calibrator = StaticCalibrator(c.static_calibration)
-        self.gate = {k: float(chi2.ppf(c.gate_probability, k)) for k in (1, 2, 3, 6)}
+        self.calibrator = StaticCalibrator(c.stops.static_calibration)
+        self.gate = {k: float(chi2.ppf(c.gnss.gate_probability, k)) for k in (1, 2, 3, 6)}
         self.last_fix = FixStatus.NONE
         self.last_gnss_t_s = -np.inf
         self._gnss_rejections = 0
@@ -280,7 +281,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
                            innovation_sd=np.sqrt(np.abs(np.diag(S))), innovation_cov=S)
         if kind.startswith("gnss") and self.consistency.feed_update(kind, t_s, nis, len(d), -d, S, self.C_nb):
             self._on_inconsistency()
-        if self.cfg.log_residuals and kind.startswith("gnss"):
+        if self.cfg.numerics.log_residuals and kind.startswith("gnss"):
             self.residuals.append(res)
         # every update (GNSS, NHC, ZUPT, ZARU, odometer) is offered to the hook with the filter
         if self.on_update is not None:
@@ -331,7 +332,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
         """P(the declared set-up is wrong) before this drive's data (``integrity``): the rate of a
         set-up changing since it was verified on an earlier drive, or of a blunder in one never
         verified."""
-        return self.cfg.setup_change_prior if self.cfg.setup_verified else self.cfg.setup_fault_prior
+        it = self.cfg.integrity
+        return it.setup_change_prior if it.setup_verified else it.setup_fault_prior
 
     def _declared_effects(self) -> tuple:
         """(index, sd) of the effect states a calibration declared tighter than the platform's
@@ -342,7 +344,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
             if name == "lever_arm" or name not in DEFAULT_INITIAL_SD:
                 continue
             k = EFFECT_SIZES[name]
-            declared = np.broadcast_to(np.asarray(self.cfg.effect_initial_sd.get(name, 0.0), float), (k,))
+            declared = np.broadcast_to(np.asarray(self.cfg.effects.effect_initial_sd.get(name, 0.0), float), (k,))
             default = np.broadcast_to(np.asarray(DEFAULT_INITIAL_SD[name], float), (k,))
             i = self.layout.at(name)
             out += [(i + m, float(default[m])) for m in range(k) if declared[m] < default[m]]
@@ -356,8 +358,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
         hypothesis goes back to the prior of an unverified one (issue 27: a consistency alarm
         re-opens the verification)."""
         sep = self.separation
-        if sep is not None and sep.prior < self.cfg.setup_fault_prior:
-            sep.set_prior(self.cfg.setup_fault_prior)
+        if sep is not None and sep.prior < self.cfg.integrity.setup_fault_prior:
+            sep.set_prior(self.cfg.integrity.setup_fault_prior)
             self.counts["verification_reopened"] = self.counts.get("verification_reopened", 0) + 1
 
     def _exclude_declaration(self) -> None:
@@ -384,7 +386,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
         evidence about the set-up is gathered from here on."""
         if self.separation is not None:
             self.separation.start(self.P, self.C_nb, self.mem[MEM_W:MEM_W + 3])
-            self.consistency.set_protection(math.inf, self.cfg.alert_limit_m)
+            self.consistency.set_protection(math.inf, self.cfg.integrity.alert_limit_m)
 
     def _test_separation(self, t_s: float) -> None:
         """Separation test and protection level (``integrity.FaultTolerantSolution``), at most every
@@ -396,7 +398,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
         J = reported_jacobian(self.layout, self.C_nb, self.fx.misalignment_rad, self.nav[3:6], a_n, w_nb_b)
         C_nv = self.C_nb @ self.misalignment_dcm().T
         alarm = sep.test(t_s, J[0:3], self.P, math.atan2(C_nv[1, 0], C_nv[0, 0]))
-        self.consistency.set_protection(sep.protection_m, self.cfg.alert_limit_m)
+        self.consistency.set_protection(sep.protection_m, self.cfg.integrity.alert_limit_m)
         if alarm and t_s >= self.consistency.t_settled_s:
             self._exclude_declaration()
 
@@ -409,7 +411,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
         observable against the noise); the antenna-fix covariance of a start or reset follows the
         same models (``initialization.antenna_fix_inverse_jacobian``)."""
         v = np.asarray(v_ned_mps, float)
-        return not self.static and float(v @ v) > self.cfg.timing_min_speed_mps ** 2
+        return not self.static and float(v @ v) > self.cfg.gnss.timing_min_speed_mps ** 2
 
     # ------------------------------------------------------------------ GNSS
     def update_gnss(self, t_s: float, lla: np.ndarray, sd_ned_m: np.ndarray, fix: FixStatus | int,
@@ -441,20 +443,20 @@ class InsFilter(ImuPath, Initialization, Outputs):
             return self._try_align(t_s, lla, sd, fix, vel_ned_mps)
         if not self.heading_known:
             vel = vel_ned_mps if vel_ned_mps is not None else self._velocity_from_positions(t_s, lla, sd)
-            if vel is not None and float(np.hypot(vel[0], vel[1])) >= c.align_min_speed_mps:
+            if vel is not None and float(np.hypot(vel[0], vel[1])) >= c.initial.align_min_speed_mps:
                 return self._heading_reset(t_s, lla, sd, fix, vel)
-            if vel is None or float(np.hypot(vel[0], vel[1])) > c.static_max_gnss_speed_mps:
+            if vel is None or float(np.hypot(vel[0], vel[1])) > c.stops.static_max_gnss_speed_mps:
                 return UpdateResult("gnss_pos", t_s, False, np.nan, reason="moving, heading pending")
         self._flush_covariance()
         gap = self._gap_s(t_s)
         C_before = self.C_nb
         v = self.nav[3:6]
         timing = self._timing_in_models(v)
-        scale = c.fix_sd_scale.get(fix, 2.0)
+        scale = c.gnss.fix_sd_scale.get(fix, 2.0)
         m = updates.gnss_position(self.layout, self.nav, C_before, self.fx.lever_arm_m, v, gap, lla, sd * scale,
-                                  c.gnss_pos_sd_floor_m, timing)
-        force = self._gnss_rejections >= c.gnss_max_consecutive_rejections
-        if force and float(m.d @ m.d) > c.gnss_reset_distance_m ** 2:
+                                  c.gnss.gnss_pos_sd_floor_m, timing)
+        force = self._gnss_rejections >= c.gnss.gnss_max_consecutive_rejections
+        if force and float(m.d @ m.d) > c.gnss.gnss_reset_distance_m ** 2:
             return self._position_reset(t_s, lla, sd, fix, vel_ned_mps, float(np.sqrt(m.d @ m.d)))
         res = self._update("gnss_pos", t_s, *m, force=force)
         if res.accepted:
@@ -467,7 +469,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
         else:
             self.counts["gnss_pos_rejected"] += 1
             self._gnss_rejections += 1
-        if c.use_gnss_velocity and vel_ned_mps is not None and np.all(np.isfinite(vel_ned_mps)):
+        if c.gnss.use_gnss_velocity and vel_ned_mps is not None and np.all(np.isfinite(vel_ned_mps)):
             # the position update has corrected v and the lever arm in place; the attitude and
             # the epoch gap are still those the position update was built with
             # at a stop the body does not turn (the stop detector's rate test, ZARU): the sample's
@@ -476,7 +478,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
             rate_b = np.zeros(3) if self.static else self.mem[MEM_W:MEM_W + 3].copy()
             m = updates.gnss_velocity(self.layout, C_before, self.fx.lever_arm_m, rate_b,
                                       v, self.acc_ned_mps2, gap, self.fx.gnss_vel_latency_s, vel_ned_mps,
-                                      vel_sd_ned_mps * c.gnss_vel_sd_scale * scale, c.gnss_vel_sd_floor_mps, timing,
+                                      vel_sd_ned_mps * c.gnss.gnss_vel_sd_scale * scale,
+                                      c.gnss.gnss_vel_sd_floor_mps, timing,
                                       acc_strapdown_ned_mps2=self.acc_strapdown_ned_mps2)
             rv = self._update("gnss_vel", t_s, *m)
             self.counts["gnss_vel_accepted" if rv.accepted else "gnss_vel_rejected"] += 1
@@ -486,7 +489,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
     def _vehicle_constraints(self, speed_mps: float) -> None:
         if self.static:
             self._update_zupt()
-        elif self.cfg.platform == "car" and speed_mps > self.cfg.nhc_min_speed_mps and self.heading_known:
+        elif (self.cfg.setup.platform == "car" and speed_mps > self.cfg.constraints.nhc_min_speed_mps
+              and self.heading_known):
             self._update_nhc()
 
     def apply_vehicle_constraints(self) -> None:
@@ -502,7 +506,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
     def _update_nhc(self) -> None:
         c = self.cfg
         m = updates.nhc(self.layout, self.C_nb, self.misalignment_dcm(), self.nav[3:6], abs(self._last_w_b[2]),
-                        c.nhc_sd_mps, c.nhc_sd_per_yaw_rate_m)
+                        c.constraints.nhc_sd_mps, c.constraints.nhc_sd_per_yaw_rate_m)
         r = self._update("nhc", self.t_s, *m)
         self.counts["nhc" if r.accepted else "nhc_rejected"] += 1
 
@@ -510,12 +514,12 @@ class InsFilter(ImuPath, Initialization, Outputs):
         """ZUPT, then ZARU with the stop window's mean rate (both ungated: a stop is certain); no
         ZARU while its window reaches into a stop calibration's (``_update_static_calibration``)."""
         c = self.cfg
-        self._update("zupt", self.t_s, *updates.zupt(self.layout, self.nav[3:6], c.zupt_sd_mps), gate=False)
+        self._update("zupt", self.t_s, *updates.zupt(self.layout, self.nav[3:6], c.constraints.zupt_sd_mps), gate=False)
         self.counts["zupt"] += 1
-        if c.apply_static_calibration and self.calibrator.averaging(self.t_stamp_s, c.static_window_s):
+        if c.stops.apply_static_calibration and self.calibrator.averaging(self.t_stamp_s, c.stops.static_window_s):
             return
         m = updates.zaru(self.layout, self.C_nb, self.nav[NAV_LAT], self.stops.mean_rate_rps(),
-                         self.corr[COR_BG:COR_BG + 3], c.zaru_sd_rps)
+                         self.corr[COR_BG:COR_BG + 3], c.constraints.zaru_sd_rps)
         self._update("zaru", self.t_s, *m, gate=False)
         self.counts["zaru"] += 1
 
@@ -586,5 +590,5 @@ class InsFilter(ImuPath, Initialization, Outputs):
             return UpdateResult("odometer", t_s, False, np.nan, reason="not initialised")
         self._flush_covariance()
         m = updates.odometer(self.layout, self.C_nb, self.misalignment_dcm(), self.nav[3:6], self.acc_ned_mps2,
-                             self.fx.odometer_scale, t_s - self.t_s, speed_mps, self.cfg.odometer_sd_mps)
+                             self.fx.odometer_scale, t_s - self.t_s, speed_mps, self.cfg.constraints.odometer_sd_mps)
         return self.correct("odometer", t_s, m)

@@ -54,7 +54,7 @@ class ImuPath:
                 or (self._last_sample_t is not None and t <= self._last_sample_t)):
             self.counts["malformed_inputs"] += 1
             return
-        M = self.cfg.imu_to_body
+        M = self.cfg.setup.imu_to_body
         f_b = M @ a
         w_b = M @ g
         self._last_sample_t = t
@@ -70,8 +70,8 @@ class ImuPath:
         good = np.isfinite(t_s) & np.isfinite(acc).all(axis=1) & np.isfinite(gyr).all(axis=1)
         if not good.all():
             acc, gyr = np.where(good[:, None], acc, 0.0), np.where(good[:, None], gyr, 0.0)
-        f_b = np.ascontiguousarray(acc @ self.cfg.imu_to_body.T)
-        w_b = np.ascontiguousarray(gyr @ self.cfg.imu_to_body.T)
+        f_b = np.ascontiguousarray(acc @ self.cfg.setup.imu_to_body.T)
+        w_b = np.ascontiguousarray(gyr @ self.cfg.setup.imu_to_body.T)
         if self._last_sample_t is not None:
             good &= t_s > self._last_sample_t
         if not good.all():
@@ -91,14 +91,15 @@ class ImuPath:
     def _run_body(self, t_s: np.ndarray, f_b: np.ndarray, w_b: np.ndarray) -> None:
         n = len(t_s)
         i = 0
-        ce = self.cfg.cov_every
+        ce = self.cfg.numerics.cov_every
         while i < n:
             j = min(n, i + ce - self._since_chunk)
             if self.initialized:
                 t_prev = self.t_stamp_s if self.t_stamp_s is not None else t_s[i]
                 t0 = perf_counter()
                 strapdown_batch(t_s, f_b, w_b, i, j, t_prev, self.nav, self.C_nb, self.corr, self.mem,
-                                self.A, self.kidx, 1.0 / self.cfg.gyro_bias_tau_s, 1.0 / self.cfg.accel_bias_tau_s)
+                                self.A, self.kidx, 1.0 / self.cfg.imu.gyro_bias_tau_s,
+                                1.0 / self.cfg.imu.accel_bias_tau_s)
                 self.stage_s["strapdown"] += perf_counter() - t0
             self.t_stamp_s = float(t_s[j - 1])
             self._chunk_t.append(t_s[i:j])
@@ -134,10 +135,11 @@ class ImuPath:
         self._flush_covariance()
         self._feed_consistency_motion(speed)
         for est in ests:
-            if self.cfg.apply_static_calibration and not (est.late or est.applied):
+            if self.cfg.stops.apply_static_calibration and not (est.late or est.applied):
                 self._update_static_calibration(est)
-        if (not self.cfg.constraints_on_request
-                and self.t_stamp_s - self._last_constraint_t >= 1.0 / self.cfg.constraint_rate_hz - TIME_TOLERANCE_S):
+        if (not self.cfg.constraints.constraints_on_request
+                and self.t_stamp_s - self._last_constraint_t
+                >= 1.0 / self.cfg.constraints.constraint_rate_hz - TIME_TOLERANCE_S):
             self._last_constraint_t = self.t_stamp_s
             self._vehicle_constraints(speed)
         self._chunks_since_ortho += 1
@@ -190,7 +192,7 @@ class ImuPath:
         v_now = self.nav[3:6].copy()
         if self._v_prev_chunk is not None and t_end_s > self._t_prev_chunk:
             dt_c = float(t_end_s - self._t_prev_chunk)
-            k = min(1.0, dt_c / max(self.cfg.acc_smoothing_tau_s, MIN_SMOOTHING_TAU_S))
+            k = min(1.0, dt_c / max(self.cfg.numerics.acc_smoothing_tau_s, MIN_SMOOTHING_TAU_S))
             a_c = (v_now - self._v_prev_chunk) / dt_c
             self.acc_ned_mps2 = self.acc_ned_mps2 + k * (a_c - self.acc_ned_mps2)
             a_s = (v_now - self._v_prev_chunk - self._dv_corrections_mps) / dt_c
@@ -209,10 +211,10 @@ class ImuPath:
         mounting and bias states (``_stop_prior``). Returns the estimates published in this chunk
         and the one made in it."""
         bias_known = (self.initialized
-                      and float(np.max(np.diag(self.P)[BG:BG + 3])) < self.cfg.static_gyro_mean_max_rps ** 2)
+                      and float(np.max(np.diag(self.P)[BG:BG + 3])) < self.cfg.stops.static_gyro_mean_max_rps ** 2)
         still = self.static if bias_known else self.stops.is_static(
             self.t_s, self.corr[COR_BG:COR_BG + 3], self.nav[3:6] if self.initialized else None, rate_test=False)
-        moving = not still or (self.initialized and speed_mps > self.cfg.calibration_moving_speed_mps)
+        moving = not still or (self.initialized and speed_mps > self.cfg.stops.calibration_moving_speed_mps)
         g = geo.normal_gravity_mps2(self.nav[NAV_LAT], self.nav[NAV_H]) if self.initialized and not moving else None
         made = self.calibrator.made
         ests = self.calibrator.feed(t, f, w, moving=moving, gravity_mps2=g, prior=self._stop_prior)
@@ -228,9 +230,10 @@ class ImuPath:
         i_m = self.layout.at("misalignment")
         if not self.initialized:
             if i_m >= 0:
-                cov[PRIOR_MIS, PRIOR_MIS] = np.diag(np.broadcast_to(c.effect_initial_sd["misalignment"], 3) ** 2)
-            cov[PRIOR_BG, PRIOR_BG] = np.eye(3) * c.gyro_bias_init_sd_rps ** 2
-            cov[PRIOR_BA, PRIOR_BA] = np.eye(3) * c.accel_bias_init_sd_mps2 ** 2
+                cov[PRIOR_MIS, PRIOR_MIS] = np.diag(np.broadcast_to(c.effects.effect_initial_sd["misalignment"], 3)
+                                            ** 2)
+            cov[PRIOR_BG, PRIOR_BG] = np.eye(3) * c.imu.gyro_bias_init_sd_rps ** 2
+            cov[PRIOR_BA, PRIOR_BA] = np.eye(3) * c.imu.accel_bias_init_sd_mps2 ** 2
             return StopPrior(self.fx.misalignment_rad.copy(), self.corr[COR_BG:COR_BG + 3].copy(),
                              self.corr[COR_BA:COR_BA + 3].copy(), cov)
         idx = np.r_[ATT:ATT + 3, (np.arange(i_m, i_m + 3) if i_m >= 0 else np.full(3, -1)), BG:BG + 3, BA:BA + 3]
@@ -247,7 +250,7 @@ class ImuPath:
         needs the gyro bias. The filter's start takes its covariance as the bias prior
         (``Initialization._start``); its publication waits for the verdict like any other."""
         self.aligner.feed(t, f - self.corr[COR_BA:COR_BA + 3], w - self.corr[COR_BG:COR_BG + 3], self.static)
-        if est is not None and self.cfg.apply_static_calibration:
+        if est is not None and self.cfg.stops.apply_static_calibration:
             self.corr[COR_BG:COR_BG + 3] = est.gyro_bias_rps
             self.corr[COR_BA:COR_BA + 3] = est.accel_bias_mps2
             est.applied = True

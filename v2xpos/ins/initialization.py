@@ -100,10 +100,11 @@ class Initialization:
                    pos_sd_m: float = 0.05, vel_sd_mps: float | None = None,
                    att_sd_rad: np.ndarray | None = None) -> None:
         """Start the filter from a known state of the IMU point at GPS time t_s (rpy of C_nb)."""
+        i = self.cfg.initial
         self._start(t_s, np.asarray(lla, float), np.asarray(v_ned_mps, float),
                     dcm_from_euler(*np.asarray(rpy_rad, float)), pos_sd_m,
-                    self.cfg.init_vel_sd_mps if vel_sd_mps is None else vel_sd_mps,
-                    np.array([self.cfg.init_level_sd_rad, self.cfg.init_level_sd_rad, self.cfg.init_yaw_sd_rad])
+                    i.init_vel_sd_mps if vel_sd_mps is None else vel_sd_mps,
+                    np.array([i.init_level_sd_rad, i.init_level_sd_rad, i.init_yaw_sd_rad])
                     if att_sd_rad is None else np.asarray(att_sd_rad, float))
 
     def _start(self, t_s, lla, v, C_nb, pos_sd, vel_sd, att_sd, from_antenna: bool = False,
@@ -122,16 +123,16 @@ class Initialization:
         d[POS:POS + 3] = np.broadcast_to(np.asarray(pos_sd, float), 3) ** 2
         d[VEL:VEL + 3] = np.broadcast_to(np.asarray(vel_sd, float), 3) ** 2
         d[ATT:ATT + 3] = att_sd ** 2
-        d[BG:BG + 3] = c.gyro_bias_init_sd_rps ** 2
-        d[BA:BA + 3] = c.accel_bias_init_sd_mps2 ** 2
-        est = self.calibrator.latest if c.apply_static_calibration else None
+        d[BG:BG + 3] = c.imu.gyro_bias_init_sd_rps ** 2
+        d[BA:BA + 3] = c.imu.accel_bias_init_sd_mps2 ** 2
+        est = self.calibrator.latest if c.stops.apply_static_calibration else None
         if est is not None:
             self.corr[COR_BG:COR_BG + 3] = est.gyro_bias_rps
             self.corr[COR_BA:COR_BA + 3] = est.accel_bias_mps2
             d[BG:BG + 3] = np.maximum(est.gyro_sd_rps, STOP_GYRO_BIAS_INIT_SD_FLOOR_RPS) ** 2
         for name in self.layout.effects:
             i, k = self.layout.index[name], EFFECT_SIZES[name]
-            d[i:i + k] = c.effect_initial_sd.get(name, 0.01) ** 2
+            d[i:i + k] = c.effects.effect_initial_sd.get(name, 0.01) ** 2
         self.P[np.diag_indices(n)] = d
         if est is not None:
             self.P[BA:BA + 3, BA:BA + 3] = est.accel_cov
@@ -164,7 +165,7 @@ class Initialization:
             return None
         v, v_sd = out
         speed = float(np.hypot(v[0], v[1]))
-        if v_sd > max(self.cfg.align_min_speed_mps / 3.0, 0.2 * speed):
+        if v_sd > max(self.cfg.initial.align_min_speed_mps / 3.0, 0.2 * speed):
             return None
         self._course_sd_rad = v_sd / max(speed, 1e-3)
         return v
@@ -185,27 +186,29 @@ class Initialization:
         if vel is None or self.t_stamp_s is None:
             return UpdateResult("gnss_pos", t_s, False, np.nan, reason="aligning: no velocity yet")
         speed = float(np.hypot(vel[0], vel[1]))
-        pos_sd = np.maximum(sd * c.fix_sd_scale.get(fix, 2.0), MIN_START_POSITION_SD_M)
-        if (c.static_start and speed < c.static_max_gnss_speed_mps and self.static
+        pos_sd = np.maximum(sd * c.gnss.fix_sd_scale.get(fix, 2.0), MIN_START_POSITION_SD_M)
+        if (c.initial.static_start and speed < c.stops.static_max_gnss_speed_mps and self.static
                 and self.aligner.levelled_static):
             # stopped and levelled: start now with the yaw left open, so that ZUPT/ZARU estimate the
             # biases during the stop; the heading is set when the platform moves (_heading_reset)
             C = self.aligner.C_nb
             self._start(self.t_s, self._imu_point_at_label(t_s, lla, np.zeros(3), C), np.zeros(3), C, pos_sd,
-                        c.init_vel_sd_mps, np.array([c.init_level_sd_rad, c.init_level_sd_rad, math.pi]),
+                        c.initial.init_vel_sd_mps,
+                        np.array([c.initial.init_level_sd_rad, c.initial.init_level_sd_rad, math.pi]),
                         from_antenna=True, heading_known=False)
             if self.separation is not None:
                 self.separation.stop()
             self.last_fix = fix
             self.last_gnss_t_s = t_s
             return UpdateResult("gnss_pos", t_s, False, np.nan, reason="initialised at a stop, heading pending")
-        if speed < c.align_min_speed_mps:
+        if speed < c.initial.align_min_speed_mps:
             return UpdateResult("gnss_pos", t_s, False, np.nan, reason="aligning: too slow for heading")
         C = self.aligner.attitude_with_heading(float(np.arctan2(vel[1], vel[0])))
         if C is None:
             return UpdateResult("gnss_pos", t_s, False, np.nan, reason="aligning: not levelled yet")
-        self._start(self.t_s, self._imu_point_at_label(t_s, lla, vel, C), vel, C, pos_sd, c.init_vel_sd_mps,
-                    np.array([c.init_level_sd_rad, c.init_level_sd_rad, max(c.init_yaw_sd_rad, self._course_sd_rad)]),
+        self._start(self.t_s, self._imu_point_at_label(t_s, lla, vel, C), vel, C, pos_sd, c.initial.init_vel_sd_mps,
+                    np.array([c.initial.init_level_sd_rad, c.initial.init_level_sd_rad,
+                              max(c.initial.init_yaw_sd_rad, self._course_sd_rad)]),
                     from_antenna=True)
         self.last_fix = fix
         self.last_gnss_t_s = t_s
@@ -224,8 +227,8 @@ class Initialization:
         idx = np.r_[POS:POS + 3, VEL:VEL + 3]
         self.P[idx, :] = 0.0
         self.P[:, idx] = 0.0
-        pos_sd = np.maximum(sd * c.fix_sd_scale.get(fix, 2.0), MIN_START_POSITION_SD_M)
-        vel_sd = c.init_vel_sd_mps if vel is not None else max(c.init_vel_sd_mps, 0.1 * err_m)
+        pos_sd = np.maximum(sd * c.gnss.fix_sd_scale.get(fix, 2.0), MIN_START_POSITION_SD_M)
+        vel_sd = c.initial.init_vel_sd_mps if vel is not None else max(c.initial.init_vel_sd_mps, 0.1 * err_m)
         self.P[idx, idx] = np.r_[pos_sd ** 2, np.full(3, vel_sd ** 2)]
         G = self._antenna_fix_jacobian(self.heading_known)
         self.P = position_from_antenna_covariance(self.P, G, pos_sd)
@@ -308,9 +311,9 @@ class Initialization:
         idx = np.r_[POS:POS + 3, VEL:VEL + 3, ATT + 2]
         self.P[idx, :] = 0.0
         self.P[:, idx] = 0.0
-        pos_sd = np.maximum(sd * c.fix_sd_scale.get(fix, 2.0), MIN_START_POSITION_SD_M)
-        self.P[idx, idx] = np.r_[pos_sd ** 2, np.full(3, c.init_vel_sd_mps ** 2),
-                                 max(c.init_yaw_sd_rad, self._course_sd_rad) ** 2]
+        pos_sd = np.maximum(sd * c.gnss.fix_sd_scale.get(fix, 2.0), MIN_START_POSITION_SD_M)
+        self.P[idx, idx] = np.r_[pos_sd ** 2, np.full(3, c.initial.init_vel_sd_mps ** 2),
+                                 max(c.initial.init_yaw_sd_rad, self._course_sd_rad) ** 2]
         self.P = position_from_antenna_covariance(self.P, self._antenna_fix_jacobian(True), pos_sd)
         self.heading_known = True
         self.consistency.restart(float(t_s))

@@ -11,7 +11,7 @@ is known without the declaration (``start``). An undeclared error is thus a faul
 probability, not a certainty (advanced RAIM: Blanch et al. 2015, "Baseline advanced RAIM user
 algorithm and possible improvements", IEEE TAES 51(1)): ``prior`` = P(H1) before any data, the
 rate of set-up blunders for an unverified set-up, the rate of a set-up changing since it was
-verified for a verified one (``InsConfig.setup_fault_prior`` / ``setup_change_prior``).
+verified for a verified one (``InsConfig.integrity.setup_fault_prior`` / ``setup_change_prior``).
 
 **Evidence.** Both filters predict every measurement; the likelihood ratio of their innovation
 sequences updates the hypothesis probability (the static multiple-model estimator, Magill 1965,

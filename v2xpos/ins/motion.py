@@ -37,7 +37,7 @@ class StopDetector:
 
     def __init__(self, cfg: InsConfig):
         self.cfg = cfg
-        self.window = np.zeros((max(1, int(round(cfg.static_window_s * cfg.constraint_rate_hz))), 8))
+        self.window = np.zeros((max(1, int(round(cfg.stops.static_window_s * cfg.constraints.constraint_rate_hz))), 8))
         self.filled = 0
         self._next = 0
         self.gnss_speed_mps: float | None = None
@@ -78,14 +78,14 @@ class StopDetector:
         acc_sd = math.sqrt(max(s2 / n - (s1 / n) ** 2, 0.0))
         dw = sw / n - gyro_bias_rps
         w_mean = math.sqrt(float(dw @ dw))
-        ok = acc_sd < c.static_acc_std_max_mps2 and (w_mean < c.static_gyro_mean_max_rps or not rate_test)
+        ok = acc_sd < c.stops.static_acc_std_max_mps2 and (w_mean < c.stops.static_gyro_mean_max_rps or not rate_test)
         if ok and v_ned_mps is not None:
             fh = tot[_SUM_FH:_SUM_FH + 2] / n
-            ok = (float(v_ned_mps @ v_ned_mps) < c.static_max_speed_mps ** 2
-                  and float(fh @ fh) < c.static_acc_h_max_mps2 ** 2)
+            ok = (float(v_ned_mps @ v_ned_mps) < c.stops.static_max_speed_mps ** 2
+                  and float(fh @ fh) < c.stops.static_acc_h_max_mps2 ** 2)
         if (ok and self.gnss_speed_mps is not None
-                and t_s - self.gnss_speed_t_s < c.static_gnss_speed_max_age_s):
-            ok = self.gnss_speed_mps < c.static_max_gnss_speed_mps
+                and t_s - self.gnss_speed_t_s < c.stops.static_gnss_speed_max_age_s):
+            ok = self.gnss_speed_mps < c.stops.static_max_gnss_speed_mps
         return bool(ok)
 
     def mean_rate_rps(self) -> np.ndarray:

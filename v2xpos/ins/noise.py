@@ -86,13 +86,13 @@ def process_noise_density(layout: StateLayout, cfg: InsConfig) -> np.ndarray:
     density^2; biases: 2 sigma^2 / tau (stationary Gauss-Markov); effects: their random walk^2.
     """
     q = np.zeros(layout.n)
-    q[VEL:VEL + 3] = cfg.accel_noise_mps2_rthz ** 2
-    q[ATT:ATT + 3] = cfg.gyro_noise_rps_rthz ** 2
-    q[BG:BG + 3] = 2.0 * cfg.gyro_bias_sd_rps ** 2 / cfg.gyro_bias_tau_s
-    q[BA:BA + 3] = 2.0 * cfg.accel_bias_sd_mps2 ** 2 / cfg.accel_bias_tau_s
+    q[VEL:VEL + 3] = cfg.imu.accel_noise_mps2_rthz ** 2
+    q[ATT:ATT + 3] = cfg.imu.gyro_noise_rps_rthz ** 2
+    q[BG:BG + 3] = 2.0 * cfg.imu.gyro_bias_sd_rps ** 2 / cfg.imu.gyro_bias_tau_s
+    q[BA:BA + 3] = 2.0 * cfg.imu.accel_bias_sd_mps2 ** 2 / cfg.imu.accel_bias_tau_s
     for name in layout.effects:
         i, k = layout.index[name], EFFECT_SIZES[name]
-        q[i:i + k] = cfg.effect_random_walk.get(name, 0.0) ** 2
+        q[i:i + k] = cfg.effects.effect_random_walk.get(name, 0.0) ** 2
     return q
 
 

@@ -131,10 +131,10 @@ def run_replay(f: InsFilter, dataset: Dataset, outages: Sequence[tuple[float, fl
     ``on_outage_end``. exact_epochs: the filter state is brought exactly to every GNSS epoch (an
     interpolated IMU sample is inserted there, so no extrapolation over the gap to the last sample)
     and the vehicle constraints are applied mid-way between GNSS epochs (``constraint_times``;
-    needs ``cfg.constraints_on_request``): then a shift of the IMU stamps changes the replay
+    needs ``cfg.constraints.constraints_on_request``): then a shift of the IMU stamps changes the replay
     continuously. progress: a progress bar's label (None: no bar).
     """
-    if exact_epochs and not f.cfg.constraints_on_request:
+    if exact_epochs and not f.cfg.constraints.constraints_on_request:
         raise ValueError("run_replay(exact_epochs=True) needs InsConfig(constraints_on_request=True)")
     imu, gn = dataset.imu, dataset.gnss
     t_imu = np.asarray(imu.t_s, float)
@@ -143,7 +143,7 @@ def run_replay(f: InsFilter, dataset: Dataset, outages: Sequence[tuple[float, fl
     t_gnss = np.asarray(gn.t_s, float)
     t_constr = np.zeros(0)
     if exact_epochs and len(t_imu) > 1:
-        t_constr = constraint_times(np.sort(t_gnss, kind="stable"), f.cfg.constraint_rate_hz)
+        t_constr = constraint_times(np.sort(t_gnss, kind="stable"), f.cfg.constraints.constraint_rate_hz)
         t_imu, acc, gyr = with_samples_at(t_imu, acc, gyr, np.concatenate([t_gnss, t_constr]))
     bar = None
     if progress:

@@ -31,7 +31,7 @@ v_b = C^T v.
 * Stop calibration (``static_calibration``): the gyro bias measured directly, h = b_g, H_bg = I.
 
 The timing columns (H_dt, H_lat, H_vel_lat) are zero when the caller says the platform is too
-slow for timing to be observable (``InsConfig.timing_min_speed_mps``).
+slow for timing to be observable (``InsConfig.gnss.timing_min_speed_mps``).
 """
 from __future__ import annotations
 

@@ -82,13 +82,13 @@ def fuse_unit(imu: ImuData, C_body_imu: np.ndarray, t_fix_s: np.ndarray, r_ned_m
     from v2xpos.ins import InsConfig, InsFilter
     from v2xpos.ins.driver import InsDriver
 
-    cfg = InsConfig(platform="generic", imu_to_body=C_body_imu,
-                    lever_arm_m=np.zeros(3) if lever_arm_m is None else lever_arm_m,
-                    lever_arm_sd_m=0.05, use_gnss_velocity=False, apply_static_calibration=False)
+    cfg = InsConfig(setup={"platform": "generic", "imu_to_body": C_body_imu,
+                           "lever_arm_m": np.zeros(3) if lever_arm_m is None else lever_arm_m, "lever_arm_sd_m": 0.05},
+                    gnss={"use_gnss_velocity": False}, stops={"apply_static_calibration": False})
     if gyro_noise_rps_rthz is not None:
-        cfg.gyro_noise_rps_rthz = gyro_noise_rps_rthz
+        cfg.imu.gyro_noise_rps_rthz = gyro_noise_rps_rthz
     if accel_noise_mps2_rthz is not None:
-        cfg.accel_noise_mps2_rthz = accel_noise_mps2_rthz
+        cfg.imu.accel_noise_mps2_rthz = accel_noise_mps2_rthz
     filt = InsFilter(cfg)
     v = _velocity_from_positions(t_fix_s, r_ned_m)
     t0 = float(t_fix_s[0])

@@ -37,8 +37,9 @@ class SourceContext:
     the config file (relative paths in ``[source]`` are resolved against it); link: the service's
     ``v2xpos.link.Link`` once open (sources that synchronise over the network use it); stop:
     returns True when the service is asked to stop (long waits poll it); filter_overrides:
-    ``InsConfig`` fields the service's configuration sets for the vehicle's filter (its
-    ``[validity]`` alert limit and integrity risk, ``v2xpos.config.validity_from_table``).
+    ``InsConfig`` groups (each a dict of some of its fields) the service's configuration sets for
+    the vehicle's filter (its ``[validity]`` alert limit and integrity risk in ``integrity``,
+    ``v2xpos.config.validity_from_table``).
     """
     vehicle_id: str
     fleet: str = "demo"

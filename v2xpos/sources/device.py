@@ -115,7 +115,7 @@ class DeviceSource(VehicleSource):
         self.imu_stream = imu
         self.imu_source_name = imu.name if imu is not None else gnss.name
         self.cfg = ins_config
-        self.kind = "pedestrian" if ins_config.platform == "pedestrian" else "vehicle"
+        self.kind = "pedestrian" if ins_config.setup.platform == "pedestrian" else "vehicle"
         self.filter = InsFilter(ins_config)
         self.driver = InsDriver(self.filter, reorder_window_s=float(reorder_window_s), emit_states=True)
         self.clock = clock

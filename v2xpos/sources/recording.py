@@ -91,7 +91,7 @@ def ins_config_for(ds, **overrides) -> "object":
     vehicle constraints, its ``[calibration]`` table and its wheel speeds, in the services'
     profile (``v2xpos.ins.profiles.dataset_config``: the same function ``v2xpos replay`` and the
     device source use, so a vehicle is the same filter everywhere); ``overrides``: ``InsConfig``
-    fields the service sets (its ``[validity]``)."""
+    groups the service sets (its ``[validity]`` in ``integrity``)."""
     from v2xpos.ins.profiles import dataset_config
     return dataset_config(ds, **overrides)
 
