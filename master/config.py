@@ -1,4 +1,8 @@
-"""Master configuration (TOML). Example (``configs/master.toml``)::
+"""Master configuration (TOML): one group per table (``MasterConfig.service``, ``.link``, ``.source``,
+``.output`` with ``.can`` / ``.udp`` / ``.zenoh`` / ``.plugins``, ``.scene``, ``.record``,
+``.security``, ``.validity``, ``.grading``, ``.corrections``), each read against its schema
+(``v2xpos.schema.read_table``: an unknown or misspelt key is refused with a "did you mean").
+Example (``configs/master.toml``)::
 
     [service]
     fleet = "demo"
@@ -85,193 +89,258 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
-from v2xpos.config import (ConfigError, SourceConfig, check_keys, config_dir, corrections_from_table,
-                           link_from_table, load_toml, take, validity_from_table)
+from v2xpos.config import (ConfigError, FilterValidity, SourceConfig, check_keys, config_dir, corrections_from_table,
+                           field_key, link_from_table, load_toml, read_group, take, validity_from_table)
 from v2xpos.link import LinkConfig
 from v2xpos.schema import Key, check_choice
 
-VALIDITY_KEYS = (Key("max_sigma_h_m", float, 0.10), Key("max_sigma_yaw_deg", float, 1.0),
-                 Key("require_consistency", bool, True), Key("max_clock_disagreement_ms", float, 50.0))
-"""The master's own ``[validity]`` keys (when a computed result is VALID), read with the own filter's
-keys by ``v2xpos.config.validity_from_table``."""
-
 
 @dataclass
-class MasterConfig:
+class ServiceSettings:
+    """``[service]``: identity, staleness limit, measurement point, session length, rates, dispatch."""
     fleet: str = "demo"
     master_id: str = "ego"
     timeout_ms: float = 200.0
-    measurement_point_m: tuple = (0.0, 0.0, 0.0)
-    known_vehicles: tuple = ()
+    measurement_point_m: tuple = (0.0, 0.0, 0.0)    # master body frame
+    known_vehicles: tuple = ()                     # accepted target ids; empty = any
     duration_s: float | None = None
     status_hz: float = 2.0
     tick_hz: float = 10.0
     realtime_priority: int = 0
     dispatch: str = "inline"
-    link: LinkConfig = field(default_factory=lambda: LinkConfig(mode="router", listen=["tcp/127.0.0.1:7447"]))
-    source: SourceConfig = field(default_factory=SourceConfig)
-    can_enabled: bool = False
-    can_interface: str = "virtual"
-    can_channel: str = "v2xpos"
-    can_rate_hz: float = 25.0
-    can_status_hz: float = 10.0
-    can_bitrate: int | None = None
-    can_fd: bool = False
-    can_data_bitrate: int | None = None
-    can_receive_own_messages: bool = False
-    can_slots: dict = field(default_factory=dict)
-    udp_enabled: bool = False
-    udp_host: str = "127.0.0.1"
-    udp_port: int = 47001
-    udp_status_hz: float = 10.0
-    zenoh_enabled: bool = True
-    output_plugins: dict = field(default_factory=dict)
-    """Plug-in outputs: name -> its ``[output.NAME]`` table (``master.outputs``)."""
+
+
+SERVICE_KEYS = (field_key(ServiceSettings, "fleet", str), field_key(ServiceSettings, "master_id", str),
+                field_key(ServiceSettings, "timeout_ms", float, above=0, high=60000),
+                Key("measurement_point_m", list, [0.0, 0.0, 0.0]), Key("known_vehicles", list, []),
+                field_key(ServiceSettings, "duration_s", float), field_key(ServiceSettings, "status_hz", float),
+                field_key(ServiceSettings, "tick_hz", float), field_key(ServiceSettings, "dispatch", str),
+                field_key(ServiceSettings, "realtime_priority", int, low=0, high=99))
+
+
+@dataclass
+class CanOutput:
+    """``[output.can]`` (docs/protocol.md §5): the python-can bus, the rates, fixed target slots."""
+    enabled: bool = False
+    interface: str = "virtual"
+    channel: str = "v2xpos"
+    rate_hz: float = 25.0                 # max updates per target per second (0 = every result)
+    status_hz: float = 10.0
+    bitrate: int | None = None
+    fd: bool = False
+    data_bitrate: int | None = None
+    receive_own_messages: bool = False
+    slots: dict = field(default_factory=dict)
+
+    def bus_kwargs(self) -> dict:
+        """python-can ``Bus`` options (besides interface and channel)."""
+        kw = {"receive_own_messages": self.receive_own_messages}
+        if self.bitrate is not None:
+            kw["bitrate"] = self.bitrate
+        if self.fd:
+            kw["fd"] = True
+            if self.data_bitrate is not None:
+                kw["data_bitrate"] = self.data_bitrate
+        return kw
+
+
+CAN_KEYS = (field_key(CanOutput, "enabled", bool), field_key(CanOutput, "interface", str),
+            field_key(CanOutput, "channel", str), field_key(CanOutput, "rate_hz", float, low=0, high=1000),
+            field_key(CanOutput, "status_hz", float, above=0, high=100),
+            field_key(CanOutput, "bitrate", int, low=10_000, high=1_000_000), field_key(CanOutput, "fd", bool),
+            field_key(CanOutput, "data_bitrate", int, low=10_000, high=16_000_000),
+            field_key(CanOutput, "receive_own_messages", bool), field_key(CanOutput, "slots", dict))
+
+
+@dataclass
+class UdpOutput:
+    """``[output.udp]``: destination and heartbeat rate (0 = none)."""
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    port: int = 47001
+    status_hz: float = 10.0
+
+
+UDP_KEYS = (field_key(UdpOutput, "enabled", bool), field_key(UdpOutput, "host", str),
+            field_key(UdpOutput, "port", int, low=1, high=65535),
+            field_key(UdpOutput, "status_hz", float, low=0, high=100))
+
+
+@dataclass
+class ZenohOutput:
+    """``[output.zenoh]``: republish RelativeResult on .../master/<id>/relative."""
+    enabled: bool = True
+
+
+@dataclass
+class Outputs:
+    """``[output]``: the built-in outputs and the plug-ins (name -> its ``[output.NAME]`` table,
+    ``master.outputs``)."""
+    can: CanOutput = field(default_factory=CanOutput)
+    udp: UdpOutput = field(default_factory=UdpOutput)
+    zenoh: ZenohOutput = field(default_factory=ZenohOutput)
+    plugins: dict = field(default_factory=dict)
+
+
+@dataclass
+class SceneSettings:
+    """``[scene]``: optional V2L GeoJSON and the evaluation rate."""
     geojson: str | None = None
-    scene_hz: float = 10.0
+    rate_hz: float = 10.0
+
+
+@dataclass
+class RecordSettings:
+    """``[record]``: result files and the MCAP session recording (paths relative to the file)."""
     results_npz: str | None = None
     results_csv: str | None = None
     summary_json: str | None = None
     evaluate_uncompensated: bool = False
+    mcap: str | None = None
+    mcap_max_mb: float = 256.0
+
+
+@dataclass
+class SecuritySettings:
+    """``[security]``: admission control (``v2xpos.security.MessageAuthenticator``)."""
     trust_list: str | None = None
     require_signature: bool = True
     max_age_s: float = 5.0
     future_tolerance_s: float = 0.05
     replay_window: int = 1024
-    mcap: str | None = None
-    mcap_max_mb: float = 256.0
-    grading: bool = False
-    corrections: object | None = None
+
+
+@dataclass
+class MasterValidity(FilterValidity):
+    """``[validity]``: when a computed result is VALID, and what it sets for the own filter
+    (``FilterValidity``)."""
     max_sigma_h_m: float = 0.10
     max_sigma_yaw_deg: float = 1.0
     require_consistency: bool = True
     max_clock_disagreement_s: float = 0.05
-    filter_integrity: dict = field(default_factory=dict)   # [validity] alert_limit_m / integrity_risk of the own filter
-    verification_out: Path | None = None                    # [validity] write the own set-up's record here at the end
+
+
+@dataclass
+class GradingSettings:
+    """``[grading]``: the live IMU grading worker (master/grading.py)."""
+    enabled: bool = False
+
+
+VALIDITY_KEYS = (field_key(MasterValidity, "max_sigma_h_m", float, above=0),
+                 field_key(MasterValidity, "max_sigma_yaw_deg", float, above=0),
+                 field_key(MasterValidity, "require_consistency", bool),
+                 Key("max_clock_disagreement_ms", float, 50.0, above=0, high=60000))
+"""The master's own ``[validity]`` keys (when a computed result is VALID), read with the own filter's
+keys by ``v2xpos.config.validity_from_table``."""
+SCENE_KEYS = (field_key(SceneSettings, "geojson", str), field_key(SceneSettings, "rate_hz", float, above=0, high=100))
+RECORD_KEYS = tuple(field_key(RecordSettings, name, kind) for name, kind in (
+    ("results_npz", str), ("results_csv", str), ("summary_json", str), ("evaluate_uncompensated", bool),
+    ("mcap", str))) + (field_key(RecordSettings, "mcap_max_mb", float, above=0),)
+SECURITY_KEYS = tuple(field_key(SecuritySettings, name, kind) for name, kind in (
+    ("trust_list", str), ("require_signature", bool), ("max_age_s", float), ("future_tolerance_s", float))) + (
+    field_key(SecuritySettings, "replay_window", int, low=1, high=1 << 20),)
+GRADING_KEYS = (field_key(GradingSettings, "enabled", bool),)
+TABLES = ("service", "link", "source", "output", "scene", "record", "security", "grading", "corrections", "validity")
+"""The top-level tables of a master config."""
+
+
+@dataclass
+class MasterConfig:
+    """A master's configuration: one group per TOML table (module docstring), ``path`` the file."""
+    service: ServiceSettings = field(default_factory=ServiceSettings)
+    link: LinkConfig = field(default_factory=lambda: LinkConfig(mode="router", listen=["tcp/127.0.0.1:7447"]))
+    source: SourceConfig = field(default_factory=SourceConfig)
+    output: Outputs = field(default_factory=Outputs)
+    scene: SceneSettings = field(default_factory=SceneSettings)
+    record: RecordSettings = field(default_factory=RecordSettings)
+    security: SecuritySettings = field(default_factory=SecuritySettings)
+    validity: MasterValidity = field(default_factory=MasterValidity)
+    grading: GradingSettings = field(default_factory=GradingSettings)
+    corrections: object | None = None
     path: str = "<defaults>"
 
     @classmethod
     def load(cls, path: str | Path) -> "MasterConfig":
         return cls.from_dict(load_toml(path), str(path))
 
-    PATH_FIELDS = ("results_npz", "results_csv", "summary_json", "mcap", "geojson", "trust_list")
-    """Fields that name files: relative ones resolve against the config file's directory."""
+    PATH_FIELDS = (("record", "results_npz"), ("record", "results_csv"), ("record", "summary_json"),
+                   ("record", "mcap"), ("scene", "geojson"), ("security", "trust_list"))
+    """(group, field) of the fields that name files: relative ones resolve against the config file's
+    directory."""
 
     @classmethod
     def from_dict(cls, d: dict, path: str = "<dict>") -> "MasterConfig":
-        check_keys(d, {"service", "link", "source", "output", "scene", "record", "security", "grading", "corrections",
-                       "validity"}, path)
-        wv = f"{path}: [validity]"
-        validity = validity_from_table(take(d, "validity", dict, {}, path), wv, config_dir(path), VALIDITY_KEYS)
-        va = validity.service
-        max_clock_ms = va["max_clock_disagreement_ms"]
-        if not 0 < max_clock_ms <= 60000:
-            raise ConfigError(f"{wv}.max_clock_disagreement_ms: {max_clock_ms} outside (0, 60000]")
-        max_sigma_h = va["max_sigma_h_m"]
-        max_sigma_yaw = va["max_sigma_yaw_deg"]
-        if not max_sigma_h > 0 or not max_sigma_yaw > 0:
-            raise ConfigError(f"{wv}: max_sigma_h_m and max_sigma_yaw_deg must be > 0")
-        gr = take(d, "grading", dict, {}, path)
-        check_keys(gr, {"enabled"}, f"{path}: [grading]")
-        w = f"{path}: [service]"
-        s = take(d, "service", dict, {}, path)
-        check_keys(s, {"fleet", "master_id", "timeout_ms", "measurement_point_m", "known_vehicles",
-                       "duration_s", "status_hz", "tick_hz", "dispatch", "realtime_priority"}, w)
-        rt = take(s, "realtime_priority", int, 0, w)
-        if not 0 <= rt <= 99:
-            raise ConfigError(f"{w}.realtime_priority: {rt} outside 0..99")
-        dispatch = take(s, "dispatch", str, "inline", w)
-        check_choice(dispatch, ("inline", "asyncio"), f"{w}.dispatch", ConfigError)
-        timeout = take(s, "timeout_ms", float, 200.0, w)
-        if not 0 < timeout <= 60000:
-            raise ConfigError(f"{w}.timeout_ms: {timeout} outside (0, 60000]")
-        mp = take(s, "measurement_point_m", list, [0.0, 0.0, 0.0], w)
-        if len(mp) != 3 or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in mp):
-            raise ConfigError(f"{w}.measurement_point_m: expected 3 numbers, got {mp!r}")
-        known = take(s, "known_vehicles", list, [], w)
-        if not all(isinstance(x, str) for x in known):
-            raise ConfigError(f"{w}.known_vehicles: expected a list of strings")
-        outputs = output_from_table(take(d, "output", dict, {}, path), path)
-        sc = take(d, "scene", dict, {}, path)
-        check_keys(sc, {"geojson", "rate_hz"}, f"{path}: [scene]")
-        scene_hz = take(sc, "rate_hz", float, 10.0, f"{path}: [scene]")
-        if not 0 < scene_hz <= 100:
-            raise ConfigError(f"{path}: [scene].rate_hz: {scene_hz} outside (0, 100]")
-        rec = take(d, "record", dict, {}, path)
-        wr = f"{path}: [record]"
-        check_keys(rec, {"results_npz", "results_csv", "summary_json", "evaluate_uncompensated", "mcap", "mcap_max_mb"}, wr)
-        sec = take(d, "security", dict, {}, path)
-        ws = f"{path}: [security]"
-        check_keys(sec, {"trust_list", "require_signature", "max_age_s", "future_tolerance_s", "replay_window"}, ws)
-        mcap_mb = take(rec, "mcap_max_mb", float, 256.0, wr)
-        if not mcap_mb > 0:
-            raise ConfigError(f"{wr}.mcap_max_mb: must be > 0, got {mcap_mb}")
-        window = take(sec, "replay_window", int, 1024, ws)
-        if not 1 <= window <= 1 << 20:
-            raise ConfigError(f"{ws}.replay_window: {window} outside 1..1048576")
-        return cls(
-            fleet=take(s, "fleet", str, "demo", w), master_id=take(s, "master_id", str, "ego", w),
-            timeout_ms=timeout, measurement_point_m=tuple(float(x) for x in mp), known_vehicles=tuple(known),
-            duration_s=take(s, "duration_s", float, None, w), status_hz=take(s, "status_hz", float, 2.0, w),
-            tick_hz=take(s, "tick_hz", float, 10.0, w), dispatch=dispatch, realtime_priority=rt,
-            link=link_from_table(take(d, "link", dict, {"mode": "router", "listen": ["tcp/127.0.0.1:7447"]}, path),
-                                 f"{path}: [link]"),
-            source=SourceConfig.from_table(take(d, "source", dict, {}, path), f"{path}: [source]"),
-            **outputs,
-            geojson=take(sc, "geojson", str, None, f"{path}: [scene]"), scene_hz=scene_hz,
-            results_npz=take(rec, "results_npz", str, None, wr),
-            results_csv=take(rec, "results_csv", str, None, wr), summary_json=take(rec, "summary_json", str, None, wr),
-            evaluate_uncompensated=take(rec, "evaluate_uncompensated", bool, False, wr),
-            mcap=take(rec, "mcap", str, None, wr), mcap_max_mb=mcap_mb,
-            grading=take(gr, "enabled", bool, False, f"{path}: [grading]"),
-            trust_list=take(sec, "trust_list", str, None, ws),
-            require_signature=take(sec, "require_signature", bool, True, ws),
-            max_age_s=take(sec, "max_age_s", float, 5.0, ws),
-            future_tolerance_s=take(sec, "future_tolerance_s", float, 0.05, ws), replay_window=window,
-            corrections=corrections_from_table(d, path), max_sigma_h_m=max_sigma_h, max_sigma_yaw_deg=max_sigma_yaw,
-            require_consistency=va["require_consistency"], max_clock_disagreement_s=max_clock_ms / 1e3,
-            filter_integrity=validity.filter_integrity, verification_out=validity.verification_out,
-            path=path)._resolved()
+        check_keys(d, set(TABLES), path)
+
+        def table(name: str, default: Any = None) -> Any:
+            return take(d, name, dict, {} if default is None else default, path)
+
+        # read in this order, so that a file with several faults names the same one first as before
+        groups = dict(validity=master_validity(table("validity"), f"{path}: [validity]", config_dir(path)),
+                      grading=read_group(GradingSettings, table("grading"), GRADING_KEYS, f"{path}: [grading]"),
+                      service=service_from_table(table("service"), f"{path}: [service]"),
+                      output=output_from_table(table("output"), path),
+                      scene=read_group(SceneSettings, table("scene"), SCENE_KEYS, f"{path}: [scene]"),
+                      record=read_group(RecordSettings, table("record"), RECORD_KEYS, f"{path}: [record]"),
+                      security=read_group(SecuritySettings, table("security"), SECURITY_KEYS, f"{path}: [security]"))
+        return cls(**groups, link=link_from_table(table("link", {"mode": "router", "listen": ["tcp/127.0.0.1:7447"]}),
+                                                  f"{path}: [link]"),
+                   source=SourceConfig.from_table(table("source"), f"{path}: [source]"),
+                   corrections=corrections_from_table(d, path), path=path)._resolved()
 
     def _resolved(self) -> "MasterConfig":
         """Relative file paths made absolute against the config file's directory (``config_dir``), as
         the file's comments say; a config built in memory resolves against the working directory."""
         base = config_dir(self.path)
-        for name in self.PATH_FIELDS:
-            value = getattr(self, name)
+        for group, name in self.PATH_FIELDS:
+            value = getattr(getattr(self, group), name)
             if value:
-                setattr(self, name, str(base / Path(value).expanduser()))
+                setattr(getattr(self, group), name, str(base / Path(value).expanduser()))
         return self
 
     def enabled_outputs(self) -> list[tuple[str, dict]]:
         """(name, table) of every output to open, in this order: ``can``, ``udp``, ``zenoh``,
-        ``results_csv`` when enabled (their settings are this config's fields), then the plug-ins."""
-        builtin = (("can", self.can_enabled), ("udp", self.udp_enabled), ("zenoh", self.zenoh_enabled),
-                   ("results_csv", bool(self.results_csv)))
+        ``results_csv`` when enabled (their settings are this config's groups), then the plug-ins."""
+        out = self.output
+        builtin = (("can", out.can.enabled), ("udp", out.udp.enabled), ("zenoh", out.zenoh.enabled),
+                   ("results_csv", bool(self.record.results_csv)))
         return [(name, {}) for name, on in builtin if on] + [
-            (name, t) for name, t in self.output_plugins.items() if t.get("enabled", True)]
+            (name, t) for name, t in out.plugins.items() if t.get("enabled", True)]
 
-    def can_bus_kwargs(self) -> dict:
-        """python-can ``Bus`` options of ``[output.can]`` (besides interface and channel)."""
-        kw = {"receive_own_messages": self.can_receive_own_messages}
-        if self.can_bitrate is not None:
-            kw["bitrate"] = self.can_bitrate
-        if self.can_fd:
-            kw["fd"] = True
-            if self.can_data_bitrate is not None:
-                kw["data_bitrate"] = self.can_data_bitrate
-        return kw
+
+def service_from_table(t: dict, where: str) -> ServiceSettings:
+    """``[service]`` against ``SERVICE_KEYS``, with the checks a range cannot state."""
+    v = read_group(dict, t, SERVICE_KEYS, where)
+    check_choice(v["dispatch"], ("inline", "asyncio"), f"{where}.dispatch", ConfigError)
+    mp = v["measurement_point_m"]
+    if len(mp) != 3 or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in mp):
+        raise ConfigError(f"{where}.measurement_point_m: expected 3 numbers, got {mp!r}")
+    if not all(isinstance(x, str) for x in v["known_vehicles"]):
+        raise ConfigError(f"{where}.known_vehicles: expected a list of strings")
+    return ServiceSettings(**{**v, "measurement_point_m": tuple(float(x) for x in mp),
+                              "known_vehicles": tuple(v["known_vehicles"])})
+
+
+def master_validity(t: dict, where: str, base_dir: Path) -> MasterValidity:
+    """``[validity]``: the master's own keys (``VALIDITY_KEYS``) and the own filter's
+    (``v2xpos.config.validity_from_table``)."""
+    validity = validity_from_table(t, where, base_dir, VALIDITY_KEYS)
+    va = validity.service
+    return MasterValidity(max_sigma_h_m=va["max_sigma_h_m"], max_sigma_yaw_deg=va["max_sigma_yaw_deg"],
+                          require_consistency=va["require_consistency"],
+                          max_clock_disagreement_s=va["max_clock_disagreement_ms"] / 1e3,
+                          filter_integrity=validity.filter_integrity, verification_out=validity.verification_out)
 
 
 CAN_INTERFACES_HINT = ("socketcan", "virtual")
 """The interfaces this project runs and tests: SocketCAN on a vehicle, python-can's virtual bus in tests."""
 
 
-def output_from_table(out: dict, path: str) -> dict:
-    """The MasterConfig fields of the ``[output]`` table (``[output.can]``, ``[output.udp]``,
-    ``[output.zenoh]``, and a table per plug-in output: ``master.outputs``), validated; ConfigError
-    naming the file and key otherwise."""
+def output_from_table(out: dict, path: str) -> Outputs:
+    """The ``[output]`` table (``[output.can]``, ``[output.udp]``, ``[output.zenoh]``, and a table per
+    plug-in output: ``master.outputs``), validated; ConfigError naming the file and key otherwise."""
     from master.outputs import check_output_table, output_kinds
     builtin = {"can", "udp", "zenoh"}
     known = set(output_kinds()) - {"results_csv"}     # results_csv is a path of [record]
@@ -284,38 +353,19 @@ def output_from_table(out: dict, path: str) -> dict:
         take(t, "enabled", bool, True, wp)
         check_output_table(name, t, wp)
     wc, wu, wz = f"{path}: [output.can]", f"{path}: [output.udp]", f"{path}: [output.zenoh]"
-    can_t = take(out, "can", dict, {}, f"{path}: [output]")
-    udp_t = take(out, "udp", dict, {}, f"{path}: [output]")
-    zen_t = take(out, "zenoh", dict, {}, f"{path}: [output]")
-    check_keys(can_t, {"enabled", "interface", "channel", "rate_hz", "status_hz", "bitrate", "fd", "data_bitrate",
-                       "receive_own_messages", "slots"}, wc)
-    check_keys(udp_t, {"enabled", "host", "port", "status_hz"}, wu)
-    check_keys(zen_t, {"enabled"}, wz)
-    can_rate = take(can_t, "rate_hz", float, 25.0, wc)
-    if not 0 <= can_rate <= 1000:
-        raise ConfigError(f"{wc}.rate_hz: {can_rate} outside 0..1000 (0 = every result)")
-    status_hz = take(can_t, "status_hz", float, 10.0, wc)
-    if not 0 < status_hz <= 100:
-        raise ConfigError(f"{wc}.status_hz: {status_hz} outside (0, 100]")
-    interface = take(can_t, "interface", str, "virtual", wc)
+    can = read_group(CanOutput, take(out, "can", dict, {}, f"{path}: [output]"), CAN_KEYS, wc)
+    udp = read_group(UdpOutput, take(out, "udp", dict, {}, f"{path}: [output]"), UDP_KEYS, wu)
+    zenoh = read_group(ZenohOutput, take(out, "zenoh", dict, {}, f"{path}: [output]"),
+                       (field_key(ZenohOutput, "enabled", bool),), wz)
     from can.interfaces import VALID_INTERFACES
-    check_choice(interface, sorted(VALID_INTERFACES), f"{wc}.interface (python-can interfaces)", ConfigError)
-    channel = take(can_t, "channel", str, "v2xpos", wc)
-    if not channel:
+    check_choice(can.interface, sorted(VALID_INTERFACES), f"{wc}.interface (python-can interfaces)", ConfigError)
+    if not can.channel:
         raise ConfigError(f"{wc}.channel: empty")
-    bitrates = {}
-    for key, lo, hi in (("bitrate", 10_000, 1_000_000), ("data_bitrate", 10_000, 16_000_000)):
-        v = take(can_t, key, int, None, wc)
-        if v is not None and not lo <= v <= hi:
-            raise ConfigError(f"{wc}.{key}: {v} outside {lo}..{hi} bit/s")
-        bitrates[key] = v
-    fd = take(can_t, "fd", bool, False, wc)
-    if bitrates["data_bitrate"] is not None and not fd:
+    if can.data_bitrate is not None and not can.fd:
         raise ConfigError(f"{wc}.data_bitrate: only with fd = true")
     from v2xpos.output.can_dbc import N_SLOTS
-    slots = take(can_t, "slots", dict, {}, wc)
     seen: dict = {}
-    for vid, slot in slots.items():
+    for vid, slot in can.slots.items():
         if not re.fullmatch(r"[A-Za-z0-9_.\-]{1,32}", vid):
             raise ConfigError(f"{wc}.slots: {vid!r} is not a vehicle id (1-32 characters of [A-Za-z0-9_.-])")
         if not isinstance(slot, int) or isinstance(slot, bool) or not 0 <= slot < N_SLOTS:
@@ -323,22 +373,10 @@ def output_from_table(out: dict, path: str) -> dict:
         if slot in seen:
             raise ConfigError(f"{wc}.slots: {seen[slot]!r} and {vid!r} both on slot {slot}")
         seen[slot] = vid
-    host = take(udp_t, "host", str, "127.0.0.1", wu)
+    can.slots = dict(can.slots)
     from v2xpos.output.udp import check_destination
     try:
-        check_destination(host)
+        check_destination(udp.host)
     except ValueError as exc:
         raise ConfigError(f"{wu}.host: {exc}") from None
-    port = take(udp_t, "port", int, 47001, wu)
-    if not 0 < port < 65536:
-        raise ConfigError(f"{wu}.port: {port} outside 1..65535")
-    udp_status_hz = take(udp_t, "status_hz", float, 10.0, wu)
-    if not 0 <= udp_status_hz <= 100:
-        raise ConfigError(f"{wu}.status_hz: {udp_status_hz} outside 0..100 (0 = no heartbeat)")
-    return dict(can_enabled=take(can_t, "enabled", bool, False, wc), can_interface=interface, can_channel=channel,
-                can_rate_hz=can_rate, can_status_hz=status_hz, can_bitrate=bitrates["bitrate"], can_fd=fd,
-                can_data_bitrate=bitrates["data_bitrate"],
-                can_receive_own_messages=take(can_t, "receive_own_messages", bool, False, wc), can_slots=dict(slots),
-                udp_enabled=take(udp_t, "enabled", bool, False, wu), udp_host=host, udp_port=port,
-                udp_status_hz=udp_status_hz,
-                zenoh_enabled=take(zen_t, "enabled", bool, True, wz), output_plugins=plugins)
+    return Outputs(can=can, udp=udp, zenoh=zenoh, plugins=plugins)

@@ -94,13 +94,13 @@ def udp_output(table: Mapping, where: str, ctx: OutputContext) -> "UdpSink":
 
 def zenoh_output(table: Mapping, where: str, ctx: OutputContext) -> "ZenohSink":
     """The built-in ``zenoh`` output: results republished on the master's relative key."""
-    return ZenohSink(ctx.link.publisher(relative_key(ctx.cfg.fleet, ctx.cfg.master_id), express=False))
+    return ZenohSink(ctx.link.publisher(relative_key(ctx.cfg.service.fleet, ctx.cfg.service.master_id), express=False))
 
 
 def results_csv_output(table: Mapping, where: str, ctx: OutputContext):
     """The built-in ``results_csv`` output (``[record] results_csv``)."""
     from v2xpos.output.results_csv import ResultsCsvWriter
-    return ResultsCsvWriter(ctx.cfg.results_csv)
+    return ResultsCsvWriter(ctx.cfg.record.results_csv)
 
 
 def summary_provenance(cfg: Any, seeds: Mapping[str, Any] | None = None) -> dict:
@@ -159,8 +159,9 @@ class CanSink:
         """CanSink of ``cfg``'s ``[output.can]``; ConfigError (one line) when the bus cannot be opened."""
         from v2xpos.output.can import CanBusError
         try:
-            return cls(channel=cfg.can_channel, interface=cfg.can_interface, rate_hz=cfg.can_rate_hz or None,
-                       slots=cfg.can_slots, **cfg.can_bus_kwargs())
+            can = cfg.output.can
+            return cls(channel=can.channel, interface=can.interface, rate_hz=can.rate_hz or None, slots=can.slots,
+                       **can.bus_kwargs())
         except CanBusError as exc:
             raise ConfigError(f"{cfg.path}: [output.can]: {exc}") from None
 
@@ -208,7 +209,7 @@ class UdpSink:
     def from_config(cls, cfg: Any) -> "UdpSink":
         """UdpSink of ``cfg``'s ``[output.udp]``; ConfigError when the destination is refused."""
         try:
-            return cls(cfg.udp_host, cfg.udp_port)
+            return cls(cfg.output.udp.host, cfg.output.udp.port)
         except (ValueError, OSError) as exc:
             raise ConfigError(f"{cfg.path}: [output.udp]: {exc}") from None
 

@@ -76,20 +76,20 @@ class MasterService:
 
     def __init__(self, cfg: MasterConfig):
         self.cfg = cfg
-        self.ctx = SourceContext(vehicle_id=cfg.master_id, fleet=cfg.fleet, role="master",
+        self.ctx = SourceContext(vehicle_id=cfg.service.master_id, fleet=cfg.service.fleet, role="master",
                                  config_dir=config_dir(cfg.path), stop=self._stopping,
-                                 filter_overrides={"integrity": dict(cfg.filter_integrity)})
+                                 filter_overrides={"integrity": dict(cfg.validity.filter_integrity)})
         self.source = None
         from v2xpos.security import TrustList, load_trust_list
         try:
-            self.trust = load_trust_list(cfg.trust_list) if cfg.trust_list else TrustList()
+            self.trust = load_trust_list(cfg.security.trust_list) if cfg.security.trust_list else TrustList()
         except (OSError, ValueError) as exc:
             raise ConfigError(f"{cfg.path}: [security].trust_list: {exc}") from None
         self.scene = None
-        if cfg.geojson:
+        if cfg.scene.geojson:
             from v2xpos.scene import Scene, SceneError
             try:
-                self.scene = Scene.load(cfg.geojson)
+                self.scene = Scene.load(cfg.scene.geojson)
             except (SceneError, OSError) as exc:
                 raise ConfigError(f"{cfg.path}: [scene].geojson: {exc}") from None
         self.clock = None
@@ -115,7 +115,7 @@ class MasterService:
         self.signalled = False
         self.quiet = False
         from v2xpos.sources.status import VehicleStatus
-        self.vehicle_status = VehicleStatus("master", cfg.master_id, cfg.fleet)
+        self.vehicle_status = VehicleStatus("master", cfg.service.master_id, cfg.service.fleet)
 
     def _on_signal(self) -> None:
         self.signalled = True
@@ -143,30 +143,31 @@ class MasterService:
             elif name == "udp":
                 self.udp = sink
         from v2xpos.security import MessageAuthenticator
-        auth = MessageAuthenticator(self.trust, require_signature=cfg.require_signature and bool(cfg.trust_list),
-                                    max_age_s=cfg.max_age_s, future_tolerance_s=cfg.future_tolerance_s,
-                                    replay_window=cfg.replay_window)
+        sec, svc, val = cfg.security, cfg.service, cfg.validity
+        auth = MessageAuthenticator(self.trust, require_signature=sec.require_signature and bool(sec.trust_list),
+                                    max_age_s=sec.max_age_s, future_tolerance_s=sec.future_tolerance_s,
+                                    replay_window=sec.replay_window)
         self.authenticator = auth
-        pcfg = PipelineConfig(fleet=cfg.fleet, master_id=cfg.master_id, timeout_s=cfg.timeout_ms / 1e3,
-                              measurement_point_m=cfg.measurement_point_m, known_vehicles=cfg.known_vehicles,
-                              evaluate_uncompensated=cfg.evaluate_uncompensated,
-                              record=cfg.results_npz is not None, max_sigma_h_m=cfg.max_sigma_h_m,
-                              max_sigma_yaw_deg=cfg.max_sigma_yaw_deg, require_consistency=cfg.require_consistency,
-                              max_clock_disagreement_s=cfg.max_clock_disagreement_s)
+        pcfg = PipelineConfig(fleet=svc.fleet, master_id=svc.master_id, timeout_s=svc.timeout_ms / 1e3,
+                              measurement_point_m=svc.measurement_point_m, known_vehicles=svc.known_vehicles,
+                              evaluate_uncompensated=cfg.record.evaluate_uncompensated,
+                              record=cfg.record.results_npz is not None, max_sigma_h_m=val.max_sigma_h_m,
+                              max_sigma_yaw_deg=val.max_sigma_yaw_deg, require_consistency=val.require_consistency,
+                              max_clock_disagreement_s=val.max_clock_disagreement_s)
         self.pipeline = MasterPipeline(pcfg, self.sinks, authenticator=auth)
         self.pipeline.warm_up()
-        if cfg.mcap:
+        if cfg.record.mcap:
             from v2xpos.output.recorder import RecordingPipeline
             from v2xpos.output.recorder_process import RecorderProcess
-            Path(cfg.mcap).parent.mkdir(parents=True, exist_ok=True)
-            self.recorder = RecorderProcess(cfg.mcap, max_bytes=int(cfg.mcap_max_mb * 2 ** 20))
+            Path(cfg.record.mcap).parent.mkdir(parents=True, exist_ok=True)
+            self.recorder = RecorderProcess(cfg.record.mcap, max_bytes=int(cfg.record.mcap_max_mb * 2 ** 20))
             self.pipeline = RecordingPipeline(self.pipeline, self.recorder)
-        self.status_pub = self.link.publisher(status_key(cfg.fleet, cfg.master_id), express=False)
-        self.link.declare_alive(alive_key(cfg.fleet, "master", cfg.master_id))
+        self.status_pub = self.link.publisher(status_key(cfg.service.fleet, cfg.service.master_id), express=False)
+        self.link.declare_alive(alive_key(cfg.service.fleet, "master", cfg.service.master_id))
         self.imu_grades: dict = {}
         self._final_grades = threading.Event()
-        if cfg.grading:
-            self.link.subscribe(grades_key(cfg.fleet, cfg.master_id), self._on_grades)
+        if cfg.grading.enabled:
+            self.link.subscribe(grades_key(cfg.service.fleet, cfg.service.master_id), self._on_grades)
 
     def _start_grading(self) -> None:
         """Start the IMU grading worker process (master/grading.py, a zenoh client of this master's
@@ -180,8 +181,8 @@ class MasterService:
         root = str(Path(__file__).resolve().parents[1])
         env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         self.grading_proc = subprocess.Popen(
-            [sys.executable, "-m", "master.grading", "--endpoint", endpoint, "--fleet", cfg.fleet,
-             "--master-id", cfg.master_id], env=env, cwd=root, preexec_fn=_background_priority)
+            [sys.executable, "-m", "master.grading", "--endpoint", endpoint, "--fleet", cfg.service.fleet,
+             "--master-id", cfg.service.master_id], env=env, cwd=root, preexec_fn=_background_priority)
 
     def _on_grades(self, payload: bytes, key: str, att, t_arr: float) -> None:
         try:
@@ -216,7 +217,7 @@ class MasterService:
                 self.nav_steps += len(states)
                 self.nav_ms.append((time.perf_counter() - t0) * 1e3 / len(states))
                 if self.scene is not None and self.nav.t_s >= self._next_scene_t:
-                    self._next_scene_t = self.nav.t_s + 1.0 / self.cfg.scene_hz
+                    self._next_scene_t = self.nav.t_s + 1.0 / self.cfg.scene.rate_hz
                     with self.lock:
                         self.pipeline.process_scene(self.scene, self.nav)
             t_next = (math.floor(self.gps_now() / NAV_TICK_S) + 1) * NAV_TICK_S
@@ -235,7 +236,7 @@ class MasterService:
                 pipe.handle(item.payload, item.key, self.nav, self.gps_now(), item.t_arrival_wall_s)
 
     async def _tick_task(self) -> None:
-        period = 1.0 / self.cfg.tick_hz
+        period = 1.0 / self.cfg.service.tick_hz
         while not self.stop_event.is_set():
             await asyncio.sleep(period)
             if self.nav is not None:
@@ -248,10 +249,10 @@ class MasterService:
         s = self.pipeline.summary(window)
         clock = self.clock if self.phase == "run" else None
         t_now = self.gps_now() if clock is not None else None
-        s.update({"master_id": self.cfg.master_id, "t_gps_s": t_now,
+        s.update({"master_id": self.cfg.service.master_id, "t_gps_s": t_now,
                   "t_rel_s": None if t_now is None else t_now - self.t_start_gps_s, "phase": self.phase,
-                  "waiting_for": self._waiting_for(), "timeout_s": self.cfg.timeout_ms / 1e3,
-                  "status_period_s": 1.0 / self.cfg.status_hz, "t_wall_s": time.time(),
+                  "waiting_for": self._waiting_for(), "timeout_s": self.cfg.service.timeout_ms / 1e3,
+                  "status_period_s": 1.0 / self.cfg.service.status_hz, "t_wall_s": time.time(),
                   "vehicle": self.vehicle_status.snapshot(
                       self.source, clock, self.nav, None if self.relay is None else {"corrections": self.relay.stats()}),
                   "clock": None if clock is None else clock.status(),
@@ -260,8 +261,8 @@ class MasterService:
                   "corrections": None if self.relay is None else self.relay.stats(),
                   "master_fix": None if self.nav is None else int(self.nav.fix), "nav_steps": self.nav_steps,
                   "nav_ms_p50": float(np.percentile(self.nav_ms, 50)) if self.nav_ms else None,
-                  "can_frames": self.can.frames if self.cfg.can_enabled else 0,
-                  "udp_datagrams": self.udp.datagrams if self.cfg.udp_enabled else 0,
+                  "can_frames": self.can.frames if self.cfg.output.can.enabled else 0,
+                  "udp_datagrams": self.udp.datagrams if self.cfg.output.udp.enabled else 0,
                   "source": getattr(self.source, "name", None), "imu_grades": self.imu_grades,
                   "degraded_vehicles": sorted(self.pipeline.degraded_vehicles),
                   "clock_skew": self.authenticator.skew_report(),
@@ -279,7 +280,7 @@ class MasterService:
         """MASTER_STATUS / MASTER_SIGMA frames at ``[output.can] status_hz``: the master's own time,
         fix, sigmas, whether its heading is determined and its clock synchronised, its filter's
         reason."""
-        period = 1.0 / self.cfg.can_status_hz
+        period = 1.0 / self.cfg.output.can.status_hz
         clock = self.clock
         while not self.stop_event.is_set():
             await asyncio.sleep(period)
@@ -293,7 +294,7 @@ class MasterService:
     async def _udp_heartbeat_task(self) -> None:
         """The UDP heartbeat at ``[output.udp] status_hz`` (``v2xpos.output.udp.heartbeat``): a
         consumer tells a master that is gone from one with nothing to report."""
-        period = 1.0 / self.cfg.udp_status_hz
+        period = 1.0 / self.cfg.output.udp.status_hz
         while not self.stop_event.is_set():
             await asyncio.sleep(period)
             with self.lock:
@@ -303,7 +304,7 @@ class MasterService:
         """The status JSON at ``status_hz`` from the moment the link is open (a master still
         waiting for its slaves says so), and a one-line status every few seconds on stderr."""
         from v2xpos.sources.status import STATUS_LINE_PERIOD_S
-        period = 1.0 / self.cfg.status_hz
+        period = 1.0 / self.cfg.service.status_hz
         next_line = time.time() + STATUS_LINE_PERIOD_S
         while not self.stop_event.is_set():
             await asyncio.sleep(period)
@@ -344,8 +345,8 @@ class MasterService:
                 loop.add_signal_handler(sig, self._on_signal)
             except (NotImplementedError, RuntimeError):  # not the main thread (tests)
                 pass
-        self.realtime = apply_realtime_priority(self.cfg.realtime_priority, "master")
-        if self.cfg.grading:
+        self.realtime = apply_realtime_priority(self.cfg.service.realtime_priority, "master")
+        if self.cfg.grading.enabled:
             self._start_grading()
         self.phase = "source"
         try:
@@ -370,7 +371,7 @@ class MasterService:
         if self.cfg.corrections is not None and self.cfg.corrections.source is not None:
             from v2xpos.sources.corrections import CorrectionRelay
             try:
-                self.relay = CorrectionRelay(self.cfg.corrections, self.link, self.cfg.fleet,
+                self.relay = CorrectionRelay(self.cfg.corrections, self.link, self.cfg.service.fleet,
                                              local_write=self.source.write_corrections).start()
             except (OSError, ValueError) as exc:
                 self._close()
@@ -386,27 +387,27 @@ class MasterService:
             return self._early_exit()
         self.phase = "run"
         self.t_start_gps_s = self.clock.session_start_gps_s()
-        if self.cfg.duration_s is not None:
-            self.end_gps = self.t_start_gps_s + self.cfg.duration_s
+        if self.cfg.service.duration_s is not None:
+            self.end_gps = self.t_start_gps_s + self.cfg.service.duration_s
         primed = self.source.prime(self.clock.now_gps_s())
         if primed is not None:
             self.nav = primed
-        if self.cfg.dispatch == "inline":
+        if self.cfg.service.dispatch == "inline":
             verifier = None
             if len(self.trust) > 0:
                 from v2xpos.verify_worker import VerifierProcess
                 verifier = VerifierProcess(self.trust.to_json())
             sub = InlineDispatch(self, verifier)
-            sub.subscribe(self.link, STATE_KEY_ALL(self.cfg.fleet))
+            sub.subscribe(self.link, STATE_KEY_ALL(self.cfg.service.fleet))
         else:
-            sub = self.link.subscribe_async(STATE_KEY_ALL(self.cfg.fleet), loop)
+            sub = self.link.subscribe_async(STATE_KEY_ALL(self.cfg.service.fleet), loop)
         freeze_setup_heap()
         coros = [self._nav_task(), self._tick_task()]
-        if self.cfg.can_enabled and self.cfg.can_status_hz > 0:
+        if self.cfg.output.can.enabled and self.cfg.output.can.status_hz > 0:
             coros.append(self._can_status_task())
-        if self.cfg.udp_enabled and self.cfg.udp_status_hz > 0:
+        if self.cfg.output.udp.enabled and self.cfg.output.udp.status_hz > 0:
             coros.append(self._udp_heartbeat_task())
-        if self.cfg.dispatch != "inline":
+        if self.cfg.service.dispatch != "inline":
             coros.append(self._consume_task(sub))
         tasks = [status_task] + [asyncio.create_task(c) for c in coros]
         try:
@@ -415,10 +416,10 @@ class MasterService:
             for t in tasks:
                 t.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
-            if self.cfg.dispatch != "inline" and self.nav is not None:
+            if self.cfg.service.dispatch != "inline" and self.nav is not None:
                 for item in sub.drain():          # nothing received is left unprocessed
                     self.pipeline.handle(item.payload, item.key, self.nav, self.gps_now(), item.t_arrival_wall_s)
-            grades_final = await asyncio.to_thread(self._collect_final_grades) if self.cfg.grading else None
+            grades_final = await asyncio.to_thread(self._collect_final_grades) if self.cfg.grading.enabled else None
             with self.lock:
                 self.closing = True
                 final = self.status(window=None)
@@ -426,13 +427,13 @@ class MasterService:
             if isinstance(sub, InlineDispatch) and sub.received:
                 final["handler_cpu_ms_per_message"] = sub.cpu_s / sub.received * 1e3
                 final["dispatch_batches"] = sub.batches
-            final["dispatch"] = self.cfg.dispatch
+            final["dispatch"] = self.cfg.service.dispatch
             final["imu_grades_final"] = grades_final
-            final["realtime_priority"] = self.cfg.realtime_priority if self.realtime else 0
-            if self.cfg.verification_out is not None and self.source is not None:
+            final["realtime_priority"] = self.cfg.service.realtime_priority if self.realtime else 0
+            if self.cfg.validity.verification_out is not None and self.source is not None:
                 from v2xpos.datasets.verification import write_session_record
-                final["verification"], said = write_session_record(self.source, self.cfg.verification_out,
-                                                                   f"session of {self.cfg.master_id}")
+                final["verification"], said = write_session_record(self.source, self.cfg.validity.verification_out,
+                                                                   f"session of {self.cfg.service.master_id}")
                 print(f"master: {said}", file=sys.stderr, flush=True)
             self._write_outputs(final)
             self._close()
@@ -488,16 +489,16 @@ class MasterService:
 
     def _write_outputs(self, final: dict) -> None:
         cfg = self.cfg
-        if cfg.results_npz:
-            Path(cfg.results_npz).parent.mkdir(parents=True, exist_ok=True)
+        if cfg.record.results_npz:
+            Path(cfg.record.results_npz).parent.mkdir(parents=True, exist_ok=True)
             arrays = {f"target_{vid}": a for vid, a in self.pipeline.records_arrays().items()}
             if self.pipeline.scene_records and len({len(r) for r in self.pipeline.scene_records}) == 1:
                 arrays["scene"] = np.asarray(self.pipeline.scene_records, dtype=float)
-            np.savez_compressed(cfg.results_npz, fields=np.array(RECORD_FIELDS), **arrays)
-        if cfg.summary_json:
-            Path(cfg.summary_json).parent.mkdir(parents=True, exist_ok=True)
+            np.savez_compressed(cfg.record.results_npz, fields=np.array(RECORD_FIELDS), **arrays)
+        if cfg.record.summary_json:
+            Path(cfg.record.summary_json).parent.mkdir(parents=True, exist_ok=True)
             final["provenance"] = summary_provenance(cfg)
-            Path(cfg.summary_json).write_text(json.dumps(final, indent=1))
+            Path(cfg.record.summary_json).write_text(json.dumps(final, indent=1))
 
 
 def master_line(st: dict) -> str:

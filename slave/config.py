@@ -1,4 +1,6 @@
 """Slave configuration (TOML) and the pieces shared with the master: state source, link, impairment.
+One group per table (``SlaveConfig.service``, ``.link``, ``.source``, ``.impairment``, ``.security``,
+``.corrections``, ``.validity``), each read against its schema (``v2xpos.schema.read_table``).
 
 Example (``configs/slave_t1.toml``)::
 
@@ -37,28 +39,46 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from v2xpos.config import (ConfigError, LinkImpairment, SourceConfig, check_keys, config_dir,  # noqa: F401
-                           corrections_from_table, impairment_from_table, link_from_table, load_toml, take,
-                           validity_from_table)
+from v2xpos.config import (ConfigError, FilterValidity, LinkImpairment, SourceConfig, check_keys,  # noqa: F401
+                           config_dir, corrections_from_table, field_key, impairment_from_table, link_from_table,
+                           load_toml, read_group, take, validity_from_table)
 from v2xpos.link import LinkConfig
 
 
 @dataclass
-class SlaveConfig:
+class SlaveService:
+    """``[service]``: identity, publish rate, session length, IMU publishing, real-time priority."""
     fleet: str = "demo"
     vehicle_id: str = "t1"
-    rate_hz: float = 100.0
+    rate_hz: float = 100.0               # StateMessage publish rate
     duration_s: float | None = None
+    publish_imu: bool = False
+    realtime_priority: int = 0
+
+
+SERVICE_KEYS = (field_key(SlaveService, "fleet", str), field_key(SlaveService, "vehicle_id", str),
+                field_key(SlaveService, "rate_hz", float, low=0.1, high=1000.0),
+                field_key(SlaveService, "duration_s", float), field_key(SlaveService, "publish_imu", bool),
+                field_key(SlaveService, "realtime_priority", int, low=0, high=99))
+
+
+@dataclass
+class SlaveSecurity:
+    """``[security]``: the optional Ed25519 signing key (relative to the config file)."""
+    key_file: str | None = None
+
+
+@dataclass
+class SlaveConfig:
+    """A slave's configuration: one group per TOML table (module docstring), ``path`` the file."""
+    service: SlaveService = field(default_factory=SlaveService)
     link: LinkConfig = field(default_factory=lambda: LinkConfig(mode="client", connect=["tcp/127.0.0.1:7447"],
                                                                         connect_timeout_ms=60000))
     source: SourceConfig = field(default_factory=SourceConfig)
     impairment: LinkImpairment = field(default_factory=LinkImpairment)
-    key_file: str | None = None
-    publish_imu: bool = False
-    realtime_priority: int = 0
+    security: SlaveSecurity = field(default_factory=SlaveSecurity)
     corrections: object | None = None
-    filter_integrity: dict = field(default_factory=dict)   # [validity]: the filter's alert limit / integrity risk
-    verification_out: Path | None = None                    # [validity]: write the set-up's record here at the end
+    validity: FilterValidity = field(default_factory=FilterValidity)
     path: str = "<defaults>"
 
     @classmethod
@@ -70,28 +90,15 @@ class SlaveConfig:
     def from_dict(cls, d: dict, path: str = "<dict>") -> "SlaveConfig":
         check_keys(d, {"service", "link", "source", "impairment", "security", "corrections", "validity"}, path)
         validity = validity_from_table(take(d, "validity", dict, {}, path), f"{path}: [validity]", config_dir(path))
-        s = take(d, "service", dict, {}, path)
-        w = f"{path}: [service]"
-        check_keys(s, {"fleet", "vehicle_id", "rate_hz", "duration_s", "publish_imu", "realtime_priority"}, w)
-        rate = take(s, "rate_hz", float, 100.0, w)
-        if not 0.1 <= rate <= 1000.0:
-            raise ConfigError(f"{w}.rate_hz: {rate} outside 0.1..1000 Hz")
-        rt = take(s, "realtime_priority", int, 0, w)
-        if not 0 <= rt <= 99:
-            raise ConfigError(f"{w}.realtime_priority: {rt} outside 0..99")
-        sec = take(d, "security", dict, {}, path)
-        check_keys(sec, {"key_file"}, f"{path}: [security]")
-        cfg = cls(fleet=take(s, "fleet", str, "demo", w), vehicle_id=take(s, "vehicle_id", str, "t1", w),
-                  rate_hz=rate, duration_s=take(s, "duration_s", float, None, w),
-                  link=link_from_table(take(d, "link", dict, {"mode": "client", "connect": ["tcp/127.0.0.1:7447"],
-                                                        "connect_timeout_ms": 60000}, path), f"{path}: [link]"),
-                  source=SourceConfig.from_table(take(d, "source", dict, {}, path), f"{path}: [source]"),
-                  impairment=impairment_from_table(take(d, "impairment", dict, {}, path), f"{path}: [impairment]"),
-                  key_file=take(sec, "key_file", str, None, f"{path}: [security]"),
-                  publish_imu=take(s, "publish_imu", bool, False, w), realtime_priority=rt,
-                  corrections=corrections_from_table(d, path),
-                  filter_integrity=validity.filter_integrity, verification_out=validity.verification_out,
-                  path=path)
-        if cfg.key_file:                      # relative to the config file, as every path in it
-            cfg.key_file = str(config_dir(path) / Path(cfg.key_file).expanduser())
-        return cfg
+        service = read_group(SlaveService, take(d, "service", dict, {}, path), SERVICE_KEYS, f"{path}: [service]")
+        security = read_group(SlaveSecurity, take(d, "security", dict, {}, path),
+                              (field_key(SlaveSecurity, "key_file", str),), f"{path}: [security]")
+        if security.key_file:                 # relative to the config file, as every path in it
+            security.key_file = str(config_dir(path) / Path(security.key_file).expanduser())
+        return cls(service=service,
+                   link=link_from_table(take(d, "link", dict, {"mode": "client", "connect": ["tcp/127.0.0.1:7447"],
+                                                             "connect_timeout_ms": 60000}, path), f"{path}: [link]"),
+                   source=SourceConfig.from_table(take(d, "source", dict, {}, path), f"{path}: [source]"),
+                   impairment=impairment_from_table(take(d, "impairment", dict, {}, path), f"{path}: [impairment]"),
+                   security=security, corrections=corrections_from_table(d, path),
+                   validity=FilterValidity(validity.filter_integrity, validity.verification_out), path=path)

@@ -76,26 +76,26 @@ def run_slave(cfg: SlaveConfig, stop: _Stop | None = None, quiet: bool = False) 
     """Run until the configured duration ends, the source ends, or ``stop.flag``; returns the counters."""
     stop = stop or _Stop()
     stopped = lambda: stop.flag  # noqa: E731
-    say = _say(cfg.vehicle_id)
-    realtime = apply_realtime_priority(cfg.realtime_priority, f"slave {cfg.vehicle_id}")
-    ctx = SourceContext(vehicle_id=cfg.vehicle_id, fleet=cfg.fleet, role="slave", config_dir=config_dir(cfg.path),
-                        stop=stopped, filter_overrides={"integrity": dict(cfg.filter_integrity)})
+    say = _say(cfg.service.vehicle_id)
+    realtime = apply_realtime_priority(cfg.service.realtime_priority, f"slave {cfg.service.vehicle_id}")
+    ctx = SourceContext(vehicle_id=cfg.service.vehicle_id, fleet=cfg.service.fleet, role="slave",
+                        config_dir=config_dir(cfg.path), stop=stopped, filter_overrides={"integrity": dict(cfg.validity.filter_integrity)})
     try:
         source = run_until_stopped(make_source, stopped, cfg.source.table, f"{cfg.path}: [source]", ctx)
     except SourceError as exc:
         raise ConfigError(str(exc)) from None
     except Stopped:
-        return {"vehicle_id": cfg.vehicle_id, "phase": "source", "stopped_early": True}
+        return {"vehicle_id": cfg.service.vehicle_id, "phase": "source", "stopped_early": True}
     signer = None
-    if cfg.key_file:
+    if cfg.security.key_file:
         from v2xpos.security import MessageSigner
         try:
-            signer = MessageSigner.from_file(cfg.key_file)
+            signer = MessageSigner.from_file(cfg.security.key_file)
         except (OSError, ValueError) as exc:
             raise ConfigError(f"{cfg.path}: [security].key_file: {exc}") from None
-    counters = {"vehicle_id": cfg.vehicle_id, "source": source.name, "states": 0, "queued": 0, "sent": 0,
+    counters = {"vehicle_id": cfg.service.vehicle_id, "source": source.name, "states": 0, "queued": 0, "sent": 0,
                 "imu_msgs": 0, "late_ms_max": 0.0, "phase": "warm_up",
-                "realtime_priority": cfg.realtime_priority if realtime else 0}
+                "realtime_priority": cfg.service.realtime_priority if realtime else 0}
     link = clock = sink = None
     try:
         run_until_stopped(source.warm_up, stopped)
@@ -109,7 +109,7 @@ def run_slave(cfg: SlaveConfig, stop: _Stop | None = None, quiet: bool = False) 
         ctx.link = link
         if cfg.corrections is not None and cfg.corrections.receive:
             from v2xpos.sources.corrections import CorrectionSink
-            sink = CorrectionSink(link, cfg.fleet, source.write_corrections)
+            sink = CorrectionSink(link, cfg.service.fleet, source.write_corrections)
         clock = source.make_clock(ctx)
         counters["phase"] = "clock"
         try:
@@ -128,10 +128,10 @@ def run_slave(cfg: SlaveConfig, stop: _Stop | None = None, quiet: bool = False) 
             counters["corrections"] = sink.stats()
             sink.close()
         counters["source_status"] = source.status()
-        if cfg.verification_out is not None and counters.get("phase") in ("run", "done"):
+        if cfg.validity.verification_out is not None and counters.get("phase") in ("run", "done"):
             from v2xpos.datasets.verification import write_session_record
-            counters["verification"], said = write_session_record(source, cfg.verification_out,
-                                                                  f"session of {cfg.vehicle_id}")
+            counters["verification"], said = write_session_record(source, cfg.validity.verification_out,
+                                                                  f"session of {cfg.service.vehicle_id}")
             say(said)
         if clock is not None:
             counters["clock"] = clock.status()
@@ -144,19 +144,19 @@ def run_slave(cfg: SlaveConfig, stop: _Stop | None = None, quiet: bool = False) 
 
 def _loop(cfg: SlaveConfig, source, clock, link: Link, signer, stop: _Stop, counters: dict,
           quiet: bool = False, corrections=None) -> None:
-    pub = link.publisher(state_key(cfg.fleet, cfg.vehicle_id))
+    pub = link.publisher(state_key(cfg.service.fleet, cfg.service.vehicle_id))
     live = _LiveStatus(cfg, link, quiet, corrections)
-    units = source.imu_units() if cfg.publish_imu else None
-    imu_pub = link.publisher(imu_key(cfg.fleet, cfg.vehicle_id), express=False) if units else None
+    units = source.imu_units() if cfg.service.publish_imu else None
+    imu_pub = link.publisher(imu_key(cfg.service.fleet, cfg.service.vehicle_id), express=False) if units else None
     imp = cfg.impairment
     delay_rng = np.random.default_rng(imp.seed)
     t_start = clock.now_gps_s()
-    end_gps = clock.session_start_gps_s() + cfg.duration_s if cfg.duration_s is not None else math.inf
+    end_gps = clock.session_start_gps_s() + cfg.service.duration_s if cfg.service.duration_s is not None else math.inf
     source.prime(t_start)
     queue: deque = deque()
     seq = 0
     last_send_wall = 0.0
-    pub_period = 1.0 / cfg.rate_hz
+    pub_period = 1.0 / cfg.service.rate_hz
     next_pub_t = -math.inf
     unit_idx = {}
     if units:
@@ -179,8 +179,8 @@ def _loop(cfg: SlaveConfig, source, clock, link: Link, signer, stop: _Stop, coun
                 behind = not math.isfinite(next_pub_t) or nav.t_s - next_pub_t > pub_period
                 next_pub_t = nav.t_s + pub_period if behind else next_pub_t + pub_period
                 seq += 1
-                msg = StateMessage.from_nav_state(nav, cfg.fleet, cfg.vehicle_id, seq, geometry=source.geometry,
-                                                  kind=source.kind, time_ok=time_ok)
+                msg = StateMessage.from_nav_state(nav, cfg.service.fleet, cfg.service.vehicle_id, seq,
+                                                  geometry=source.geometry, kind=source.kind, time_ok=time_ok)
                 delay = float(imp.delays_s(np.array([nav.t_s]), delay_rng)[0]) if imp.active else 0.0
                 send_at = max(last_send_wall, clock.wall_of(nav.t_s) + delay)
                 last_send_wall = send_at
@@ -216,9 +216,9 @@ class _LiveStatus:
 
     def __init__(self, cfg: SlaveConfig, link: Link, quiet: bool, corrections=None):
         from v2xpos.sources.status import STATUS_LINE_PERIOD_S, STATUS_PERIOD_S, VehicleStatus
-        self.builder = VehicleStatus("slave", cfg.vehicle_id, cfg.fleet)
-        self.pub = link.publisher(vehicle_status_key(cfg.fleet, cfg.vehicle_id), express=False)
-        link.declare_alive(alive_key(cfg.fleet, "vehicle", cfg.vehicle_id))
+        self.builder = VehicleStatus("slave", cfg.service.vehicle_id, cfg.service.fleet)
+        self.pub = link.publisher(vehicle_status_key(cfg.service.fleet, cfg.service.vehicle_id), express=False)
+        link.declare_alive(alive_key(cfg.service.fleet, "vehicle", cfg.service.vehicle_id))
         self.quiet = quiet
         self.period_s, self.line_period_s = STATUS_PERIOD_S, STATUS_LINE_PERIOD_S
         self.next_pub = self.next_line = 0.0
@@ -248,7 +248,7 @@ def _imu_payload(cfg: SlaveConfig, units: dict, mounting: dict, idx: dict, t_gps
         i0 = idx[uid]
         i1 = idx[uid] = int(np.searchsorted(imu.t_s, t_gps_s, side="right"))
         since_last[uid] = (imu.t_s[i0:i1], imu.acc_mps2[i0:i1], imu.gyro_rps[i0:i1])
-    return encode_imu_payload(cfg.fleet, cfg.vehicle_id, since_last, mounting, rate_hz=100.0)
+    return encode_imu_payload(cfg.service.fleet, cfg.service.vehicle_id, since_last, mounting, rate_hz=100.0)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -98,7 +98,7 @@ def test_emulate_configs_from_a_relative_dir_are_absolute_and_complete(tmp_path,
         emu.close()
     m = MasterConfig.load(written["A"])
     s = SlaveConfig.load(written["B"])
-    assert Path(m.results_csv).is_absolute() and Path(m.results_csv).parent == (tmp_path / "rel/bench")
+    assert Path(m.record.results_csv).is_absolute() and Path(m.record.results_csv).parent == (tmp_path / "rel/bench")
     assert m.source.table["clock"]["host_time_offset_s"] == s.source.table["clock"]["host_time_offset_s"]
     for table in (m.source.table, s.source.table):
         assert {"platform", "imu_to_body", "lever_arm_m", "gnss", "imu"} <= set(table)
@@ -123,8 +123,8 @@ def test_record_paths_are_relative_to_the_config_file(tmp_path, monkeypatch):
                                          '[record]\nresults_csv = "out/results.csv"\nmcap = "/abs/s.mcap"\n')
     monkeypatch.chdir(tmp_path)
     cfg = MasterConfig.load("cfg/master.toml")
-    assert Path(cfg.results_csv) == cfg_dir / "out/results.csv"
-    assert cfg.mcap == "/abs/s.mcap"
+    assert Path(cfg.record.results_csv) == cfg_dir / "out/results.csv"
+    assert cfg.record.mcap == "/abs/s.mcap"
 
 
 @pytest.mark.slow

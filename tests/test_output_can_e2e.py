@@ -153,7 +153,7 @@ def _master_config(slots: dict, channel: str) -> MasterConfig:
 def test_slot_mapping_from_config(db):
     channel = f"slots-{uuid.uuid4().hex}"
     cfg = _master_config({"leader": 3, "ped-1": 0}, channel)
-    assert cfg.can_slots == {"leader": 3, "ped-1": 0}
+    assert cfg.output.can.slots == {"leader": 3, "ped-1": 0}
     rx = can.Bus(channel=channel, interface="virtual")
     sink = CanSink.from_config(cfg)
     try:
@@ -189,7 +189,7 @@ def test_bus_options_from_config_and_unavailable_socketcan_is_one_line():
     can_table = {"enabled": True, "interface": "socketcan", "channel": "v2xpos-absent0", "bitrate": 500000,
                  "fd": True, "data_bitrate": 2000000, "receive_own_messages": True}
     cfg = MasterConfig.from_dict({"source": SIM_SOURCE, "output": {"can": can_table}}, "m.toml")
-    assert cfg.can_bus_kwargs() == {"bitrate": 500000, "fd": True, "data_bitrate": 2000000,
+    assert cfg.output.can.bus_kwargs() == {"bitrate": 500000, "fd": True, "data_bitrate": 2000000,
                                     "receive_own_messages": True}
     with pytest.raises(ConfigError) as info:
         CanSink.from_config(cfg)

@@ -92,7 +92,7 @@ def test_a_registered_output_checks_its_table_and_a_misspelt_output_is_named(toy
 def test_an_unregistered_output_can_name_its_factory():
     cfg = MasterConfig.from_dict({**SOURCE, "output": {"mine": {"factory": f"{__name__}:toy_output"}}}, "m.toml")
     assert [n for n, _ in cfg.enabled_outputs()][-1] == "mine"
-    assert isinstance(make_output("mine", cfg.output_plugins["mine"], "w", OutputContext(cfg)), ToySink)
+    assert isinstance(make_output("mine", cfg.output.plugins["mine"], "w", OutputContext(cfg)), ToySink)
 
 
 def test_a_registered_decoder_is_a_stream_format(toy_parts):

@@ -15,12 +15,13 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def test_shipped_configs_load():
     m = MasterConfig.load(ROOT / "configs" / "master.toml")
-    assert m.link.mode == "router" and m.link.listen == ["tcp/127.0.0.1:7447"] and m.timeout_ms == 200
+    assert m.link.mode == "router" and m.link.listen == ["tcp/127.0.0.1:7447"] and m.service.timeout_ms == 200
     assert m.source.type == "recording" and m.source.table["wait_for"] == ["B"]
     assert MasterConfig.load(ROOT / "configs" / "master_mesh.toml").link.mode == "peer"
     assert MasterConfig.load(ROOT / "configs" / "master_sim.toml").source.type == "sim"
     s = SlaveConfig.load(ROOT / "configs" / "slave_t1.toml")
-    assert s.vehicle_id == "B" and s.rate_hz == 100 and s.source.type == "recording" and s.link.mode == "client"
+    assert s.service.vehicle_id == "B" and s.service.rate_hz == 100
+    assert s.source.type == "recording" and s.link.mode == "client"
     assert not s.impairment.active
     p1 = SlaveConfig.load(ROOT / "configs" / "slave_p1.toml")
     assert p1.source.table["factory"] == "sim.source:from_config"

@@ -20,8 +20,8 @@ SOURCE = {"type": "recording", "dataset": str(DEV_A)}
 @pytest.mark.parametrize("cls", [MasterConfig, SlaveConfig])
 def test_validity_keys_configure_the_filter_and_are_checked(cls):
     cfg = cls.from_dict({"validity": {"alert_limit_m": 0.5, "integrity_risk": 1e-6}, "source": SOURCE}, "svc.toml")
-    assert cfg.filter_integrity == {"alert_limit_m": 0.5, "integrity_risk": 1e-6}
-    assert cls.from_dict({"source": SOURCE}, "svc.toml").filter_integrity == {}
+    assert cfg.validity.filter_integrity == {"alert_limit_m": 0.5, "integrity_risk": 1e-6}
+    assert cls.from_dict({"source": SOURCE}, "svc.toml").validity.filter_integrity == {}
     with pytest.raises(ConfigError, match=r"svc.toml: \[validity\].*'alert_limt_m'.*did you mean 'alert_limit_m'"):
         cls.from_dict({"validity": {"alert_limt_m": 0.5}, "source": SOURCE}, "svc.toml")
     with pytest.raises(ConfigError, match=r"\[validity\]\.integrity_risk: 2.0 outside"):
@@ -51,23 +51,23 @@ def test_a_session_writes_its_verification_record_and_the_next_one_starts_from_i
     from v2xpos.sources import SourceContext, make_source
     table = {"verification_file": "B.verification.toml", "write_verification": True}
     cfg = SlaveConfig.from_dict({"validity": table, "source": SOURCE}, str(tmp_path / "slave.toml"))
-    assert cfg.verification_out == tmp_path / "B.verification.toml"
-    assert "setup_verified" not in cfg.filter_integrity            # no record yet: not verified
+    assert cfg.validity.verification_out == tmp_path / "B.verification.toml"
+    assert "setup_verified" not in cfg.validity.filter_integrity            # no record yet: not verified
     with pytest.raises(ConfigError, match=r"write_verification: needs verification_file"):
         SlaveConfig.from_dict({"validity": {"write_verification": True}, "source": SOURCE}, "s.toml")
     src = make_source(dict(SOURCE), "[source]", SourceContext("B", config_dir=tmp_path))
-    assert session_verification(src, cfg.verification_out, "test") is None   # filter not started: nothing
+    assert session_verification(src, cfg.validity.verification_out, "test") is None   # filter not started: nothing
     t0 = src.t_begin_gps_s
     src.advance(t0 + 150.0)                                        # through the first turns
-    record = session_verification(src, cfg.verification_out, "test drive")
+    record = session_verification(src, cfg.validity.verification_out, "test drive")
     assert record is not None and record.verified, record
     assert record.protection_m <= record.alert_limit_m
-    again = read_verification_file(cfg.verification_out)
+    again = read_verification_file(cfg.validity.verification_out)
     assert again.verified and again.drive == "test drive" and again.protection_m == round(record.protection_m, 4)
     nxt = SlaveConfig.from_dict({"validity": table, "source": SOURCE}, str(tmp_path / "slave.toml"))
-    assert nxt.filter_integrity.get("setup_verified") is True
+    assert nxt.validity.filter_integrity.get("setup_verified") is True
     verified = make_source(dict(SOURCE), "[source]", SourceContext("B", config_dir=tmp_path,
-                                                                   filter_overrides={"integrity": nxt.filter_integrity}))
+                                                                   filter_overrides={"integrity": nxt.validity.filter_integrity}))
     assert verified.filter.cfg.integrity.setup_verified
     (tmp_path / "B.verification.toml").write_text("[verification]\nverifed = true\n")
     with pytest.raises(ConfigError, match=r"B.verification.toml.*'verifed'.*did you mean 'verified'"):

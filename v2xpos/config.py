@@ -4,7 +4,7 @@ fields, unknown-key rejection with "did you mean", the ``[source]`` table, ``[li
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import MISSING, dataclass, field
 from pathlib import Path
 from collections.abc import Sequence
 from typing import Any
@@ -48,6 +48,22 @@ def take(table: dict, key: str, kind: type | tuple, default: Any, where: str) ->
 def check_keys(table: dict, allowed: set, where: str) -> None:
     """``v2xpos.schema.check_keys`` raising ConfigError."""
     schema.check_keys(table, allowed, where, ConfigError)
+
+
+def field_key(cls: type, name: str, kind: type | tuple, **bounds: float) -> schema.Key:
+    """The ``schema.Key`` of the TOML key ``name`` read into the dataclass ``cls``'s field of the
+    same name, with that field's default (one default for the file and for code) and ``bounds``
+    (``above``, ``low``, ``high``)."""
+    f = cls.__dataclass_fields__[name]
+    default = f.default if f.default_factory is MISSING else f.default_factory()
+    return schema.Key(name, kind, default, **bounds)
+
+
+def read_group(cls: type, table: Any, keys: Sequence[schema.Key], where: str, **extra: Any) -> Any:
+    """``cls`` built from ``table`` read against ``keys`` (``v2xpos.schema.read_table``: unknown keys
+    refused with a "did you mean", types and ranges checked, defaults filled), plus ``extra`` fields;
+    ConfigError naming ``where`` and the key."""
+    return cls(**schema.read_table(table, keys, where, ConfigError), **extra)
 
 
 @dataclass
@@ -120,6 +136,15 @@ protection level is held against ``alert_limit_m`` at ``integrity_risk``; ``veri
 keeps the ``[verification]`` record of its set-up between sessions (read at the start: a verified
 set-up starts with the prior of a change, not of a blunder; written at the end when
 ``write_verification``) -- docs/integrity.md."""
+
+
+@dataclass
+class FilterValidity:
+    """What a service's ``[validity]`` sets for its own filter: ``filter_integrity``, fields of the
+    filter's ``InsConfig.integrity`` (only what is given), and where the session's ``[verification]``
+    record is written at the end (None: not asked)."""
+    filter_integrity: dict = field(default_factory=dict)
+    verification_out: Path | None = None
 
 
 @dataclass(frozen=True)
