@@ -52,8 +52,8 @@ class ImuModel:
     accel_bias_tau_s: float = 600.0
     gyro_bias_init_sd_rps: float = 0.01
     accel_bias_init_sd_mps2: float = 0.2
-    imu_noise_from_data: bool = False             # white-noise densities measured from the samples (ImuNoiseMeter),
-    imu_noise_window_s: float = 10.0              # averaged over this time constant, scaled, capped by the two above
+    imu_noise_from_data: bool = False             # white-noise densities measured from the samples (ImuNoiseMeter,
+    # over noise.NOISE_WINDOW_S), scaled, capped by the two above
     imu_gyro_noise_scale: float = 7.0             # roll/pitch noise = this x the measured body x/y gyro white noise
     imu_yaw_gyro_noise_scale: float = 1.0         # heading noise = this x the measured body z one (docs/integrity.md)
     imu_accel_noise_scale: float = 1.0            # velocity noise = this x the measured accelerometer white noise
@@ -101,12 +101,11 @@ class EffectStates:
 
 @dataclass
 class InitialUncertainty:
-    """Initial state uncertainty and alignment."""
+    """Initial state uncertainty and alignment (a start at a stop leaves the yaw open: ``_try_align``)."""
     init_vel_sd_mps: float = 0.3
     init_level_sd_rad: float = math.radians(2.0)
     init_yaw_sd_rad: float | None = None          # None: 5 deg car, 20 deg otherwise
     align_min_speed_mps: float | None = None      # None: 1 m/s car, 0.5 m/s otherwise
-    static_start: bool = True                     # start at a stop with the yaw open (see _try_align)
 
 
 @dataclass
@@ -125,15 +124,10 @@ class GnssModel:
 
 @dataclass
 class VehicleConstraints:
-    """Non-holonomic, odometer and zero-velocity / zero-angular-rate pseudo-measurements."""
+    """When the non-holonomic and zero-velocity / zero-angular-rate pseudo-measurements run (their
+    noise: ``updates.NHC_SD_MPS``, ``ZUPT_SD_MPS``, ``ZARU_SD_RPS``, ``ODOMETER_SD_MPS``)."""
     constraint_rate_hz: float = 10.0
     constraints_on_request: bool = False          # NHC/ZUPT only via apply_vehicle_constraints() (calibration replays)
-    nhc_sd_mps: tuple = (0.05, 0.5)               # lateral, vertical (body pitch varies with load/braking); docs/ins.md
-    nhc_sd_per_yaw_rate_m: float = 1.0            # adds |yaw rate| x 1 m to the lateral sd (IMU off the rear axle)
-    nhc_min_speed_mps: float = 0.5
-    odometer_sd_mps: float = 0.05
-    zupt_sd_mps: float = 0.02
-    zaru_sd_rps: float = 2e-3
 
 
 @dataclass
@@ -146,18 +140,14 @@ class Stops:
     static_acc_h_max_mps2: float = 0.2           # horizontal specific force in NED (a stop has none)
     static_max_gnss_speed_mps: float = 0.2
     static_gnss_speed_max_age_s: float = 1.0      # the GNSS speed takes part in stop detection while this recent
-    calibration_moving_speed_mps: float = 0.5     # above this filter speed the stop calibrator is told "moving"
     static_calibration: StaticCalibrationConfig = field(default_factory=StaticCalibrationConfig)
     apply_static_calibration: bool = True
 
 
 @dataclass
 class Numerics:
-    """Covariance propagation cadence, smoothing of the acceleration in H, coasting, residual log."""
+    """Covariance propagation cadence (samples per covariance step, docs/ins.md)."""
     cov_every: int = 10
-    acc_smoothing_tau_s: float = 0.2              # low-pass of the acceleration used in H (not in nav_state)
-    coast_after_s: float = 1.0
-    log_residuals: bool = True
 
 
 GROUPS: dict[str, type] = {"setup": VehicleSetup, "imu": ImuModel, "consistency": ConsistencyTest,

@@ -88,8 +88,10 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self.A = np.zeros((n, n))
         self.q_c = process_noise_density(self.layout, c)
         gyro_scale = (imu.imu_gyro_noise_scale, imu.imu_gyro_noise_scale, imu.imu_yaw_gyro_noise_scale)
-        self.noise_meter = (ImuNoiseMeter(imu.imu_noise_window_s, gyro_scale, imu.imu_accel_noise_scale,
-                                          imu.gyro_noise_rps_rthz, imu.accel_noise_mps2_rthz) if imu.imu_noise_from_data else None)
+        self.noise_meter = (ImuNoiseMeter(gyro_scale=gyro_scale, accel_scale=imu.imu_accel_noise_scale,
+                                          gyro_max_rps_rthz=imu.gyro_noise_rps_rthz,
+                                          accel_max_mps2_rthz=imu.accel_noise_mps2_rthz)
+                            if imu.imu_noise_from_data else None)
         self.consistency = ConsistencyMonitor(ct.consistency_window_s, ct.consistency_false_alarm_per_hour,
                                               ct.verify_turn_deg, reverify=ct.consistency_reverify,
                                               release_windows=ct.consistency_release_windows,
@@ -281,7 +283,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
                            innovation_sd=np.sqrt(np.abs(np.diag(S))), innovation_cov=S)
         if kind.startswith("gnss") and self.consistency.feed_update(kind, t_s, nis, len(d), -d, S, self.C_nb):
             self._on_inconsistency()
-        if self.cfg.numerics.log_residuals and kind.startswith("gnss"):
+        if kind.startswith("gnss"):
             self.residuals.append(res)
         # every update (GNSS, NHC, ZUPT, ZARU, odometer) is offered to the hook with the filter
         if self.on_update is not None:
@@ -489,8 +491,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
     def _vehicle_constraints(self, speed_mps: float) -> None:
         if self.static:
             self._update_zupt()
-        elif (self.cfg.setup.platform == "car" and speed_mps > self.cfg.constraints.nhc_min_speed_mps
-              and self.heading_known):
+        elif self.cfg.setup.platform == "car" and speed_mps > updates.NHC_MIN_SPEED_MPS and self.heading_known:
             self._update_nhc()
 
     def apply_vehicle_constraints(self) -> None:
@@ -504,9 +505,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self._vehicle_constraints(math.sqrt(float(self.nav[3:6] @ self.nav[3:6])))
 
     def _update_nhc(self) -> None:
-        c = self.cfg
-        m = updates.nhc(self.layout, self.C_nb, self.misalignment_dcm(), self.nav[3:6], abs(self._last_w_b[2]),
-                        c.constraints.nhc_sd_mps, c.constraints.nhc_sd_per_yaw_rate_m)
+        m = updates.nhc(self.layout, self.C_nb, self.misalignment_dcm(), self.nav[3:6], abs(self._last_w_b[2]))
         r = self._update("nhc", self.t_s, *m)
         self.counts["nhc" if r.accepted else "nhc_rejected"] += 1
 
@@ -514,12 +513,12 @@ class InsFilter(ImuPath, Initialization, Outputs):
         """ZUPT, then ZARU with the stop window's mean rate (both ungated: a stop is certain); no
         ZARU while its window reaches into a stop calibration's (``_update_static_calibration``)."""
         c = self.cfg
-        self._update("zupt", self.t_s, *updates.zupt(self.layout, self.nav[3:6], c.constraints.zupt_sd_mps), gate=False)
+        self._update("zupt", self.t_s, *updates.zupt(self.layout, self.nav[3:6]), gate=False)
         self.counts["zupt"] += 1
         if c.stops.apply_static_calibration and self.calibrator.averaging(self.t_stamp_s, c.stops.static_window_s):
             return
         m = updates.zaru(self.layout, self.C_nb, self.nav[NAV_LAT], self.stops.mean_rate_rps(),
-                         self.corr[COR_BG:COR_BG + 3], c.constraints.zaru_sd_rps)
+                         self.corr[COR_BG:COR_BG + 3])
         self._update("zaru", self.t_s, *m, gate=False)
         self.counts["zaru"] += 1
 
@@ -590,5 +589,5 @@ class InsFilter(ImuPath, Initialization, Outputs):
             return UpdateResult("odometer", t_s, False, np.nan, reason="not initialised")
         self._flush_covariance()
         m = updates.odometer(self.layout, self.C_nb, self.misalignment_dcm(), self.nav[3:6], self.acc_ned_mps2,
-                             self.fx.odometer_scale, t_s - self.t_s, speed_mps, self.cfg.constraints.odometer_sd_mps)
+                             self.fx.odometer_scale, t_s - self.t_s, speed_mps)
         return self.correct("odometer", t_s, m)

@@ -32,8 +32,11 @@ ORTHONORMALIZE_EVERY_CHUNKS = 100
 """C_nb is re-orthonormalised every this many IMU chunks (rounding drift of the products)."""
 TIME_TOLERANCE_S = 1e-6
 """Stamps this close count as the same time when deciding whether a constraint is due."""
-MIN_SMOOTHING_TAU_S = 1e-6
-"""Floor of ``acc_smoothing_tau_s`` (a zero time constant means no smoothing)."""
+ACC_SMOOTHING_TAU_S = 0.2
+"""Time constant of the low-pass of the acceleration used in the measurement models' H (not in
+``nav_state``): long enough to drop engine vibration, short against a vehicle's manoeuvres."""
+CALIBRATION_MOVING_SPEED_MPS = 0.5
+"""Above this filter speed the stop calibrator is told "moving" whatever the stop detector says."""
 
 
 class ImuPath:
@@ -173,7 +176,7 @@ class ImuPath:
     def _smooth_acceleration(self, t_end_s: float) -> None:
         """Two kinematic accelerations for the measurement models (not for ``nav_state``), each the
         velocity change over the chunk through a first-order low-pass of time constant
-        ``acc_smoothing_tau_s`` (gain dt / tau, at most 1):
+        ``ACC_SMOOTHING_TAU_S`` (gain dt / tau, at most 1):
 
         * ``acc_ned_mps2``: the change of the filter's velocity, updates' corrections included
           (it follows the GNSS velocity): the models' predictions over an epoch gap and the GNSS
@@ -192,7 +195,7 @@ class ImuPath:
         v_now = self.nav[3:6].copy()
         if self._v_prev_chunk is not None and t_end_s > self._t_prev_chunk:
             dt_c = float(t_end_s - self._t_prev_chunk)
-            k = min(1.0, dt_c / max(self.cfg.numerics.acc_smoothing_tau_s, MIN_SMOOTHING_TAU_S))
+            k = min(1.0, dt_c / ACC_SMOOTHING_TAU_S)
             a_c = (v_now - self._v_prev_chunk) / dt_c
             self.acc_ned_mps2 = self.acc_ned_mps2 + k * (a_c - self.acc_ned_mps2)
             a_s = (v_now - self._v_prev_chunk - self._dv_corrections_mps) / dt_c
@@ -203,7 +206,7 @@ class ImuPath:
     def _feed_stop_calibration(self, t: np.ndarray, f: np.ndarray, w: np.ndarray,
                                speed_mps: float) -> tuple[list[StaticBiasEstimate], StaticBiasEstimate | None]:
         """The stop calibrator (``static_calibration``) with the chunk: the vehicle is moving unless
-        the stop detector says static and the speed is below ``calibration_moving_speed_mps``. The
+        the stop detector says static and the speed is below ``CALIBRATION_MOVING_SPEED_MPS``. The
         detector's rate test (mean rate less the gyro bias state) is left out while that state's sd
         exceeds the test's limit: it cannot then tell a bias from a turn, and a large bias must not
         keep the calibration that finds it from running. At a stop the calibrator is given the
@@ -214,7 +217,7 @@ class ImuPath:
                       and float(np.max(np.diag(self.P)[BG:BG + 3])) < self.cfg.stops.static_gyro_mean_max_rps ** 2)
         still = self.static if bias_known else self.stops.is_static(
             self.t_s, self.corr[COR_BG:COR_BG + 3], self.nav[3:6] if self.initialized else None, rate_test=False)
-        moving = not still or (self.initialized and speed_mps > self.cfg.stops.calibration_moving_speed_mps)
+        moving = not still or (self.initialized and speed_mps > CALIBRATION_MOVING_SPEED_MPS)
         g = geo.normal_gravity_mps2(self.nav[NAV_LAT], self.nav[NAV_H]) if self.initialized and not moving else None
         made = self.calibrator.made
         ests = self.calibrator.feed(t, f, w, moving=moving, gravity_mps2=g, prior=self._stop_prior)

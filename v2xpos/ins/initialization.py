@@ -5,7 +5,7 @@ data, and the resets of position and heading.
 filter's state (``nav``, ``C_nb``, ``P``, ``corr``, ``fx``, ``heading_known``, ...), documented in
 ``filter.py``. Alignment (``_try_align``): once the coarse aligner (``alignment.CoarseAligner``)
 has levelled the IMU, the filter starts either at a stop with the heading left open
-(``static_start``: ZUPT/ZARU estimate the biases meanwhile, ``_heading_reset`` turns the attitude
+(ZUPT/ZARU estimate the biases meanwhile, ``_heading_reset`` turns the attitude
 about down to the GNSS course when the vehicle moves) or, moving faster than
 ``align_min_speed_mps``, with the heading of the GNSS course. The initial covariance is diagonal:
 the given position/velocity/attitude sd, the bias priors (or a stop calibration's estimate) and
@@ -187,7 +187,7 @@ class Initialization:
             return UpdateResult("gnss_pos", t_s, False, np.nan, reason="aligning: no velocity yet")
         speed = float(np.hypot(vel[0], vel[1]))
         pos_sd = np.maximum(sd * c.gnss.fix_sd_scale.get(fix, 2.0), MIN_START_POSITION_SD_M)
-        if (c.initial.static_start and speed < c.stops.static_max_gnss_speed_mps and self.static
+        if (speed < c.stops.static_max_gnss_speed_mps and self.static
                 and self.aligner.levelled_static):
             # stopped and levelled: start now with the yaw left open, so that ZUPT/ZARU estimate the
             # biases during the stop; the heading is set when the platform moves (_heading_reset)

@@ -33,6 +33,8 @@ from .ekf import ATT, BA, BG, EFFECT_SIZES, VEL, StateLayout
 if TYPE_CHECKING:
     from .config import InsConfig
 
+NOISE_WINDOW_S = 10.0
+"""Time constant over which the running densities are averaged [s]."""
 MIN_SAMPLES = 50
 """Second differences needed before the measured densities replace the configured ones."""
 MIN_STATIC_SAMPLES = 300
@@ -101,7 +103,7 @@ class ImuNoiseMeter:
     per body axis (see the module docstring). ``gyro_scale``: the factor on the measured gyro
     density, one number or one per body axis (x, y, z)."""
 
-    def __init__(self, window_s: float = 10.0, gyro_scale: float | tuple = 1.0, accel_scale: float = 1.0,
+    def __init__(self, window_s: float = NOISE_WINDOW_S, gyro_scale: float | tuple = 1.0, accel_scale: float = 1.0,
                  gyro_max_rps_rthz: float = math.inf, accel_max_mps2_rthz: float = math.inf):
         self.window_s = float(window_s)
         self.gyro_scale = np.broadcast_to(np.asarray(gyro_scale, float), (3,)).copy()

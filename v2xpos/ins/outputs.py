@@ -19,6 +19,9 @@ from .consistency import INCONSISTENT, VERIFIED
 from .mechanization import COR_BA, COR_BG, COR_SA, COR_SG, NAV_H, NAV_LAT
 from .reported import correlations, reported_covariance, reported_jacobian
 
+COAST_AFTER_S = 1.0
+"""Without a GNSS update for longer than this the reported fix is DEAD_RECKONING (coasting)."""
+
 if TYPE_CHECKING:
     from .config import InsConfig
 
@@ -67,7 +70,7 @@ class Outputs:
         J = reported_jacobian(self.layout, self.C_nb, self.fx.misalignment_rad, self.nav[3:6], a_n, w_nb_b)
         cov = reported_covariance(self.P, J) * self.consistency.variance_ratio()
         sd = np.sqrt(np.abs(np.diag(cov)))
-        coasting = (self.t_s - self.last_gnss_t_s) > self.cfg.numerics.coast_after_s
+        coasting = (self.t_s - self.last_gnss_t_s) > COAST_AFTER_S
         fix = FixStatus.DEAD_RECKONING if (coasting and self.initialized) else self.last_fix
         return NavState(t_s=float(self.t_s), lla=self.nav[:3].copy(), v_ned_mps=self.nav[3:6].copy(),
                         acc_body_mps2=C_nv.T @ a_n, rate_body_rps=Rm @ w_nb_b,

@@ -139,8 +139,24 @@ def vehicle_frame_rows(C_nb: np.ndarray, R_vb: np.ndarray, v_ned_mps: np.ndarray
     return RCt @ v_ned_mps, RCt, -RCt @ skew(v_ned_mps), -skew(v_b)
 
 
+NHC_SD_MPS = (0.05, 0.5)
+"""1-sigma of the NHC's zero lateral and vertical velocity [m/s]: the vertical one loose because the
+body pitches against the road under braking and load (docs/ins.md, Measurements)."""
+NHC_SD_PER_YAW_RATE_M = 1.0
+"""Added to the lateral sd per rad/s of yaw rate [m]: an IMU metres from the rear axle slips sideways
+in turns."""
+NHC_MIN_SPEED_MPS = 0.5
+"""The NHC is applied above this speed (below it the vehicle frame's velocity direction is noise)."""
+ODOMETER_SD_MPS = 0.05
+"""1-sigma of a wheel-speed measurement [m/s] (quantisation and tyre slip of an ABS wheel speed)."""
+ZUPT_SD_MPS = 0.02
+"""1-sigma of the zero velocity at a stop [m/s] (engine vibration of a parked car)."""
+ZARU_SD_RPS = 2e-3
+"""1-sigma of the zero angular rate at a stop [rad/s] (engine vibration, occupants)."""
+
+
 def nhc(layout: StateLayout, C_nb: np.ndarray, R_vb: np.ndarray, v_ned_mps: np.ndarray, yaw_rate_rps: float,
-        sd_mps: tuple, sd_per_yaw_rate_m: float) -> Measurement:
+        sd_mps: tuple = NHC_SD_MPS, sd_per_yaw_rate_m: float = NHC_SD_PER_YAW_RATE_M) -> Measurement:
     """Zero lateral and vertical velocity of the vehicle; the lateral sd grows by
     ``sd_per_yaw_rate_m`` x |yaw rate| (an IMU ahead of the rear axle slips sideways in turns)."""
     v_v, Hv, Hphi, Hmis = vehicle_frame_rows(C_nb, R_vb, v_ned_mps)
@@ -156,7 +172,7 @@ def nhc(layout: StateLayout, C_nb: np.ndarray, R_vb: np.ndarray, v_ned_mps: np.n
 
 def odometer(layout: StateLayout, C_nb: np.ndarray, R_vb: np.ndarray, v_ned_mps: np.ndarray,
              acc_ned_mps2: np.ndarray, odometer_scale: float, gap_s: float, speed_mps: float,
-             sd_mps: float) -> Measurement:
+             sd_mps: float = ODOMETER_SD_MPS) -> Measurement:
     """Wheel speed ``speed_mps`` measured ``gap_s`` after the state label: the vehicle's forward
     velocity moved over the gap with the forward acceleration, times (1 + scale)."""
     v_v, Hv, Hphi, Hmis = vehicle_frame_rows(C_nb, R_vb, v_ned_mps)
@@ -175,7 +191,7 @@ def odometer(layout: StateLayout, C_nb: np.ndarray, R_vb: np.ndarray, v_ned_mps:
     return Measurement(H, d, np.array([[sd_mps ** 2]]))
 
 
-def zupt(layout: StateLayout, v_ned_mps: np.ndarray, sd_mps: float) -> Measurement:
+def zupt(layout: StateLayout, v_ned_mps: np.ndarray, sd_mps: float = ZUPT_SD_MPS) -> Measurement:
     """Zero velocity at a stop."""
     H = np.zeros((3, layout.n))
     H[:, VEL:VEL + 3] = np.eye(3)
@@ -205,7 +221,7 @@ def dual_antenna_heading(layout: StateLayout, C_nb: np.ndarray, R_vb: np.ndarray
 
 
 def zaru(layout: StateLayout, C_nb: np.ndarray, lat_rad: float, mean_rate_body_rps: np.ndarray,
-         gyro_bias_rps: np.ndarray, sd_rps: float) -> Measurement:
+         gyro_bias_rps: np.ndarray, sd_rps: float = ZARU_SD_RPS) -> Measurement:
     """Zero angular rate at a stop: the mean raw rate over the stop window, less the bias estimate
     and the Earth rate in body axes, is the bias error."""
     w_ie_b = C_nb.T @ geo.earth_rate_ned_rps(lat_rad)
