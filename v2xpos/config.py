@@ -4,7 +4,7 @@ fields, unknown-key rejection with "did you mean", the ``[source]`` table, ``[li
 """
 from __future__ import annotations
 
-from dataclasses import MISSING, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from collections.abc import Sequence
 from typing import Any
@@ -12,6 +12,7 @@ from typing import Any
 from v2xpos.compat import tomllib
 from v2xpos.link import LinkConfig, LinkImpairment
 from v2xpos import schema
+from v2xpos.schema import field_key  # noqa: F401  (the services' configs import it from here with the rest)
 
 
 class ConfigError(ValueError):
@@ -50,15 +51,6 @@ def check_keys(table: dict, allowed: set, where: str) -> None:
     schema.check_keys(table, allowed, where, ConfigError)
 
 
-def field_key(cls: type, name: str, kind: type | tuple, **bounds: float) -> schema.Key:
-    """The ``schema.Key`` of the TOML key ``name`` read into the dataclass ``cls``'s field of the
-    same name, with that field's default (one default for the file and for code) and ``bounds``
-    (``above``, ``low``, ``high``)."""
-    f = cls.__dataclass_fields__[name]
-    default = f.default if f.default_factory is MISSING else f.default_factory()
-    return schema.Key(name, kind, default, **bounds)
-
-
 def read_group(cls: type, table: Any, keys: Sequence[schema.Key], where: str, **extra: Any) -> Any:
     """``cls`` built from ``table`` read against ``keys`` (``v2xpos.schema.read_table``: unknown keys
     refused with a "did you mean", types and ranges checked, defaults filled), plus ``extra`` fields;
@@ -90,19 +82,16 @@ class SourceConfig:
 
 def impairment_from_table(t: dict, where: str) -> LinkImpairment:
     """``[impairment]``: injected link delay for tests and trials (see ``v2xpos.link.LinkImpairment``)."""
-    check_keys(t, {"latency_ms", "jitter_ms", "spikes", "seed"}, where)
-    lat = take(t, "latency_ms", float, 0.0, where)
-    jit = take(t, "jitter_ms", float, 0.0, where)
-    if lat < 0 or jit < 0:
-        raise ConfigError(f"{where}: latency_ms and jitter_ms must be >= 0")
-    spikes = take(t, "spikes", list, [], where)
+    v = schema.read_table(t, (schema.field_key(LinkImpairment, "latency_ms", float, low=0),
+                              schema.field_key(LinkImpairment, "jitter_ms", float, low=0), schema.Key("spikes", list, []),
+                              schema.field_key(LinkImpairment, "seed", int)), where, ConfigError)
     out = []
-    for k, sp in enumerate(spikes):
+    for k, sp in enumerate(v["spikes"]):
         if (not isinstance(sp, list) or len(sp) != 3
                 or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in sp)):
             raise ConfigError(f"{where}.spikes[{k}]: expected [t_start_gps_s, t_end_gps_s, extra_ms]")
         out.append((float(sp[0]), float(sp[1]), float(sp[2])))
-    return LinkImpairment(lat, jit, out, take(t, "seed", int, 0, where))
+    return LinkImpairment(v["latency_ms"], v["jitter_ms"], out, v["seed"])
 
 
 def link_from_table(t: dict, where: str) -> LinkConfig:

@@ -106,26 +106,15 @@ class LinkConfig:
     @classmethod
     def from_dict(cls, d: dict, where: str = "[link]") -> "LinkConfig":
         """Build from a TOML/JSON table; unknown keys are rejected with their location."""
-        known = {"mode", "listen", "connect", "retry_init_ms", "retry_max_ms", "retry_factor",
-                 "connect_timeout_ms", "extra_json5"}
-        from v2xpos.schema import check_keys
-        check_keys(d, known, where)
-        for k, kinds, low in (("retry_init_ms", (int,), 1), ("retry_max_ms", (int,), 1),
-                              ("retry_factor", (int, float), 1), ("connect_timeout_ms", (int,), -1)):
-            v = d.get(k)
-            if v is not None and (isinstance(v, bool) or not isinstance(v, kinds) or not v >= low):
-                raise ValueError(f"{where}.{k}: expected {'an integer' if kinds == (int,) else 'a number'} "
-                                 f">= {low}, got {type(v).__name__} {v!r}")
-        if "mode" in d and not isinstance(d["mode"], str):
-            raise ValueError(f"{where}.mode: expected one of {MODES}, got {d['mode']!r}")
-        if "extra_json5" in d and not isinstance(d["extra_json5"], dict):
-            raise ValueError(f"{where}.extra_json5: expected a table, got {d['extra_json5']!r}")
-        kw = dict(d)
+        from v2xpos.schema import field_key, read_table
+        kw = read_table(d, (field_key(cls, "mode", str), field_key(cls, "listen", (list, str)),
+                            field_key(cls, "connect", (list, str)), field_key(cls, "retry_init_ms", int, low=1),
+                            field_key(cls, "retry_max_ms", int, low=1), field_key(cls, "retry_factor", float, low=1),
+                            field_key(cls, "connect_timeout_ms", int, low=-1), field_key(cls, "extra_json5", dict)),
+                        where)
         for k in ("listen", "connect"):
-            if k in kw and isinstance(kw[k], str):
+            if isinstance(kw[k], str):
                 kw[k] = [kw[k]]
-            if k in kw and not isinstance(kw[k], list):
-                raise ValueError(f"{where}.{k}: expected a list of endpoints")
         try:
             return cls(**kw)
         except (TypeError, ValueError) as exc:

@@ -21,7 +21,7 @@ from __future__ import annotations
 import difflib
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import MISSING, dataclass
 from typing import Any
 
 REQUIRED = object()
@@ -86,6 +86,15 @@ def _value(key: Key, v: Any, where: str, error: type[Exception]) -> Any:
             or (key.high is not None and not v <= key.high)):
         raise error(f"{where}.{key.name}: expected a number in {key.range_text()}, got {v!r}")
     return v
+
+
+def field_key(cls: type, name: str, kind: type | tuple[type, ...], **bounds: float) -> Key:
+    """The ``Key`` of the table key ``name`` read into the dataclass ``cls``'s field of the same name,
+    with that field's default (one default for the file and for code) and ``bounds`` (``above``,
+    ``low``, ``high``)."""
+    f = cls.__dataclass_fields__[name]
+    default = f.default if f.default_factory is MISSING else f.default_factory()
+    return Key(name, kind, default, **bounds)
 
 
 def read_table(table: Any, keys: Sequence[Key], where: str, error: type[Exception] = ValueError) -> dict[str, Any]:
