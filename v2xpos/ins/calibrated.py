@@ -100,6 +100,7 @@ def ins_config(platform: str, imu_to_body: np.ndarray, lever_arm_m: np.ndarray, 
                        ("accel_noise_mps2_rthz", "imu_accel_noise_scale")):
         if key in imu:
             imu[key] = min(getattr(ImuModel, scale) * imu[key], getattr(ImuModel, key))
+    overrides = overridden({}, overrides)                      # every group as a dict of fields
     over = dict(overrides.get("effects", {}))
     for key in ("effect_initial_sd", "initial_effects"):     # merged with the calibration's, entry by entry
         if key in over and key in effects:

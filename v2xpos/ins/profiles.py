@@ -13,7 +13,7 @@ top of that, a profile, chosen by name:
   configured IMU noise, no fault-tolerant solution or protection level, no gyro-scale state) -- what
   ``v2xpos replay`` ran before there was one profile (``replay --profile plain``).
 * ``fit``: the declared model exactly, without effect states and without the calibration table
-  (``effects=()``): calibrate's fit replays (``diagnose.runner``), whose effects are applied to
+  (``effects={"states": ()}``): calibrate's fit replays (``diagnose.runner``), whose effects are applied to
   the samples by ``diagnose.inject`` instead.
 
 With wheel speeds on a car (``service``, ``plain``) the odometer scale is estimated too.
@@ -44,6 +44,7 @@ def vehicle_config(platform: str, imu_to_body: np.ndarray, lever_arm_m: np.ndarr
         return ins_config(platform, imu_to_body, lever_arm_m, lever_arm_sd_m, None,
                           **overridden({"effects": {"states": ()}}, overrides))
     service = profile == "service"
+    overrides = overridden({}, overrides)                      # every group as a dict of fields
     if wheel and platform == "car" and "states" not in overrides.get("effects", {}):
         base = ins_config(platform, imu_to_body, lever_arm_m, lever_arm_sd_m, calibration, service=service,
                           verification=verification).effects.states
@@ -59,9 +60,8 @@ def dataset_config(dataset: Any, profile: str = DEFAULT_PROFILE, **overrides: An
     ``imu_to_body``, ``lever_arm_m``, ``lever_arm_sd_m``) replaces it."""
     declared = {"platform": dataset.platform, "imu_to_body": dataset.imu_to_body,
                 "lever_arm_m": dataset.lever_arm_m, "lever_arm_sd_m": dataset.lever_arm_sd_m}
-    if "setup" in overrides:
-        overrides = dict(overrides)
-        declared.update(overrides.pop("setup"))
+    overrides = overridden({}, overrides)                      # every group as a dict of fields
+    declared.update(overrides.pop("setup", {}))
     return vehicle_config(**declared, calibration=getattr(dataset, "calibration", None),
                           wheel=getattr(dataset, "wheel", None) is not None, profile=profile,
                           verification=getattr(dataset, "verification", None), **overrides)
