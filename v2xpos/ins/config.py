@@ -118,7 +118,6 @@ class GnssModel:
     use_gnss_velocity: bool = True
     gate_probability: float = 0.9999
     gnss_max_consecutive_rejections: int = 8
-    gnss_reset_distance_m: float = 30.0           # a forced fix further than this resets position instead
     timing_min_speed_mps: float = 1.0             # below it the timing states get no H (noise would pass for signal)
 
 

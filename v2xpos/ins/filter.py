@@ -39,7 +39,7 @@ from .integrity import FaultTolerantSolution
 from .ekf import ATT, BA, BG, EFFECT_SIZES, POS, VEL, StateLayout, kalman_update
 from .effects import EffectValues
 from .imu_path import ImuPath
-from .initialization import Initialization
+from .initialization import GNSS_RESET_DISTANCE_M, Initialization
 from .mechanization import COR_BA, COR_BG, COR_SA, COR_SG, MEM_SIZE, MEM_W, NAV_H, NAV_LAT, NAV_LON, NAV_VEL
 from .motion import StopDetector
 from .noise import ImuNoiseMeter, process_noise_density
@@ -458,7 +458,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
         m = updates.gnss_position(self.layout, self.nav, C_before, self.fx.lever_arm_m, v, gap, lla, sd * scale,
                                   c.gnss.gnss_pos_sd_floor_m, timing)
         force = self._gnss_rejections >= c.gnss.gnss_max_consecutive_rejections
-        if force and float(m.d @ m.d) > c.gnss.gnss_reset_distance_m ** 2:
+        if force and float(m.d @ m.d) > GNSS_RESET_DISTANCE_M ** 2:
             return self._position_reset(t_s, lla, sd, fix, vel_ned_mps, float(np.sqrt(m.d @ m.d)))
         res = self._update("gnss_pos", t_s, *m, force=force)
         if res.accepted:

@@ -33,6 +33,9 @@ STOP_GYRO_BIAS_INIT_SD_FLOOR_RPS = 1e-3
 """Least initial gyro-bias sd when the filter starts from a stop calibration's estimate."""
 MIN_START_POSITION_SD_M = 0.05
 """Least initial and reset position sd [m], whatever the receiver reports."""
+GNSS_RESET_DISTANCE_M = 30.0
+"""A forced GNSS fix (after ``gnss.gnss_max_consecutive_rejections``) further than this from the
+filter resets its position instead of updating it (beyond the linearisation's reach)."""
 
 
 def antenna_fix_inverse_jacobian(layout, C_nb: np.ndarray, lever_arm_m: np.ndarray, v_ned_mps: np.ndarray,
@@ -216,7 +219,7 @@ class Initialization:
 
     def _position_reset(self, t_s, lla, sd, fix, vel, err_m: float) -> UpdateResult:
         """The filter has drifted beyond linear reach (consecutive rejections and an innovation over
-        ``gnss_reset_distance_m``): take position (and velocity when given) from GNSS and reset
+        ``GNSS_RESET_DISTANCE_M``): take position (and velocity when given) from GNSS and reset
         their covariance; attitude, biases and effects are kept."""
         self._smoothing_boundary()
         c = self.cfg
