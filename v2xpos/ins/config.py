@@ -25,8 +25,8 @@ about float and code solutions)."""
 @dataclass
 class InsConfig:
     """Filter configuration. Units in the names; defaults are for an automotive MEMS IMU
-    (e.g. ARW ~0.2 deg/sqrt(s) including vehicle vibration, bias instability ~10 deg/h) and an RTK
-    receiver; docs/ins.md gives the reasoning.
+    (e.g. ARW ~0.2 deg/sqrt(s) including vehicle vibration, a gyro bias that moves with temperature
+    by ~0.05 deg/s over a drive) and an RTK receiver; docs/ins.md gives the reasoning.
 
     platform: "car" (NHC on), "pedestrian" or "generic" (no vehicle constraints).
     imu_to_body: v_body = imu_to_body @ v_imu (declared nominal mounting).
@@ -41,7 +41,7 @@ class InsConfig:
     # IMU stochastic model
     gyro_noise_rps_rthz: float = 3e-3
     accel_noise_mps2_rthz: float = 3e-2
-    gyro_bias_sd_rps: float = 1e-4
+    gyro_bias_sd_rps: float = 1e-3
     gyro_bias_tau_s: float = 600.0
     accel_bias_sd_mps2: float = 5e-3
     accel_bias_tau_s: float = 600.0
