@@ -124,12 +124,10 @@ def _drive_with_slope_and_step(step_t_s: float, gyro_step_rps, accel_step_mps2):
 @pytest.mark.parametrize("profile", PROFILES)
 def test_generated_drive_slope_stop_is_not_level_and_a_bias_step_is_seen(profile):
     """The stop on a 5 % grade gives no estimate and is counted not level, its pitch alone beyond
-    the limit with confidence, in both profiles. The rest (the level stops' estimates and the bias
-    step) in ``plain`` only: on this drive the services' profile runs its roll mounting estimate
-    away (about -37 deg at the end, truth 0.5 deg, sd near 2 deg; with the configured IMU noise
-    instead of the online noise meter's it stays near the truth with its prior-like sd), which
-    makes stop B's vehicle tilt tens of degrees -- a defect of that profile's filter, not of the
-    stop calibration."""
+    the limit with confidence; the level stops give estimates and the one after the bias step sees
+    the step, in both profiles. (With a gyro bias model of 1e-4 rad/s the services' profile, whose
+    attitude noise is measured, put the step into its weakly observable roll mounting, which ran to
+    tens of degrees, and stop B then looked tilted: docs/ins.md, the IMU stochastic model.)"""
     gyro_step, accel_step = np.radians([0.1, -0.2, 0.15]), np.array([0.08, -0.05, 0.1])
     ds, stop_t0, stop_t1, model = _drive_with_slope_and_step(130.0, gyro_step, accel_step)
     assert len(stop_t0) == 4
@@ -143,8 +141,6 @@ def test_generated_drive_slope_stop_is_not_level_and_a_bias_step_is_seen(profile
     pitch_inside = level_probability(np.array([0.0, tilt[0].tilt_rad[1]]), np.array([0.0, tilt[0].tilt_sd_rad[1]]),
                                      np.radians([2.0, 2.0]))
     assert pitch_inside < 1e-3
-    if profile != "plain":
-        return
     assert len(a) == len(b) == len(first) == 1 and s["counts"]["static_calibrations"] == 3
     assert abs(tilt[0].tilt_rad[1] - GRADE_5PCT_RAD) < math.radians(0.5)
     (first,), (a,), (b,) = first, a, b
@@ -159,10 +155,17 @@ def test_generated_drive_slope_stop_is_not_level_and_a_bias_step_is_seen(profile
     step_g, step_a = CAR_MOUNT @ gyro_step, CAR_MOUNT @ accel_step
     np.testing.assert_array_less(np.abs(b.gyro_bias_rps - a.gyro_bias_rps - step_g), GYRO_TOL_RPS)
     assert abs(b.accel_bias_mps2[2] - a.accel_bias_mps2[2] - step_a[2]) < ACCEL_TOL_MPS2
-    assert np.all(np.abs(b.accel_bias_mps2 - a.accel_bias_mps2 - step_a)
-                  < 3 * np.hypot(a.accel_sd_mps2, b.accel_sd_mps2))
-    # the check sees the filter's states refuted, and the filter takes the stop's estimate
-    assert b.gyro_nis > NIS_999 and s["counts"]["static_calibration_resets"] == 1
+    seen_a, sd_ab = b.accel_bias_mps2 - a.accel_bias_mps2, np.hypot(a.accel_sd_mps2, b.accel_sd_mps2)
+    if profile == "plain":
+        assert np.all(np.abs(seen_a - step_a) < 3 * sd_ab)
+    else:
+        # the measured attitude noise keeps the services' tilt sd tighter than the step it absorbed
+        # (20 sd of the accelerometer bias model): the estimate holds none to all of the step
+        assert np.all(np.abs(seen_a[:2] - step_a[:2] / 2) < np.abs(step_a[:2]) / 2 + 3 * sd_ab[:2])
+    # after stop B the filter's gyro bias is the stop's: it followed the step (the stop's check
+    # agrees) or the check refuted its states and it took the estimate
+    resets = s["counts"].get("static_calibration_resets", 0)
+    assert (b.gyro_nis > NIS_999 and resets == 1) or (b.gyro_nis < NIS_999 and resets == 0)
     np.testing.assert_allclose(f.gyro_bias_rps, b.gyro_bias_rps, atol=math.radians(0.02))
 
 

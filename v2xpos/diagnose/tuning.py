@@ -93,8 +93,8 @@ def rescaled_config(config: dict, base: dict, factors: dict[str, float]) -> dict
 # ------------------------------------------------------------------ Allan deviation at stops
 # What the written table's IMU noise must cover. The filter models the gyro as white noise (its
 # attitude process noise, ``InsConfig.imu.gyro_noise_rps_rthz``) plus a bias that is a first-order
-# Gauss-Markov state (``gyro_bias_sd_rps`` 1e-4 rad/s, ``gyro_bias_tau_s`` 600 s: over seconds a
-# rate random walk of 5.8e-6 rad/s/sqrt(s)). The second differences (``imu_noise_density``) see
+# Gauss-Markov state (``gyro_bias_sd_rps`` 1e-3 rad/s, ``gyro_bias_tau_s`` 600 s: over seconds a
+# rate random walk of 5.8e-5 rad/s/sqrt(s)). The second differences (``imu_noise_density``) see
 # only the white part; an outage integrates the error over 15 s, so whatever the Allan deviation
 # shows above the white line at tau of seconds (bias instability, a flat floor sigma = 0.664 B;
 # rate random walk, slope +1/2; IEEE Std 952-1997 Annex C, El-Sheimy et al. 2008, IEEE TIM 57(1);
