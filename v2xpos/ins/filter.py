@@ -66,10 +66,9 @@ class InsFilter(ImuPath, Initialization, Outputs):
     IMU time offset's column); ``static`` the stop detector's (``stops``) verdict;
     ``initialized`` / ``heading_known`` the alignment's progress; ``counts`` / ``residuals``
     what the updates did; ``on_update(result, filter)`` an optional hook after every update;
-    ``recorder`` an optional ``smoother.StepRecorder`` told of every covariance propagation, every
-    correction fed back, every reset that rewrites P and moves the state (a boundary) and every
-    reset that replaces some states by fresh estimates decoupled from the rest (the gyro biases at
-    a refuted stop): what a backward smoothing pass needs.
+    ``separation`` (the integrity twin), ``recorder`` (the smoother's) and ``observers`` follow
+    every covariance propagation, correction, boundary (a reset that rewrites P and moves the
+    state) and decoupling reset (the gyro biases at a refuted stop) as ``observers.FilterObserver``s.
     """
 
     def __init__(self, cfg: InsConfig | None = None):
@@ -144,6 +143,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self.stage_s = {"strapdown": 0.0, "covariance": 0.0, "kalman_updates": 0.0}
         self.on_update = None
         self.recorder = None
+        self.observers: list = []
         self._last_w_b = np.zeros(3)
         self._last_sample_t: float | None = None
         self.acc_ned_mps2 = np.zeros(3)
@@ -210,10 +210,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
             t0 = perf_counter()
             Phi = ekf.transition_matrix(self.A)
             self.A[:] = 0.0
-            if self.recorder is not None:
-                self.recorder.propagate(self, Phi, max(dt, 0.0))
-            if self.separation is not None:
-                self.separation.propagate(Phi, self.q_c, max(dt, 0.0))
+            for o in self._observers():
+                o.propagating(self, Phi, self.q_c, max(dt, 0.0))
             self.P = ekf.propagate_with_transition(self.P, Phi, self.q_c, max(dt, 0.0))
             self.stage_s["covariance"] += perf_counter() - t0
             if not self.heading_known:
@@ -272,12 +270,10 @@ class InsFilter(ImuPath, Initialization, Outputs):
         dx, P, nis, S, ok = kalman_update(self.P, H, d, R, self.gate.get(len(d), None) if gate else None, force,
                                           self.consider)
         if ok:
-            if self.separation is not None:
-                self.separation.update(H, d, R, dx, nis, S)
             self.P = P
             self._apply(dx)
-            if self.recorder is not None:
-                self.recorder.correct(dx)
+            for o in self._observers():
+                o.corrected(self, H, d, R, dx, nis, S)
         self.stage_s["kalman_updates"] += perf_counter() - t0
         res = UpdateResult(kind=kind, t_s=t_s, accepted=ok, nis=nis, innovation=-d,
                            innovation_sd=np.sqrt(np.abs(np.diag(S))), innovation_cov=S)
@@ -380,8 +376,13 @@ class InsFilter(ImuPath, Initialization, Outputs):
     def _smoothing_boundary(self) -> None:
         """Called before a reset rewrites P and moves the state (start, position and heading
         resets, lever-arm exclusion): the smoother's backward pass does not cross it."""
-        if self.recorder is not None:
-            self.recorder.boundary(self)
+        for o in self._observers():
+            o.boundary(self)
+
+    def _observers(self) -> list:
+        """Who follows the filter's steps without being part of them (``observers.FilterObserver``):
+        the integrity twin, the smoother's recorder, then any the caller put in ``observers``."""
+        return [o for o in (self.separation, self.recorder) if o is not None] + self.observers
 
     def _restart_separation(self) -> None:
         """(Re)start the twin from the current covariance (heading set, filter started): its
@@ -539,16 +540,15 @@ class InsFilter(ImuPath, Initialization, Outputs):
         est.applied = True
         if self._update("static_calibration", self.t_s, *m).accepted:
             return
-        P_before = self.P.copy() if self.recorder is not None else None
+        observers = self._observers()
+        P_before = self.P.copy() if observers else None
         self.corr[COR_BG:COR_BG + 3] = est.gyro_bias_rps
         self.P[BG:BG + 3, :] = 0.0
         self.P[:, BG:BG + 3] = 0.0
         self.P[BG:BG + 3, BG:BG + 3] = est.gyro_cov
-        if self.recorder is not None:
-            self.recorder.reset(self, P_before, np.arange(BG, BG + 3))
         self.counts["static_calibration_resets"] += 1
-        if self.separation is not None:
-            self.separation.reset_states(np.arange(BG, BG + 3), self.P)
+        for o in observers:
+            o.states_reset(self, P_before, np.arange(BG, BG + 3))
 
     def update_heading(self, t_s: float, heading_rad: float, sd_rad: float,
                        baseline_vehicle_m: np.ndarray) -> UpdateResult:

@@ -82,6 +82,7 @@ from scipy.stats import chi2, norm
 
 from .consistency import widen_lever_arm
 from .ekf import POS, VEL, kalman_update, propagate_with_transition
+from .observers import FilterObserver
 
 NIS_CAP_PROBABILITY = 1e-9
 """An update's NIS enters the likelihood ratio capped at this upper quantile of its chi-square."""
@@ -115,7 +116,7 @@ def protection_levels(risk: float, w1: float, sd0: np.ndarray, sep: np.ndarray, 
     return np.where(out_of_reach, np.inf, hi)
 
 
-class FaultTolerantSolution:
+class FaultTolerantSolution(FilterObserver):
     """The set-up fault hypothesis of one filter: the twin, P(H1 | y) and the protection level (see
     the module docstring).
 
@@ -213,6 +214,17 @@ class FaultTolerantSolution:
             return
         self.P = propagate_with_transition(self.P, Phi, q_c, max(dt_s, 0.0))
         self.w = Phi @ self.w
+
+    # the filter's steps, observed (``observers.FilterObserver``)
+    def propagating(self, f, Phi: np.ndarray, q_c: np.ndarray, dt_s: float) -> None:
+        self.propagate(Phi, q_c, dt_s)
+
+    def corrected(self, f, H: np.ndarray, d: np.ndarray, R: np.ndarray, dx: np.ndarray, nis: float,
+                  S: np.ndarray) -> None:
+        self.update(H, d, R, dx, nis, S)
+
+    def states_reset(self, f, P_before: np.ndarray, index: np.ndarray) -> None:
+        self.reset_states(index, f.P)
 
     def _capped(self, nis: float, dof: int) -> float:
         c = self._cap.get(dof)

@@ -78,6 +78,7 @@ from v2xpos.rotation import dcm_from_euler, euler_from_dcm, exp_so3, skew
 from v2xpos.types import FixStatus, NavState
 
 from .ekf import ATT, BASE_STATES, POS, VEL, propagate_with_transition
+from .observers import FilterObserver
 from .reported import correlations, reported_jacobian
 
 BLOCK_NODES = 4096
@@ -240,7 +241,7 @@ def reset_transition(P_before: np.ndarray, P_after: np.ndarray,
     return T, Q
 
 
-class StepRecorder:
+class StepRecorder(FilterObserver):
     """Records what the backward pass needs (module docstring) and runs it (``smooth``).
 
     n: error states; support: the (rows, columns) of Phi that may differ from the identity
@@ -296,6 +297,16 @@ class StepRecorder:
             self.close(f.P)
             return
         self.step(f.t_stamp_s - dt_s, f.t_stamp_s, f.P, Phi, f.q_c * dt_s)
+
+    def propagating(self, f, Phi: np.ndarray, q_c: np.ndarray, dt_s: float) -> None:
+        self.propagate(f, Phi, dt_s)
+
+    def corrected(self, f, H: np.ndarray, d: np.ndarray, R: np.ndarray, dx: np.ndarray, nis: float,
+                  S: np.ndarray) -> None:
+        self.correct(dx)
+
+    def states_reset(self, f, P_before: np.ndarray, index: np.ndarray) -> None:
+        self.reset(f, P_before, index)
 
     def boundary(self, f) -> None:
         """Before a reset rewrites ``f.P``: the segment ends with the covariance it had."""
