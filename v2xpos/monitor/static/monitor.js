@@ -110,7 +110,7 @@ function drawEdgeMarker(r, x, y) {
   ctx.fillStyle = "#000"; ctx.font = "11px sans-serif";
   const d = Math.hypot(x, y);
   ctx.fillText(`${r.id} ${r.status} ${d.toFixed(0)} m`, Math.min(ex + 8, canvas.width - 120), Math.max(ey - 8, 12));
-  return { id: r.id, status: r.status, color: color, px: ex, py: ey, edge: true };
+  return { id: r.id, status: r.status, color: color, px: ex, py: ey, edge: true, range_m: r.range_m, x_m: r.x_m };
 }
 
 function drawTarget(r, lastSeen) {
@@ -150,7 +150,7 @@ function drawTarget(r, lastSeen) {
   ctx.fillStyle = "#000"; ctx.font = "11px sans-serif";
   ctx.fillText(`${r.id} ${r.status}${r.range_m !== null ? " " + r.range_m.toFixed(1) + " m" : ""}`, cx + 8, cy - 8);
   ctx.restore();
-  return { id: r.id, status: r.status, color: color, px: cx, py: cy };
+  return { id: r.id, status: r.status, color: color, px: cx, py: cy, range_m: r.range_m, x_m: r.x_m };
 }
 
 let lastSnap = null;
