@@ -82,7 +82,7 @@ def print_table(report: dict, out: TextIO | None = None) -> None:
           f"{'dt [ms]':>7}  {'rotation XYZ [deg]':<22} {'fused att/pos P90':<18} {'rate chk':<9} notes", file=out)
     for u in report["units"]:
         rm = "/".join(f"{v:.2f}" for v in u["rmse"]["gyro"])
-        pc = "/".join(f"{v:.3f}" for v in u["pcc"]["gyro"])
+        pc = "/".join("-" if v is None else f"{v:.3f}" for v in u["pcc"]["gyro"])
         rot = "/".join(f"{v:.2f}" for v in u["relative_rotation"]["euler_xyz_deg"])
         fd = u.get("fused_diff")
         fds = f"{fd['att_deg']['p90']:.2f} deg/{fd['pos_m']['p90']:.2f} m" if fd else "-"

@@ -21,13 +21,68 @@ import numpy as np
 from scipy.signal import butter, sosfiltfilt
 
 
+PCC_SNR_MIN = 3.0
+"""A window tells two units' similarity on an axis only when the signal there stands out of the
+noise by this factor: two healthy units measuring a signal of s.d. s with noise s.d. sigma
+correlate with PCC = s^2 / (s^2 + sigma^2); a window s.d. of 3 sigma (s = 2.8 sigma) gives 0.89,
+above the warn level (0.75, reached at s = 1.7 sigma). Windows with less signal measure the noise,
+not the units."""
+PCC_MIN_SIGNAL_WINDOWS = 4
+"""Fewest windows with signal on an axis for its median PCC to be a statistic (2.5 s of motion
+at the default 1-s windows every 0.5 s)."""
+
+
 @dataclass
 class WindowSeries:
-    """Per-window metrics, arrays (n_windows, 3): rmse, pcc, mean_diff (y - x); t_s: window centres."""
+    """Per-window metrics, arrays (n_windows, 3): rmse, pcc, mean_diff (y - x); ref_sd / ut_sd: each
+    stream's own s.d. in the window; ref_noise / ut_noise: each stream's white-noise s.d. in the
+    window, RMS of the sample-to-sample difference / sqrt(2) (the motion, band-limited far below
+    the sample rate, cancels in a one-sample difference; white noise of s.d. sigma gives
+    sqrt(2) sigma); t_s: window centres."""
     t_s: np.ndarray
     rmse: np.ndarray
     pcc: np.ndarray
     mean_diff: np.ndarray
+    ref_sd: np.ndarray | None = None
+    ut_sd: np.ndarray | None = None
+    ref_noise: np.ndarray | None = None
+    ut_noise: np.ndarray | None = None
+
+    def swapped(self) -> "WindowSeries":
+        """The same windows seen from the other stream (difference negated, the streams exchanged)."""
+        return WindowSeries(self.t_s, self.rmse, self.pcc, -self.mean_diff, self.ut_sd, self.ref_sd,
+                            self.ut_noise, self.ref_noise)
+
+    def signal(self, snr_min: float = PCC_SNR_MIN) -> np.ndarray:
+        """(n_windows, 3) bool: windows where the quieter stream (per axis, the smaller median
+        white-noise s.d. over the run) varies by at least ``snr_min`` times the noise.
+
+        The noise is the smaller of two estimates that each can only err high: the quieter
+        stream's one-sample-difference noise (``ref_noise`` / ``ut_noise``; too high when fast
+        vibration common to both units passes for noise, as on a quadrotor's frame) and the
+        difference's s.d. over sqrt(2) (the median over the windows of RMSE without the window's
+        mean difference; exact for two healthy units of equal noise, too high when one is faulty).
+        So a unit whose output is noise or garbage cannot remove the windows that show it: it is
+        judged on the motion its partner saw, and correlates badly there."""
+        if self.ref_noise is None or self.ut_noise is None or not len(self.rmse):
+            return np.zeros(self.pcc.shape, dtype=bool)
+        noise_ref = np.median(self.ref_noise, axis=0)
+        noise_ut = np.median(self.ut_noise, axis=0)
+        quiet_is_ref = noise_ref <= noise_ut
+        sd = np.where(quiet_is_ref[None, :], self.ref_sd, self.ut_sd)
+        diff_sd = np.sqrt(np.maximum(self.rmse ** 2 - self.mean_diff ** 2, 0.0))
+        noise = np.minimum(np.where(quiet_is_ref, noise_ref, noise_ut), np.median(diff_sd, axis=0) / np.sqrt(2.0))
+        return sd >= snr_min * noise[None, :]
+
+    def median_pcc(self, snr_min: float = PCC_SNR_MIN,
+                   min_windows: int = PCC_MIN_SIGNAL_WINDOWS) -> tuple[np.ndarray, np.ndarray]:
+        """Per axis: the median PCC over the windows with signal (``signal``), NaN where fewer
+        than ``min_windows`` have it, and the number of those windows."""
+        sig = self.signal(snr_min)
+        n = sig.sum(axis=0)
+        med = np.array([float(np.median(self.pcc[sig[:, k], k])) if n[k] >= min_windows else np.nan
+                        for k in range(self.pcc.shape[1])])
+        return med, n
 
 
 def window_starts(n_samples: int, window_n: int, step_n: int) -> np.ndarray:
@@ -49,7 +104,7 @@ def sliding_window_metrics(t_s: np.ndarray, x: np.ndarray, y: np.ndarray, window
     starts = window_starts(len(x), window_n, step_n)
     if len(starts) == 0:
         empty = np.zeros((0, 3))
-        return WindowSeries(np.zeros(0), empty, empty, empty)
+        return WindowSeries(np.zeros(0), empty, empty, empty, empty, empty, empty, empty)
     idx = starts[:, None] + np.arange(window_n)[None, :]
     X = x[idx]
     Y = y[idx]
@@ -62,7 +117,11 @@ def sliding_window_metrics(t_s: np.ndarray, x: np.ndarray, y: np.ndarray, window
     den = np.sqrt(np.sum(Xc ** 2, axis=1) * np.sum(Yc ** 2, axis=1))
     pcc = np.where(den > 1e-300, num / np.maximum(den, 1e-300), 0.0)
     t = np.asarray(t_s, float)[starts + window_n // 2]
-    return WindowSeries(t, rmse, np.clip(pcc, -1.0, 1.0), mean_diff)
+    ref_sd = np.sqrt(np.mean(Xc ** 2, axis=1))
+    ut_sd = np.sqrt(np.mean(Yc ** 2, axis=1))
+    ref_noise = np.sqrt(np.mean(np.diff(X, axis=1) ** 2, axis=1) / 2.0)
+    ut_noise = np.sqrt(np.mean(np.diff(Y, axis=1) ** 2, axis=1) / 2.0)
+    return WindowSeries(t, rmse, np.clip(pcc, -1.0, 1.0), mean_diff, ref_sd, ut_sd, ref_noise, ut_noise)
 
 
 def box_stats(values: np.ndarray) -> dict:

@@ -25,6 +25,10 @@ def _per_axis(values: np.ndarray, scale: float = 1.0) -> list[float]:
     return [float(v) * scale for v in values]
 
 
+def _finite_or_none(values: np.ndarray) -> list[float | None]:
+    return [float(v) if np.isfinite(v) else None for v in values]
+
+
 def _pair_block(fc: UnitComparison, ref: str, uid: str, cfg: GradeConfig,
                 mounting: dict | None) -> dict:
     """Per-axis first-parameter values of uid against ref (ref's axes)."""
@@ -35,8 +39,9 @@ def _pair_block(fc: UnitComparison, ref: str, uid: str, cfg: GradeConfig,
         "compared_with": ref,
         "rmse": {"gyro": _per_axis(np.median(g_rmse, axis=0), r2d),
                  "accel": _per_axis(np.median(a_rmse, axis=0))},
-        "pcc": {"gyro": _per_axis(np.median(p.gyro.pcc, axis=0)),
-                "accel": _per_axis(np.median(p.accel.pcc, axis=0))},
+        "pcc": {"gyro": _finite_or_none(p.gyro.median_pcc()[0]),
+                "accel": _finite_or_none(p.accel.median_pcc()[0])},
+        "pcc_signal_windows": {"gyro": p.gyro.median_pcc()[1].tolist(), "accel": p.accel.median_pcc()[1].tolist()},
         "rmse_stats": {"gyro": {a: box_stats(g_rmse[:, k] * r2d) for k, a in enumerate(AXES)},
                        "accel": {a: box_stats(a_rmse[:, k]) for k, a in enumerate(AXES)}},
         "pcc_stats": {"gyro": pcc_stats(p.gyro.pcc), "accel": pcc_stats(p.accel.pcc)},

@@ -27,7 +27,7 @@ import numpy as np
 from v2xpos.types import ImuData
 
 from . import unit_rotation
-from .consistency import (WindowSeries, longest_constant_run_s, relative_scale,
+from .consistency import (PCC_MIN_SIGNAL_WINDOWS, WindowSeries, longest_constant_run_s, relative_scale,
                           turning_mask, robust_range,
                           sliding_window_metrics)
 from .timesync import common_grid, gyro_norm_offset_s, median_rate_hz, resample, vector_offset_s
@@ -70,8 +70,9 @@ class PairResult:
 
     C_ref_ut: rotation ut axes -> ref axes; offset_s: clock offset of ut against ref
     (``ut(t + offset) ~ ref(t)``); gyro in rad/s, accel in m/s^2; scale: per-axis TLS slope
-    ut/ref (NaN where not observable); pcc_signal: True for axes with enough motion for PCC to
-    mean something.
+    ut/ref (NaN where not observable); pcc_signal: True for axes with at least ``PCC_MIN_SIGNAL_WINDOWS``
+    gyro windows whose signal stands out of the noise (``WindowSeries.signal``), so that a median
+    window PCC means something.
     """
     ref: str
     ut: str
@@ -95,12 +96,13 @@ class PairResult:
         without the window's mean difference, so constant bias differences do not count);
         bias_drift_rps: norm over axes of the P95 - P5 spread of the window mean differences;
         time_offset_s: |clock offset|; scale_error: largest |scale - 1| over observable axes;
-        pcc_deficit: largest 1 - median window PCC over axes with motion.
+        pcc_deficit: largest 1 - median window PCC over axes with motion, the median over the
+        windows where the reference's signal stands out of the noise (``WindowSeries.signal``).
         """
         g_noise = np.percentile(_debiased(self.gyro), 75, axis=0)
         a_noise = np.percentile(_debiased(self.accel), 75, axis=0)
         drift = robust_range(self.gyro.mean_diff)
-        pcc_med = np.median(self.gyro.pcc, axis=0)
+        pcc_med, _ = self.gyro.median_pcc()
         sig = self.pcc_signal
         sc = self.scale_gyro[np.isfinite(self.scale_gyro)]
         return {
@@ -182,9 +184,10 @@ def compare_pair(ref_id: str, ref: ImuData, ut_id: str, ut: ImuData, cfg: GradeC
     min_sd = np.radians(cfg.min_scale_signal_dps)
     scale = relative_scale(g_ref, g_al, rate, cfg.scale_cutoff_hz, min_sd)
     sd_ref = np.std(g_ref, axis=0)
+    _, n_signal = gw.median_pcc()
     return PairResult(ref=ref_id, ut=ut_id, offset_s=float(offset), offset_peak_corr=float(peak),
                       C_ref_ut=C, rotation_source=source, kabsch_condition=cond, gyro=gw, accel=aw,
-                      scale_gyro=scale, pcc_signal=sd_ref >= min_sd, ref_gyro_sd_rps=sd_ref,
+                      scale_gyro=scale, pcc_signal=n_signal >= PCC_MIN_SIGNAL_WINDOWS, ref_gyro_sd_rps=sd_ref,
                       C_declared=C_decl, offset_estimated=bool(sync))
 
 
@@ -196,8 +199,7 @@ def _swap(p: PairResult) -> PairResult:
     nearly co-aligned units and exact for the norms used by the consensus scores.
     """
     inv = lambda s: 1.0 / s if np.isfinite(s) and s != 0 else np.nan  # noqa: E731
-    gw = WindowSeries(p.gyro.t_s, p.gyro.rmse, p.gyro.pcc, -p.gyro.mean_diff)
-    aw = WindowSeries(p.accel.t_s, p.accel.rmse, p.accel.pcc, -p.accel.mean_diff)
+    gw, aw = p.gyro.swapped(), p.accel.swapped()
     return PairResult(ref=p.ut, ut=p.ref, offset_s=-p.offset_s, offset_peak_corr=p.offset_peak_corr,
                       offset_estimated=p.offset_estimated,
                       C_ref_ut=p.C_ref_ut.T, rotation_source=p.rotation_source,
