@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 
 from bench.fake_master import result
@@ -74,6 +75,25 @@ def test_every_non_valid_row_says_what_to_do(status, side, field, reason, words)
     assert row["instruction"].startswith(words), row["instruction"]
     assert reason.name in row["reason"]
     assert words.split(":")[0] in table.row_line(row)
+
+
+@pytest.mark.parametrize("x_m,y_m,sd_x_m,sd_y_m,range_sd_m,far", [
+    (300.0, 10.0, 0.02, 0.30, 0.02, True),     # 300 m ahead, its s.d. across the line of sight: the heading's
+    (370.0, 190.0, 0.06, 0.11, 0.005, True),   # 27 deg off the axis: x and y share the heading's error
+    (30.0, 1.0, 0.25, 0.25, 0.25, False),      # circular: the receivers', not the range's
+    (-250.0, 5.0, 0.03, 0.28, 0.03, True)])    # behind
+def test_sigma_over_its_limit_says_whether_range_is_the_cause(x_m, y_m, sd_x_m, sd_y_m, range_sd_m, far):
+    r = result(1, TargetStatus.VALID, 1, 1e9)
+    r.status = TargetStatus.SIGMA_EXCEEDED
+    r.rel_pos_body_m = np.array([x_m, y_m, 0.0])
+    r.rel_pos_sd_m = np.array([sd_x_m, sd_y_m, 0.03])
+    r.range_m, r.range_sd_m = math.hypot(x_m, y_m), range_sd_m
+    row = _state([r], 100.0).refresh(100.01)["rows"][0]
+    assert row["status"] == "sigma_exceeded"
+    if far:
+        assert row["instruction"].startswith(f"target far ({r.range_m:.0f} m)"), row["instruction"]
+    else:
+        assert row["instruction"] == "sigma above its limit: wait for RTK fixed"
 
 
 def test_the_clock_alarm_is_shown_as_such():

@@ -159,11 +159,26 @@ def instruction(row: dict, master_state: str | None = None) -> str:
         bad = [f"{w} receiver {row.get('target_fix' if w == 'target' else 'master_fix') or 'not RTK'}"
                for bit, w in _SIDE_NAMES if (row.get("fix_side") or 0) & bit]
         return (", ".join(bad) or "receiver not RTK") + ": check the corrections and the sky view"
+    if status == "sigma_exceeded" and _far_target(row):
+        return (f"target far ({row['range_m']:.0f} m): the master's heading error across that range; "
+                "VALID when closer")
     if status in STATUS_INSTRUCTIONS:
         return STATUS_INSTRUCTIONS[status]
     named = _named_reasons(row.get("reason_side") or 0, row.get("master_reason"), row.get("target_reason"))
     hints = [f"{w}: {reason_instruction(r)}" for w, r in named if r and reason_instruction(r)]
     return "; ".join(hints) if hints else VEHICLE_STATUS_INSTRUCTIONS.get(status, "")
+
+
+FAR_CROSS_RANGE_SHARE = 0.9
+"""A sigma over its limit is the range's, not the receivers', when the s.d. across the line of sight
+carries at least this share of the horizontal s.d.: heading error times range is cross-range only,
+an RTK position error has no preferred direction (0.71 for a circular one)."""
+
+
+def _far_target(row: dict) -> bool:
+    cross, h = row.get("sigma_cross_m"), row.get("sigma_h_m")
+    return (cross is not None and h is not None and row.get("range_m") is not None and h > 0.0
+            and cross >= FAR_CROSS_RANGE_SHARE * h)
 
 
 STATUS_INSTRUCTIONS = {
@@ -288,6 +303,12 @@ class MonitorState:
         x, y, z = (_finite(p[0]), _finite(p[1]), _finite(p[2])) if kin else (None, None, None)
         sx, sy = (_finite(sd[0]), _finite(sd[1])) if kin else (None, None)
         sigma_h = math.hypot(sx, sy) if sx is not None and sy is not None else None
+        range_sd = _finite(res.range_sd_m) if kin else None
+        # s.d. across the line of sight, what the master's heading error makes (range times its
+        # s.d.): the trace of the horizontal covariance is sd_x^2 + sd_y^2 in any axes, so also
+        # the range's variance plus the cross-range one
+        sigma_cross = (math.sqrt(max(sigma_h ** 2 - range_sd ** 2, 0.0))
+                       if sigma_h is not None and range_sd is not None else None)
         age_ms = None if not math.isfinite(res.latency_s) else res.latency_s * 1e3
         # a master that does not send the fixes leaves both at NONE (never true of a result with
         # kinematics, which needs RTK on both sides); then the master's fix comes from its status
@@ -310,7 +331,8 @@ class MonitorState:
             "master_fix": mfix, "target_fix": tfix,
             "range_m": _finite(res.range_m) if kin else None, "x_m": x, "y_m": y, "z_m": z,
             "rel_yaw_deg": math.degrees(res.rel_rpy_rad[2]) if kin and _finite(res.rel_rpy_rad[2]) is not None else None,
-            "sigma_h_m": sigma_h, "sigma_yaw_deg": None if yaw_sd is None else math.degrees(yaw_sd),
+            "sigma_h_m": sigma_h, "sigma_cross_m": sigma_cross,
+            "sigma_yaw_deg": None if yaw_sd is None else math.degrees(yaw_sd),
             "age_ms": age_ms, "ttc_s": _finite(res.ttc_s) if kin else None,
             "gap_m": _finite(res.gap_m) if kin else None,
             "closing_mps": _finite(res.closing_speed_mps) if kin else None,
@@ -338,7 +360,7 @@ class MonitorState:
             "master_reason": t.get("master_reason"), "target_reason": t.get("target_reason"),
             "protection_m": _finite(t.get("protection_m")), "clock_alarm": clock_ms is not None,
             "master_fix": mfix, "target_fix": None, "range_m": rng, "x_m": x, "y_m": y, "z_m": None,
-            "rel_yaw_deg": None, "sigma_h_m": None, "sigma_yaw_deg": None, "age_ms": age_ms,
+            "rel_yaw_deg": None, "sigma_h_m": None, "sigma_cross_m": None, "sigma_yaw_deg": None, "age_ms": age_ms,
             "ttc_s": _finite(last.get("ttc_s")), "gap_m": _finite(last.get("gap_m")),
             "closing_mps": _finite(last.get("closing_mps")), "imu": grade_text(grades.get(tid)),
             "degraded": degraded, "t_gps_s": _finite(last.get("t_gps_s")), "seq": None,
@@ -380,7 +402,8 @@ class MonitorState:
             row["status_code"] = -1
             age = since * 1e3 if row["age_ms"] is None else row["age_ms"]
             row["reason"] = f"no data for {age / 1e3:.1f} s (last {row['last_status'].upper()})"
-            for k in ("x_m", "y_m", "z_m", "range_m", "rel_yaw_deg", "sigma_h_m", "ttc_s", "gap_m", "closing_mps"):
+            for k in ("x_m", "y_m", "z_m", "range_m", "rel_yaw_deg", "sigma_h_m", "sigma_cross_m", "ttc_s", "gap_m",
+                      "closing_mps"):
                 row[k] = None
 
     def _vehicle_panel(self, t_wall_s: float) -> list[dict]:
