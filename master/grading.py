@@ -35,6 +35,7 @@ import argparse
 import json
 import math
 import os
+import queue
 import signal
 import sys
 import threading
@@ -53,6 +54,9 @@ FAIL_CLEAR_REGRADES = 3
 FINAL_LINGER_S = 0.5
 """Seconds the worker stays connected after its final publication: closing the session at once may
 drop a message still in its transmission queue."""
+GAP_PERIODS = 2.5
+"""A unit's next payload starting more than this many sample periods after its last sample is a gap
+(counted per vehicle in ``gaps``: the grader interpolates across it, so a grade over lost data says so)."""
 HISTORY_REGRADES = 16
 """Regrades kept per vehicle in the published ``history`` (raw and published grades)."""
 
@@ -135,6 +139,8 @@ class FleetGrader:
         self.degraded_regrades: dict[str, int] = {}
         self.first_degraded_t: dict[str, float | None] = {}
         self.malformed = 0
+        self.gaps: dict[str, dict] = {}            # vehicle -> {"count", "lost_s"}: samples missing between payloads
+        self._last_sample_t: dict[tuple[str, str], float] = {}
         self.lock = threading.Lock()
         self.latest: dict[str, dict] = {}
 
@@ -155,10 +161,32 @@ class FleetGrader:
                     sorted(p.units), history_s=self.history_s, min_history_s=self.min_history_s,
                     regrade_every_s=self.regrade_every_s, mounting_xyz_deg=p.mounting_xyz_deg or None)
                 self.filters[p.vehicle_id] = GradeHysteresis(self.confirm_regrades, self.clear_regrades)
+        with self.lock:
+            self._count_gap(p)
         for uid, (t, acc, gyro) in p.units.items():
             g.add(uid, t, gyro, acc)
         with self.lock:                     # a regrade due at this data time happens now, whoever asks
             self.latest[p.vehicle_id] = self._filtered(p.vehicle_id, g.grades())
+
+    def _count_gap(self, p) -> None:
+        """Count samples lost before payload ``p`` (one dropped on the way, or a slave that skipped):
+        a unit's first sample more than GAP_PERIODS sample periods after its last one; one gap per
+        payload, the longest over its units."""
+        if not p.rate_hz or p.rate_hz <= 0:
+            return
+        lost_s = 0.0
+        for uid, (t, _, _) in p.units.items():
+            if not len(t):
+                continue
+            key = (p.vehicle_id, uid)
+            last = self._last_sample_t.get(key)
+            if last is not None and float(t[0]) - last > GAP_PERIODS / p.rate_hz:
+                lost_s = max(lost_s, float(t[0]) - last - 1.0 / p.rate_hz)
+            self._last_sample_t[key] = float(t[-1]) if last is None else max(float(t[-1]), last)
+        if lost_s > 0.0:
+            g = self.gaps.setdefault(p.vehicle_id, {"count": 0, "lost_s": 0.0})
+            g["count"] += 1
+            g["lost_s"] += lost_s
 
     def _filtered(self, vid: str, r: dict) -> dict:
         """Published grades of vehicle ``vid`` from its grader's answer ``r`` (one filter step per new regrade)."""
@@ -183,12 +211,14 @@ class FleetGrader:
                 "transient_fails": dict(flt.transient), "inconclusive_regrades": flt.inconclusive_regrades,
                 "rule": {"confirm_regrades": flt.confirm, "clear_regrades": flt.clear},
                 "history": list(self.history.get(vid, [])),
-                "rejected_samples": r["rejected_samples"], "t_s": r.get("t_s")}
+                "rejected_samples": r["rejected_samples"],
+                "gaps": dict(self.gaps.get(vid, {"count": 0, "lost_s": 0.0})), "t_s": r.get("t_s")}
 
     def grades(self) -> dict:
         """{vehicle id: {"status", "units" (published, hysteresis-filtered), "raw_units", "warnings",
         "regrades", "degraded_regrades", "first_degraded_t_s", "transient_fails", "rule", "history" (last
-        HISTORY_REGRADES regrades: raw and published), "rejected_samples", "t_s"}} -- call periodically
+        HISTORY_REGRADES regrades: raw and published), "rejected_samples", "gaps" ({"count", "lost_s"}:
+        samples missing between payloads), "t_s"}} -- call periodically
         (the worker: every second); each new regrade (new grading time) is one filter step. The
         counters are cumulative over the run: ``degraded_regrades`` > 0 means the vehicle was DEGRADED
         at some point."""
@@ -206,9 +236,14 @@ def run_worker(endpoint: str, fleet: str, master_id: str, period_s: float = 1.0,
     stop = stop or threading.Event()
     parent = os.getppid()
     fg = FleetGrader()
+    # the zenoh callback only queues: a regrade takes tens to hundreds of ms, and a zenoh thread held
+    # that long backs up the link, where the router drops what does not fit (counted as ``gaps``)
+    inbox: queue.SimpleQueue = queue.SimpleQueue()
+    consumer = threading.Thread(target=_consume, args=(inbox, fg), name="grading-consumer", daemon=True)
+    consumer.start()
     link = Link(LinkConfig(mode="client", connect=[endpoint], connect_timeout_ms=30000))
     try:
-        link.subscribe(imu_key(fleet, "*"), lambda p, k, a, t: fg.add_payload(p))
+        link.subscribe(imu_key(fleet, "*"), lambda p, k, a, t: inbox.put(p))
         pub = link.publisher(grades_key(fleet, master_id), express=False)
 
         def publish(final: bool) -> None:
@@ -222,11 +257,22 @@ def run_worker(endpoint: str, fleet: str, master_id: str, period_s: float = 1.0,
                 break
             publish(final=False)
         if not orphan:
+            inbox.put(None)                     # grade what arrived before the stop, then publish
+            consumer.join()
             publish(final=True)
             time.sleep(FINAL_LINGER_S)
     finally:
         link.close()
     return 0
+
+
+def _consume(inbox: "queue.SimpleQueue", fg: FleetGrader) -> None:
+    """Feed queued IMU payloads to the grader until a None arrives."""
+    while True:
+        data = inbox.get()
+        if data is None:
+            return
+        fg.add_payload(data)
 
 
 def _json_default(x):

@@ -76,6 +76,22 @@ def test_streamed_chunks_grade_the_faulty_unit():
     assert all(grade != "fail" for u, grade in g["units"].items() if u != v.faulty)
 
 
+def test_a_lost_payload_is_counted_as_a_gap():
+    """A payload lost on the way leaves the grader interpolating across its 0.25 s: counted, with the
+    time lost, so that a grade over lost data says so; a complete stream counts none."""
+    v = simulate_vehicle(3, "gyro_scale", seed=4, duration_s=12.0, grade="tactical")
+    for drop in (None, 17):
+        fg = FleetGrader(min_history_s=10.0, regrade_every_s=5.0)
+        for k, p in enumerate(chunks(v, "car1")):
+            if k != drop:
+                fg.add_payload(p)
+        gaps = fg.grades()["car1"]["gaps"]
+        if drop is None:
+            assert gaps == {"count": 0, "lost_s": 0.0}
+        else:
+            assert gaps["count"] == 1 and gaps["lost_s"] == pytest.approx(0.25, abs=0.011)
+
+
 def test_hysteresis_transient_is_a_warning_persistent_is_a_failure():
     h = GradeHysteresis(confirm=3, clear=3)
     seq = ["fail", "pass", None, "fail", "fail", "warn", "fail", "fail", "fail", "pass", "pass", None, "fail",
