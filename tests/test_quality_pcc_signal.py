@@ -60,3 +60,26 @@ def test_an_axis_of_noise_is_still_found():
     rep = grade_units(_drive(7, garbage_z_dps=5.0), mounting_xyz_deg=mounting, bias_stops=False)
     c = _pcc_check(rep, "imu2")
     assert c["grade"] == "fail" and c["value"] < 0.5, c
+
+
+def test_a_stuck_axis_does_not_decide_and_a_noiseless_unit_counts_only_its_motion():
+    """A z gyro that outputs a constant has no noise: its partner's motion decides, and there it
+    does not correlate. Two noiseless units (an ideal simulation) are graded on their motion, not
+    on the windows at rest where neither varies."""
+    mounting = {"imu1": [0.0, 0.0, 0.0], "imu2": [0.0, 0.0, 0.0]}
+    units = _drive(3)
+    stuck = units["imu2"].gyro_rps.copy()
+    stuck[:, 2] = 0.01
+    units["imu2"] = ImuData(t_s=units["imu2"].t_s, acc_mps2=units["imu2"].acc_mps2, gyro_rps=stuck)
+    rep = grade_units(units, mounting_xyz_deg=mounting, bias_stops=False)
+    assert _pcc_check(rep, "imu2")["grade"] == "fail"
+    t = units["imu1"].t_s
+    gyro = np.zeros((len(t), 3))
+    gyro[:, 2] = np.radians(20.0) * np.exp(-0.5 * ((t - t[0] - 30.0) / 1.0) ** 2)
+    acc = np.tile([0.0, 0.0, -9.81], (len(t), 1))
+    acc[:, 1] = 10.0 * gyro[:, 2]
+    ideal = {u: ImuData(t_s=t, acc_mps2=acc, gyro_rps=gyro) for u in ("imu1", "imu2")}
+    rep = grade_units(ideal, mounting_xyz_deg=mounting, bias_stops=False)
+    for u in ("imu1", "imu2"):
+        c = _pcc_check(rep, u)
+        assert c["grade"] == "pass" and c["value"] > 0.99, c

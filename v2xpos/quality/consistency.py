@@ -63,16 +63,18 @@ class WindowSeries:
         difference's s.d. over sqrt(2) (the median over the windows of RMSE without the window's
         mean difference; exact for two healthy units of equal noise, too high when one is faulty).
         So a unit whose output is noise or garbage cannot remove the windows that show it: it is
-        judged on the motion its partner saw, and correlates badly there."""
+        judged on the motion its partner saw, and correlates badly there. A stream without any
+        noise (a stuck axis) never decides while its partner has some; a window without any
+        variation never counts (noiseless simulated units at rest)."""
         if self.ref_noise is None or self.ut_noise is None or not len(self.rmse):
             return np.zeros(self.pcc.shape, dtype=bool)
         noise_ref = np.median(self.ref_noise, axis=0)
         noise_ut = np.median(self.ut_noise, axis=0)
-        quiet_is_ref = noise_ref <= noise_ut
+        quiet_is_ref = ((noise_ref <= noise_ut) & (noise_ref > 0.0)) | (noise_ut <= 0.0)
         sd = np.where(quiet_is_ref[None, :], self.ref_sd, self.ut_sd)
         diff_sd = np.sqrt(np.maximum(self.rmse ** 2 - self.mean_diff ** 2, 0.0))
         noise = np.minimum(np.where(quiet_is_ref, noise_ref, noise_ut), np.median(diff_sd, axis=0) / np.sqrt(2.0))
-        return sd >= snr_min * noise[None, :]
+        return (sd >= snr_min * noise[None, :]) & (sd > 0.0)
 
     def median_pcc(self, snr_min: float = PCC_SNR_MIN,
                    min_windows: int = PCC_MIN_SIGNAL_WINDOWS) -> tuple[np.ndarray, np.ndarray]:
