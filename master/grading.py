@@ -139,6 +139,7 @@ class FleetGrader:
         self.degraded_regrades: dict[str, int] = {}
         self.first_degraded_t: dict[str, float | None] = {}
         self.malformed = 0
+        self.grading_errors = 0                    # regrades that raised (``_consume``)
         self.gaps: dict[str, dict] = {}            # vehicle -> {"count", "lost_s"}: samples missing between payloads
         self._last_sample_t: dict[tuple[str, str], float] = {}
         self.lock = threading.Lock()
@@ -247,7 +248,8 @@ def run_worker(endpoint: str, fleet: str, master_id: str, period_s: float = 1.0,
         pub = link.publisher(grades_key(fleet, master_id), express=False)
 
         def publish(final: bool) -> None:
-            pub.put(json.dumps({"t_wall_s": time.time(), "malformed": fg.malformed, "final": final,
+            pub.put(json.dumps({"t_wall_s": time.time(), "malformed": fg.malformed,
+                                "grading_errors": fg.grading_errors, "final": final,
                                 "vehicles": fg.grades()}, default=_json_default).encode())
 
         orphan = False
@@ -267,12 +269,23 @@ def run_worker(endpoint: str, fleet: str, master_id: str, period_s: float = 1.0,
 
 
 def _consume(inbox: "queue.SimpleQueue", fg: FleetGrader) -> None:
-    """Feed queued IMU payloads to the grader until a None arrives."""
+    """Feed queued IMU payloads to the grader until a None arrives. A payload whose grading raises
+    is counted in ``fg.grading_errors`` (the first of each kind said on stderr) and the next one
+    graded: one bad regrade never stops the grading of the session."""
+    said: set = set()
     while True:
         data = inbox.get()
         if data is None:
             return
-        fg.add_payload(data)
+        try:
+            fg.add_payload(data)
+        except Exception as exc:  # any failure of one regrade: count it, keep grading the rest
+            fg.grading_errors += 1
+            kind = type(exc).__name__
+            if kind not in said:
+                said.add(kind)
+                print(f"grading: a regrade failed ({kind}: {exc}); counted, grading goes on",
+                      file=sys.stderr, flush=True)
 
 
 def _json_default(x):

@@ -165,6 +165,7 @@ class MasterService:
         self.status_pub = self.link.publisher(status_key(cfg.service.fleet, cfg.service.master_id), express=False)
         self.link.declare_alive(alive_key(cfg.service.fleet, "master", cfg.service.master_id))
         self.imu_grades: dict = {}
+        self.imu_grading_counters: dict = {}     # the worker's malformed payloads and failed regrades
         self._final_grades = threading.Event()
         if cfg.grading.enabled:
             self.link.subscribe(grades_key(cfg.service.fleet, cfg.service.master_id), self._on_grades)
@@ -192,6 +193,7 @@ class MasterService:
             return
         with self.lock:
             self.imu_grades = vehicles
+            self.imu_grading_counters = {k: doc.get(k) for k in ("malformed", "grading_errors")}
             if doc.get("final") is True:
                 self._final_grades.set()
             for vid, g in vehicles.items():
@@ -264,6 +266,7 @@ class MasterService:
                   "can_frames": self.can.frames if self.cfg.output.can.enabled else 0,
                   "udp_datagrams": self.udp.datagrams if self.cfg.output.udp.enabled else 0,
                   "source": getattr(self.source, "name", None), "imu_grades": self.imu_grades,
+                  "imu_grading": self.imu_grading_counters,
                   "degraded_vehicles": sorted(self.pipeline.degraded_vehicles),
                   "clock_skew": self.authenticator.skew_report(),
                   "admission": self.authenticator.stats.as_dict()})

@@ -187,3 +187,29 @@ def test_regrades_follow_the_data_not_the_publication_clock():
     assert b["regrades"] == a["regrades"] == 5
     assert [h["t_s"] for h in b["history"]] == [h["t_s"] for h in a["history"]]
     assert b["units"] == a["units"] and b["units"][v.faulty] == "fail"
+
+
+def test_a_regrade_that_raises_is_counted_and_grading_goes_on(monkeypatch):
+    """The worker's consumer: a payload whose grading raises is counted, the next ones are graded."""
+    import queue
+
+    from master.grading import _consume
+    v = simulate_vehicle(3, "gyro_scale", seed=4, duration_s=12.0, grade="tactical")
+    fg = FleetGrader(min_history_s=10.0, regrade_every_s=5.0)
+    real = fg.add_payload
+    calls = {"n": 0}
+
+    def flaky(data: bytes) -> None:
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise ValueError("the units do not overlap in time")
+        real(data)
+    monkeypatch.setattr(fg, "add_payload", flaky)
+    inbox: queue.SimpleQueue = queue.SimpleQueue()
+    for p in chunks(v, "car1"):
+        inbox.put(p)
+    inbox.put(None)
+    _consume(inbox, fg)
+    assert fg.grading_errors == 1
+    g = fg.grades()["car1"]
+    assert g["status"] == "graded" and g["units"][v.faulty] in ("warn", "fail")
