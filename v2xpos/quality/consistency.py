@@ -53,6 +53,12 @@ class WindowSeries:
         return WindowSeries(self.t_s, self.rmse, self.pcc, -self.mean_diff, self.ut_sd, self.ref_sd,
                             self.ut_noise, self.ref_noise)
 
+    def difference_sd(self) -> np.ndarray:
+        """(n_windows, 3): the s.d. of the difference in each window, sqrt(RMSE^2 - mean_diff^2)
+        (RMSE without the window's mean difference, so a constant bias between the units does not
+        count)."""
+        return np.sqrt(np.maximum(self.rmse ** 2 - self.mean_diff ** 2, 0.0))
+
     def signal(self, snr_min: float = PCC_SNR_MIN) -> np.ndarray:
         """(n_windows, 3) bool: windows where the quieter stream (per axis, the smaller median
         white-noise s.d. over the run) varies by at least ``snr_min`` times the noise.
@@ -60,8 +66,8 @@ class WindowSeries:
         The noise is the smaller of two estimates that each can only err high: the quieter
         stream's one-sample-difference noise (``ref_noise`` / ``ut_noise``; too high when fast
         vibration common to both units passes for noise, as on a quadrotor's frame) and the
-        difference's s.d. over sqrt(2) (the median over the windows of RMSE without the window's
-        mean difference; exact for two healthy units of equal noise, too high when one is faulty).
+        difference's s.d. over sqrt(2) (the median over the windows of ``difference_sd``; exact
+        for two healthy units of equal noise, too high when one is faulty).
         So a unit whose output is noise or garbage cannot remove the windows that show it: it is
         judged on the motion its partner saw, and correlates badly there. A stream without any
         noise (a stuck axis) never decides while its partner has some; a window without any
@@ -72,8 +78,8 @@ class WindowSeries:
         noise_ut = np.median(self.ut_noise, axis=0)
         quiet_is_ref = ((noise_ref <= noise_ut) & (noise_ref > 0.0)) | (noise_ut <= 0.0)
         sd = np.where(quiet_is_ref[None, :], self.ref_sd, self.ut_sd)
-        diff_sd = np.sqrt(np.maximum(self.rmse ** 2 - self.mean_diff ** 2, 0.0))
-        noise = np.minimum(np.where(quiet_is_ref, noise_ref, noise_ut), np.median(diff_sd, axis=0) / np.sqrt(2.0))
+        noise = np.minimum(np.where(quiet_is_ref, noise_ref, noise_ut),
+                           np.median(self.difference_sd(), axis=0) / np.sqrt(2.0))
         return (sd >= snr_min * noise[None, :]) & (sd > 0.0)
 
     def median_pcc(self, snr_min: float = PCC_SNR_MIN,

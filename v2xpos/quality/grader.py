@@ -33,15 +33,15 @@ def _pair_block(fc: UnitComparison, ref: str, uid: str, cfg: GradeConfig,
                 mounting: dict | None) -> dict:
     """Per-axis first-parameter values of uid against ref (ref's axes)."""
     p = fc.pair_direct(ref, uid, cfg, mounting)
+    (pcc_g, n_g), (pcc_a, n_a) = p.gyro.median_pcc(), p.accel.median_pcc()
     r2d = np.degrees(1.0)
     g_rmse, a_rmse = p.gyro.rmse, p.accel.rmse
     block = {
         "compared_with": ref,
         "rmse": {"gyro": _per_axis(np.median(g_rmse, axis=0), r2d),
                  "accel": _per_axis(np.median(a_rmse, axis=0))},
-        "pcc": {"gyro": _finite_or_none(p.gyro.median_pcc()[0]),
-                "accel": _finite_or_none(p.accel.median_pcc()[0])},
-        "pcc_signal_windows": {"gyro": p.gyro.median_pcc()[1].tolist(), "accel": p.accel.median_pcc()[1].tolist()},
+        "pcc": {"gyro": _finite_or_none(pcc_g), "accel": _finite_or_none(pcc_a)},
+        "pcc_signal_windows": {"gyro": n_g.tolist(), "accel": n_a.tolist()},
         "rmse_stats": {"gyro": {a: box_stats(g_rmse[:, k] * r2d) for k, a in enumerate(AXES)},
                        "accel": {a: box_stats(a_rmse[:, k]) for k, a in enumerate(AXES)}},
         "pcc_stats": {"gyro": pcc_stats(p.gyro.pcc), "accel": pcc_stats(p.accel.pcc)},

@@ -97,10 +97,10 @@ class PairResult:
         bias_drift_rps: norm over axes of the P95 - P5 spread of the window mean differences;
         time_offset_s: |clock offset|; scale_error: largest |scale - 1| over observable axes;
         pcc_deficit: largest 1 - median window PCC over axes with motion, the median over the
-        windows where the reference's signal stands out of the noise (``WindowSeries.signal``).
+        windows where the quieter unit's signal stands out of the noise (``WindowSeries.signal``).
         """
-        g_noise = np.percentile(_debiased(self.gyro), 75, axis=0)
-        a_noise = np.percentile(_debiased(self.accel), 75, axis=0)
+        g_noise = np.percentile(self.gyro.difference_sd(), 75, axis=0)
+        a_noise = np.percentile(self.accel.difference_sd(), 75, axis=0)
         drift = robust_range(self.gyro.mean_diff)
         pcc_med, _ = self.gyro.median_pcc()
         sig = self.pcc_signal
@@ -113,11 +113,6 @@ class PairResult:
             "scale_error": float(np.max(np.abs(sc - 1.0))) if sc.size else 0.0,
             "pcc_deficit": float(np.max(1.0 - pcc_med[sig])) if sig.any() else 0.0,
         }
-
-
-def _debiased(w: WindowSeries) -> np.ndarray:
-    """Per-window standard deviation of the difference: sqrt(RMSE^2 - mean_diff^2)."""
-    return np.sqrt(np.maximum(w.rmse ** 2 - w.mean_diff ** 2, 0.0))
 
 
 def _valid_imu(uid: str, imu: ImuData) -> tuple[ImuData, int]:
