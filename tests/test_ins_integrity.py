@@ -328,8 +328,7 @@ def _twin_lever_sd_after(corrected_heading_rad: float, turned_rad: float, first_
     n, L, steps = 12, 9, 300
     P = np.diag([0.01 ** 2] * 3 + [0.01 ** 2] * 3 + [0.005 ** 2, 0.005 ** 2, 0.05 ** 2] + [0.02 ** 2] * 3)
     lever = np.array([0.0, 0.0, -1.5])
-    yaw_true, yaw_est = 0.0, corrected_heading_rad
-    C_est = exp_so3(np.array([0.0, 0.0, yaw_est]))
+    C_est = exp_so3(np.array([0.0, 0.0, corrected_heading_rad]))
     sep = FaultTolerantSolution(L, fault_sd_m=0.5)
     sep.start(P, C_est, np.zeros(3))
     rng = np.random.default_rng(0)
