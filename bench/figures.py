@@ -356,7 +356,7 @@ JOBS: tuple[Job, ...] = (
     Job("integrity-mc-verified", ("python", "-m", "bench.integrity_mc", "--presets", "clean", "--seeds", "0-9",
                                   "--verified", "--work", "{out}", "--json", "{json}"), _json,
         _set_up_figures("clean", "verified", "set-ups verified on an earlier drive")),
-    Job("integrity-mc-calibrated", ("python", "-m", "bench.integrity_mc", "--presets", "dev_like", "--seeds", "0-4",
+    Job("integrity-mc-calibrated", ("python", "-m", "bench.integrity_mc", "--presets", "dev_like", "--seeds", "0-9",
                                     "--verified", "--calibrate", "--work", "{out}", "--json", "{json}"), _json,
         _set_up_figures("dev_like", "calibrated", "the follower's calibrate --write-dataset table applied")),
     Job("bench-calibration", ("v2xpos", "bench", "calibration", "--seeds", "20", "--fresh", "--out", "{out}"),
