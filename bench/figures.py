@@ -199,6 +199,23 @@ def _integrity_figures(preset: str, targets: bool) -> tuple[Figure, ...]:
     )
 
 
+def _set_up_figures(preset: str, mode: str, what: str) -> tuple[Figure, ...]:
+    """The integrity Monte-Carlo with a set-up verified (or calibrated) on an earlier drive."""
+    k = f"integrity_mc.{preset}_{mode}"
+    return (
+        Figure(f"{k}.valid_moving_min_pct", f"{preset} pairs, {what}: lowest VALID share while both move", "%",
+               _mc(preset, min, lambda b: b.get("valid_moving"), 100.0), 1, "≥ 90", "#27"),
+        Figure(f"{k}.valid_moving_median_pct", f"{preset} pairs, {what}: median VALID share while both move", "%",
+               _mc(preset, _median, lambda b: b.get("valid_moving"), 100.0), 1),
+        Figure(f"{k}.first_valid_max_s", f"{preset} pairs, {what}: longest time to the first VALID row", "s",
+               _mc(preset, max, lambda b: b.get("first_valid_s")), 1),
+        Figure(f"{k}.h_rms_max_m", f"{preset} pairs, {what}: largest h RMS while both move", "m",
+               _mc(preset, max, lambda b: b.get("h_rms_m")), 3, "≤ 0.03", "#27"),
+        Figure(f"{k}.violations", f"{preset} pairs, {what}: VALID rows beyond max(0.3 m, 4 sigma), all cases", "",
+               _mc(preset, sum, lambda b: b.get("violations")), 0, "0", "#27"),
+    )
+
+
 def _real_pair_figures(delay: str) -> tuple[Figure, ...]:
     k, d = f"real_pair.drive_0708.d{delay}", ("delays", delay)
     return (
@@ -336,6 +353,9 @@ JOBS: tuple[Job, ...] = (
                    _get("convoy_dev", "h_rms_m"), 3),
             Figure("integrity_mc.convoy_dev.violations", "convoy_dev as declared: violations", "",
                    _get("convoy_dev", "violations"), 0, "0", "#27"))),
+    Job("integrity-mc-verified", ("python", "-m", "bench.integrity_mc", "--presets", "clean", "--seeds", "0-9",
+                                  "--verified", "--work", "{out}", "--json", "{json}"), _json,
+        _set_up_figures("clean", "verified", "set-ups verified on an earlier drive")),
     Job("bench-calibration", ("v2xpos", "bench", "calibration", "--seeds", "20", "--fresh", "--out", "{out}"),
         _coverage, (
             Figure("calibration_mc.runs", "simulated drives fitted", "", _get("runs"), 0, "≥ 20", "#16"),
