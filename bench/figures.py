@@ -176,43 +176,29 @@ def _demo_figures() -> tuple[Figure, ...]:
 
 
 # ------------------------------------------------------------------------------------ the jobs
-def _integrity_figures(preset: str, targets: bool) -> tuple[Figure, ...]:
-    k = f"integrity_mc.{preset}"
+def _integrity_figures(preset: str, targets: bool, mode: str = "", what: str = "") -> tuple[Figure, ...]:
+    """The integrity Monte-Carlo's figures of one preset; ``mode`` / ``what``: a run whose set-ups
+    were verified (or calibrated) on an earlier drive, in the key and the label."""
+    k = f"integrity_mc.{preset}" + (f"_{mode}" if mode else "")
+    label = f"{preset} pairs" + (f", {what}" if what else "")
     return (
-        Figure(f"{k}.valid_moving_min_pct", f"{preset} pairs: lowest VALID share while both move", "%",
+        Figure(f"{k}.valid_moving_min_pct", f"{label}: lowest VALID share while both move", "%",
                _mc(preset, min, lambda b: b.get("valid_moving"), 100.0), 1, "≥ 90" if targets else "", "#27"),
-        Figure(f"{k}.valid_moving_median_pct", f"{preset} pairs: median VALID share while both move", "%",
+        Figure(f"{k}.valid_moving_median_pct", f"{label}: median VALID share while both move", "%",
                _mc(preset, _median, lambda b: b.get("valid_moving"), 100.0), 1),
-        Figure(f"{k}.first_valid_max_s", f"{preset} pairs: longest time to the first VALID row", "s",
+        Figure(f"{k}.first_valid_max_s", f"{label}: longest time to the first VALID row", "s",
                _mc(preset, max, lambda b: b.get("first_valid_s")), 1),
-        Figure(f"{k}.h_rms_median_m", f"{preset} pairs: median h RMS while both move", "m",
+        Figure(f"{k}.h_rms_median_m", f"{label}: median h RMS while both move", "m",
                _mc(preset, _median, lambda b: b.get("h_rms_m")), 3),
-        Figure(f"{k}.h_rms_max_m", f"{preset} pairs: largest h RMS while both move", "m",
+        Figure(f"{k}.h_rms_max_m", f"{label}: largest h RMS while both move", "m",
                _mc(preset, max, lambda b: b.get("h_rms_m")), 3, "≤ 0.03" if targets else "", "#27" if targets else ""),
-        Figure(f"{k}.within_3sd_min", f"{preset} pairs: lowest share within 3 sd (x, y)", "",
+        Figure(f"{k}.within_3sd_min", f"{label}: lowest share within 3 sd (x, y)", "",
                _mc(preset, min, _in3), 3, "≥ 0.98", "#15"),
-        Figure(f"{k}.sigma_ratio_max", f"{preset} pairs: largest median sigma_h / h RMS", "",
+        Figure(f"{k}.sigma_ratio_max", f"{label}: largest median sigma_h / h RMS", "",
                _mc(preset, max, lambda b: b.get("sig_ratio")), 1, "≤ 3" if targets else "", "#15" if targets else ""),
-        Figure(f"{k}.violations", f"{preset} pairs: VALID rows beyond max(0.3 m, 4 sigma), all cases", "",
+        Figure(f"{k}.violations", f"{label}: VALID rows beyond max(0.3 m, 4 sigma), all cases", "",
                _mc(preset, sum, lambda b: b.get("violations")), 0, "0", "#27"),
-        Figure(f"{k}.cases", f"{preset}: cases", "", _mc(preset, len, lambda b: 1), 0),
-    )
-
-
-def _set_up_figures(preset: str, mode: str, what: str) -> tuple[Figure, ...]:
-    """The integrity Monte-Carlo with a set-up verified (or calibrated) on an earlier drive."""
-    k = f"integrity_mc.{preset}_{mode}"
-    return (
-        Figure(f"{k}.valid_moving_min_pct", f"{preset} pairs, {what}: lowest VALID share while both move", "%",
-               _mc(preset, min, lambda b: b.get("valid_moving"), 100.0), 1, "≥ 90", "#27"),
-        Figure(f"{k}.valid_moving_median_pct", f"{preset} pairs, {what}: median VALID share while both move", "%",
-               _mc(preset, _median, lambda b: b.get("valid_moving"), 100.0), 1),
-        Figure(f"{k}.first_valid_max_s", f"{preset} pairs, {what}: longest time to the first VALID row", "s",
-               _mc(preset, max, lambda b: b.get("first_valid_s")), 1),
-        Figure(f"{k}.h_rms_max_m", f"{preset} pairs, {what}: largest h RMS while both move", "m",
-               _mc(preset, max, lambda b: b.get("h_rms_m")), 3, "≤ 0.03", "#27"),
-        Figure(f"{k}.violations", f"{preset} pairs, {what}: VALID rows beyond max(0.3 m, 4 sigma), all cases", "",
-               _mc(preset, sum, lambda b: b.get("violations")), 0, "0", "#27"),
+        Figure(f"{k}.cases", f"{preset}" + (f", {what}" if what else "") + ": cases", "", _mc(preset, len, lambda b: 1), 0),
     )
 
 
@@ -355,7 +341,7 @@ JOBS: tuple[Job, ...] = (
                    _get("convoy_dev", "violations"), 0, "0", "#27"))),
     Job("integrity-mc-verified", ("python", "-m", "bench.integrity_mc", "--presets", "clean", "--seeds", "0-9",
                                   "--verified", "--work", "{out}", "--json", "{json}"), _json,
-        _set_up_figures("clean", "verified", "set-ups verified on an earlier drive")),
+        _integrity_figures("clean", True, "verified", "set-ups verified on an earlier drive")),
     Job("bench-calibration", ("v2xpos", "bench", "calibration", "--seeds", "20", "--fresh", "--out", "{out}"),
         _coverage, (
             Figure("calibration_mc.runs", "simulated drives fitted", "", _get("runs"), 0, "≥ 20", "#16"),
