@@ -342,6 +342,9 @@ JOBS: tuple[Job, ...] = (
     Job("integrity-mc-verified", ("python", "-m", "bench.integrity_mc", "--presets", "clean", "--seeds", "0-9",
                                   "--verified", "--work", "{out}", "--json", "{json}"), _json,
         _integrity_figures("clean", True, "verified", "set-ups verified on an earlier drive")),
+    Job("integrity-mc-calibrated", ("python", "-m", "bench.integrity_mc", "--presets", "dev_like", "--seeds", "0-9",
+                                    "--verified", "--calibrate", "--work", "{out}", "--json", "{json}"), _json,
+        _integrity_figures("dev_like", False, "calibrated", "the follower's calibrate --write-dataset table applied")),
     Job("bench-calibration", ("v2xpos", "bench", "calibration", "--seeds", "20", "--fresh", "--out", "{out}"),
         _coverage, (
             Figure("calibration_mc.runs", "simulated drives fitted", "", _get("runs"), 0, "≥ 20", "#16"),
