@@ -313,6 +313,71 @@ def test_an_undeclared_lever_arm_is_found_before_the_protection_level_vouches(er
         assert rows[first_alarm][5] > 0.5
 
 
+def _twin_lever_sd_after(corrected_heading_rad: float, turned_rad: float, first_estimates: bool,
+                          heading_sd_rad: float = 0.0) -> float:
+    """Horizontal lever-arm sd of the twin after 30 s of 10 Hz antenna fixes (1 cm) on a car whose
+    body turns by ``turned_rad`` while the main filter's heading estimate is corrected by
+    ``corrected_heading_rad`` (the convergence after a drive-off), applied in equal steps as the
+    position rows' attitude corrections. The position rows are the filter's
+    (``updates.gnss_position``: ``[I, [C l x], C]`` on position, attitude, lever arm, at the
+    attitude before the correction); ``first_estimates``: the twin is told the attitude after each
+    correction (as ``InsFilter`` tells it), so it takes the lever-arm columns at the gyro-propagated
+    attitude (``FaultTolerantSolution.update``); ``heading_sd_rad``: the main filter's heading sd
+    it is told with each correction."""
+    from v2xpos.ins.ekf import ATT, POS
+    from v2xpos.ins.integrity import FaultTolerantSolution
+    from v2xpos.rotation import exp_so3, skew
+    n, L, steps = 12, 9, 300
+    P = np.diag([0.01 ** 2] * 3 + [0.01 ** 2] * 3 + [0.005 ** 2, 0.005 ** 2, 0.05 ** 2] + [0.02 ** 2] * 3)
+    lever = np.array([0.0, 0.0, -1.5])
+    C_est = exp_so3(np.array([0.0, 0.0, corrected_heading_rad]))
+    sep = FaultTolerantSolution(L, fault_sd_m=0.5)
+    sep.start(P, C_est, np.zeros(3))
+    rng = np.random.default_rng(0)
+    for _ in range(steps):
+        body_turn = exp_so3(np.array([0.0, 0.0, turned_rad / steps]))
+        C_est = C_est @ body_turn                                 # the strapdown: body side
+        H = np.zeros((3, n))
+        H[:, POS:POS + 3] = np.eye(3)
+        H[:, ATT:ATT + 3] = skew(C_est @ lever)
+        H[:, L:L + 3] = C_est
+        R = np.eye(3) * 0.01 ** 2
+        dx = np.zeros(n)
+        dx[ATT + 2] = -corrected_heading_rad / steps              # the heading converges to the truth
+        C_after = exp_so3(dx[ATT:ATT + 3]) @ C_est                # the correction: NED side
+        sep.propagate(np.eye(n), np.zeros(n), 0.1)
+        sep.update(H, rng.normal(0.0, 0.01, 3), R, dx, C_nb_after=C_after if first_estimates else None,
+                   heading_sd_rad=heading_sd_rad)
+        C_est = C_after
+    return float(math.sqrt(0.5 * (sep.P[L, L] + sep.P[L + 1, L + 1])))
+
+
+def test_the_twin_sees_the_lever_arm_only_through_a_turn_the_gyros_measured():
+    """First-estimates lever-arm columns (docs/integrity.md, "The lever arm is seen only through
+    rotation the IMU measured"): a heading estimate corrected by 3 deg while the car drives straight
+    gives a linear twin lever-arm information the data do not hold (the columns turn as if the car
+    had); taken at the gyro-propagated attitude they give none, and a real 90 deg turn still pins
+    the lever arm down."""
+    straight_corrected = math.radians(3.0)
+    assert _twin_lever_sd_after(straight_corrected, 0.0, first_estimates=False) < 0.2   # the mechanism
+    assert _twin_lever_sd_after(straight_corrected, 0.0, first_estimates=True) > 0.49
+    assert _twin_lever_sd_after(0.0, 0.0, first_estimates=True) > 0.49
+    turned = _twin_lever_sd_after(straight_corrected, math.pi / 2, first_estimates=True)
+    assert turned < 0.05
+    assert turned == pytest.approx(_twin_lever_sd_after(0.0, math.pi / 2, first_estimates=True), rel=0.05)
+
+
+def test_the_first_estimates_anchor_follows_corrections_outside_the_small_angle_regime():
+    """Corrections made while the main filter's heading sd is above ``FEJ_MAX_HEADING_SD_RAD`` are
+    a convergence the linearisation does not describe: the anchor follows them (the twin behaves as
+    without first estimates); at or below it the anchor ignores them."""
+    from v2xpos.ins.integrity import FEJ_MAX_HEADING_SD_RAD
+    corrected = math.radians(3.0)
+    wide = _twin_lever_sd_after(corrected, 0.0, first_estimates=True, heading_sd_rad=2 * FEJ_MAX_HEADING_SD_RAD)
+    assert wide == pytest.approx(_twin_lever_sd_after(corrected, 0.0, first_estimates=False), rel=1e-6)
+    assert _twin_lever_sd_after(corrected, 0.0, first_estimates=True, heading_sd_rad=FEJ_MAX_HEADING_SD_RAD) > 0.49
+
+
 def test_an_exclusion_takes_the_fault_tolerant_solution():
     """RAIM exclusion: the separation test's alarm makes the filter take the twin's state and
     covariance (the estimate that never relied on the declared lever arm)."""

@@ -104,7 +104,7 @@ class InitialUncertainty:
     """Initial state uncertainty and alignment (a start at a stop leaves the yaw open: ``_try_align``)."""
     init_vel_sd_mps: float = 0.3
     init_level_sd_rad: float = math.radians(2.0)
-    init_yaw_sd_rad: float | None = None          # None: 5 deg car, 20 deg otherwise
+    init_yaw_sd_rad: float | None = None          # None: 5 deg car, 90 deg pedestrian, 20 deg otherwise
     align_min_speed_mps: float | None = None      # None: 1 m/s car, 0.5 m/s otherwise
 
 
@@ -213,6 +213,6 @@ class InsConfig:
         e.effect_random_walk = {**DEFAULT_RANDOM_WALK, **e.effect_random_walk}
         i = self.initial
         if i.init_yaw_sd_rad is None:
-            i.init_yaw_sd_rad = math.radians(5.0 if s.platform == "car" else 20.0)
+            i.init_yaw_sd_rad = math.radians({"car": 5.0, "pedestrian": 90.0}.get(s.platform, 20.0))
         if i.align_min_speed_mps is None:
             i.align_min_speed_mps = 1.0 if s.platform == "car" else 0.5

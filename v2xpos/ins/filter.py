@@ -367,8 +367,9 @@ class InsFilter(ImuPath, Initialization, Outputs):
         windows hold the innovations of the filter before the change."""
         self._smoothing_boundary()
         sep = self.separation
-        self._apply(sep.w)
-        self.P = sep.P.copy()
+        w, P = sep.in_main_coordinates(self.C_nb)
+        self._apply(w)
+        self.P = P
         sep.exclude(self.P)
         self.counts["lever_arm_excluded"] = self.counts.get("lever_arm_excluded", 0) + 1
         self.consistency.clear_windows()

@@ -68,6 +68,32 @@ declared set-up, and its PL is that of its own error. The test's level is set pe
 Bonferroni bound over the tests of an hour (``false_alarm_per_hour``), so that the exclusion, which
 moves the reported position by the separation, happens on evidence and not on noise.
 
+**The lever arm is seen only through rotation the IMU measured** (first-estimates Jacobians: Huang,
+Mourikis & Roumeliotis 2010, "Observability-based rules for designing consistent EKF SLAM
+estimators", IJRR 29(5)). The GNSS rows' lever-arm columns are ``C_nb`` (position) and ``C_nb [w x]``
+(velocity), evaluated at the main filter's attitude. Each correction turns that attitude -- by
+degrees while the heading converges after the drive-off -- and a linear filter reads the turned
+columns as the antenna seen from another side: a body that never turned appears to, and a
+direction that is unobservable on a straight road (the lever arm against the IMU position) gains
+information it does not have. The main filter, with its lever arm held to the declared
+centimetres, hardly notices; the twin, with 0.5 m, does: on a generated follower accelerating
+straight from rest its lateral lever arm went from 0.5 m sd to 0.09 m within 10 s, estimated
+0.4 m off a declaration that was right, and its likelihood ratio rose by e^7 -- evidence for a
+fault that was the linearisation's. The twin therefore evaluates the lever-arm columns at the
+attitude propagated from its start by the gyros alone, ``C_fej = R_c^T C_nb`` with ``R_c`` the
+product of the main filter's attitude corrections since then (they act on the NED side of
+``C_nb``, the strapdown on the body side), i.e. ``H_l <- H_l B`` with ``B = C_nb^T R_c^T C_nb``
+(exact for the position rows; for the velocity rows to first order in the correction times the
+rate). A real turn rotates ``C_fej`` as much as ``C_nb``, so the information from turning is kept.
+The anchor ignores only corrections made in the small-angle regime of the error state (the main
+filter's heading sd at most ``FEJ_MAX_HEADING_SD_RAD``, 5°, where the neglected second-order term
+of a rotation error, theta^2/2, is 4 % of the first-order one; it is also a car's start sd from the
+course, so a car's twin anchors where its heading is set). A correction made above it is the convergence of a
+linearisation that does not yet hold, and an anchor that ignored it would be as far off the body as
+the correction is; the anchor follows it, ``R_c <- exp(phi) R_c exp(-phi)``, keeping its offset
+from the corrected attitude. (On the real walk_0827 the heading set from the walking course was
+about 60° off; an anchor ignoring those corrections made the twin exclude the right set-up.)
+
 Kept in the main filter's error coordinates: prediction ``w <- Phi w``, ``P_w <- Phi P_w Phi^T +
 Q``; at an update ``w <- w + K_w (d - H w)``, ``P_w <- (I - K_w H) P_w``, then ``w <- w - dx_main``
 (the main filter feeds its correction back into its nominal state, moving the origin).
@@ -81,11 +107,15 @@ from scipy.special import log_ndtr
 from scipy.stats import chi2, norm
 
 from .consistency import widen_lever_arm
-from .ekf import POS, VEL, kalman_update, propagate_with_transition
+from ..rotation import exp_so3
+from .ekf import ATT, POS, VEL, kalman_update, propagate_with_transition
 from .observers import FilterObserver
 
 NIS_CAP_PROBABILITY = 1e-9
 """An update's NIS enters the likelihood ratio capped at this upper quantile of its chi-square."""
+FEJ_MAX_HEADING_SD_RAD = math.radians(5.0)
+"""The first-estimates anchor ignores the main filter's attitude corrections made at a heading sd
+up to this (the small-angle regime of the error state) and follows those made above it."""
 PL_SEARCH_MAX_M = 1e4
 """The protection level is searched below this (a PL above it is reported as infinite)."""
 
@@ -153,6 +183,7 @@ class FaultTolerantSolution(FilterObserver):
         self.excluded = False
         self.peak_fault_probability = self.prior
         self._cap: dict[int, float] = {}
+        self._R_corr = np.eye(3)
 
     @property
     def active(self) -> bool:
@@ -193,8 +224,19 @@ class FaultTolerantSolution(FilterObserver):
                     P[i, i] = sd * sd
             self.P = P
         self.w = np.zeros(self.P.shape[0])
+        self._R_corr = np.eye(3)
         self.protection_m = math.inf
         self.t_last_test_s = -math.inf
+
+    def in_main_coordinates(self, C_nb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(w, P) with the lever-arm block turned from the twin's first-estimates body axes into
+        the main filter's current ones (``update``): the twin's lever-arm error ``w_l`` moves the
+        antenna by ``C_fej w_l = C_nb B w_l``, so in the main filter's axes it is ``B w_l``."""
+        B = C_nb.T @ self._R_corr.T @ C_nb
+        T = np.eye(self.P.shape[0])
+        li = self.lever_index
+        T[li:li + 3, li:li + 3] = B
+        return T @ self.w, T @ self.P @ T.T
 
     def exclude(self, P_main: np.ndarray) -> None:
         """The main filter took over this solution (the declaration was rejected): both are the
@@ -221,7 +263,8 @@ class FaultTolerantSolution(FilterObserver):
 
     def corrected(self, f, H: np.ndarray, d: np.ndarray, R: np.ndarray, dx: np.ndarray, nis: float,
                   S: np.ndarray) -> None:
-        self.update(H, d, R, dx, nis, S)
+        self.update(H, d, R, dx, nis, S, C_nb_after=f.C_nb,
+                    heading_sd_rad=math.sqrt(max(f.P[ATT + 2, ATT + 2], 0.0)))
 
     def states_reset(self, f, P_before: np.ndarray, index: np.ndarray) -> None:
         self.reset_states(index, f.P)
@@ -233,14 +276,28 @@ class FaultTolerantSolution(FilterObserver):
         return c if not math.isfinite(nis) else min(nis, c)
 
     def update(self, H: np.ndarray, d: np.ndarray, R: np.ndarray, dx_main: np.ndarray,
-               nis_main: float = math.nan, S_main: np.ndarray | None = None) -> None:
+               nis_main: float = math.nan, S_main: np.ndarray | None = None,
+               C_nb_after: np.ndarray | None = None, heading_sd_rad: float = 0.0) -> None:
         """Measurement update with the data the main filter accepted: the twin's own
         ``ekf.kalman_update`` (ungated: the main filter gated it) on its innovation d - H w, then
         the log likelihood ratio of the two filters' innovations (module docstring) when the main
-        filter's NIS and S are given."""
+        filter's NIS and S are given. ``C_nb_after``: the main filter's attitude (body -> NED)
+        after this correction; given, the lever-arm columns are taken at the first-estimates
+        attitude (module docstring) and ``dx_main``'s attitude part joins the corrections."""
         if self.P is None:
             return
         d = np.asarray(d, float)
+        if C_nb_after is not None:
+            phi = np.asarray(dx_main[ATT:ATT + 3], float)
+            C_meas = exp_so3(-phi) @ C_nb_after
+            B = C_meas.T @ self._R_corr.T @ C_meas
+            H = H.copy()
+            li = self.lever_index
+            H[:, li:li + 3] = H[:, li:li + 3] @ B
+            if heading_sd_rad <= FEJ_MAX_HEADING_SD_RAD:
+                self._R_corr = exp_so3(phi) @ self._R_corr
+            else:
+                self._R_corr = exp_so3(phi) @ self._R_corr @ exp_so3(-phi)
         d_w = d - H @ self.w
         dw, P, nis_w, S_w, ok = kalman_update(self.P, H, d_w, R, None, consider=self.consider)
         if not ok:
