@@ -79,20 +79,21 @@ information it does not have. The main filter, with its lever arm held to the de
 centimetres, hardly notices; the twin, with 0.5 m, does: on a generated follower accelerating
 straight from rest its lateral lever arm went from 0.5 m sd to 0.09 m within 10 s, estimated
 0.4 m off a declaration that was right, and its likelihood ratio rose by e^7 -- evidence for a
-fault that was the linearisation's. The twin therefore evaluates the lever-arm columns at the
-attitude propagated from its start by the gyros alone, ``C_fej = R_c^T C_nb`` with ``R_c`` the
-product of the main filter's attitude corrections since then (they act on the NED side of
-``C_nb``, the strapdown on the body side), i.e. ``H_l <- H_l B`` with ``B = C_nb^T R_c^T C_nb``
-(exact for the position rows; for the velocity rows to first order in the correction times the
-rate). A real turn rotates ``C_fej`` as much as ``C_nb``, so the information from turning is kept.
-The anchor ignores only corrections made in the small-angle regime of the error state (the main
-filter's heading sd at most ``FEJ_MAX_HEADING_SD_RAD``, 5°, where the neglected second-order term
-of a rotation error, theta^2/2, is 4 % of the first-order one; it is also a car's start sd from the
-course, so a car's twin anchors where its heading is set). A correction made above it is the convergence of a
-linearisation that does not yet hold, and an anchor that ignored it would be as far off the body as
-the correction is; the anchor follows it, ``R_c <- exp(phi) R_c exp(-phi)``, keeping its offset
-from the corrected attitude. (On the real walk_0827 the heading set from the walking course was
-about 60° off; an anchor ignoring those corrections made the twin exclude the right set-up.)
+fault that was the linearisation's. The twin therefore evaluates the lever-arm columns at an anchor
+attitude that the gyros turn with the body and the corrections do not, ``C_fej = R_c^T C_nb`` with
+``R_c`` the product of the main filter's attitude corrections since the twin's start (they act on
+the NED side of ``C_nb``, the strapdown on the body side), i.e. ``H_l <- H_l B`` with ``B = C_nb^T
+R_c^T C_nb`` (exact for the position rows; for the velocity rows to first order in the correction
+times the rate). A real turn rotates ``C_fej`` as much as ``C_nb``, so the information from turning
+is kept. The anchor ignores only corrections made in the small-angle regime of the error state (the
+main filter's heading sd at most ``FEJ_MAX_HEADING_SD_RAD``, 5°, where the neglected second-order
+term of a rotation error, theta^2/2, is 4 % of the first-order one; it is also a car's start sd from
+the course, so a car's twin anchors where its heading is set). A correction made above it is the
+convergence of a linearisation that does not yet hold, and an anchor that ignored it would be as far
+off the body as the correction is; the anchor follows it, ``R_c <- exp(phi) R_c exp(-phi)``, keeping
+its offset from the corrected attitude. (On the real walk_0827 the heading set from the walking
+course was about 60° off; an anchor ignoring those corrections made the twin exclude the right
+set-up.)
 
 Kept in the main filter's error coordinates: prediction ``w <- Phi w``, ``P_w <- Phi P_w Phi^T +
 Q``; at an update ``w <- w + K_w (d - H w)``, ``P_w <- (I - K_w H) P_w``, then ``w <- w - dx_main``
@@ -283,7 +284,9 @@ class FaultTolerantSolution(FilterObserver):
         the log likelihood ratio of the two filters' innovations (module docstring) when the main
         filter's NIS and S are given. ``C_nb_after``: the main filter's attitude (body -> NED)
         after this correction; given, the lever-arm columns are taken at the first-estimates
-        attitude (module docstring) and ``dx_main``'s attitude part joins the corrections."""
+        anchor (module docstring), which ignores ``dx_main``'s attitude part when
+        ``heading_sd_rad`` (the main filter's, after the correction) is within
+        ``FEJ_MAX_HEADING_SD_RAD`` and turns with it otherwise."""
         if self.P is None:
             return
         d = np.asarray(d, float)
