@@ -95,9 +95,9 @@ EVIDENCE_CASES = tuple((seed, preset) for seed in (11, 12, 13) for preset in ("c
 P(H1) to 0.5 on a straight road before the first-estimates lever-arm columns."""
 
 
-def _peak_fault_probability(dataset_toml: Path) -> tuple[float, float]:
-    """(peak P(H1), prior) of one vehicle's set-up hypothesis over its recording, through the
-    services' filter (``v2xpos.ins.profiles.dataset_config``)."""
+def _replayed(dataset_toml: Path):
+    """One vehicle's recording through the services' filter (``v2xpos.ins.profiles.dataset_config``):
+    the filter at its end, its set-up hypothesis in ``separation``."""
     from v2xpos.datasets.loader import load_dataset
     from v2xpos.ins import InsFilter
     from v2xpos.ins.profiles import dataset_config
@@ -105,7 +105,7 @@ def _peak_fault_probability(dataset_toml: Path) -> tuple[float, float]:
     ds = load_dataset(dataset_toml)
     flt = InsFilter(dataset_config(ds))
     run_replay(flt, ds, [], wheel=True)
-    return flt.separation.peak_fault_probability, flt.separation.prior
+    return flt
 
 
 def test_the_set_up_hypothesis_rises_for_a_fault_and_only_then(tmp_path):
@@ -120,7 +120,8 @@ def test_the_set_up_hypothesis_rises_for_a_fault_and_only_then(tmp_path):
         rec = tmp_path / f"{preset}_{seed}"
         write(simulate(draw_params(seed, preset)), rec)
         for vehicle in ("A", "B"):
-            peak, prior = _peak_fault_probability(rec / vehicle / "dataset.toml")
+            sep = _replayed(rec / vehicle / "dataset.toml").separation
+            peak, prior = sep.peak_fault_probability, sep.prior
             if preset == "dev_like" and vehicle == "B":
                 assert peak > 0.5, (preset, seed, vehicle, peak)
             else:
@@ -133,14 +134,7 @@ def test_a_real_pedestrian_as_declared_keeps_its_set_up():
     An anchor that ignored the corrections of the heading's convergence from the walking course,
     or a pedestrian start at 20 deg sd (the course start was about 60 deg off), excluded it."""
     from tests.shared_data import SHARED_DATA, require_shared
-    toml = require_shared(SHARED_DATA) / "walk_0827" / "dataset.toml"
-    from v2xpos.datasets.loader import load_dataset
-    from v2xpos.ins import InsFilter
-    from v2xpos.ins.profiles import dataset_config
-    from v2xpos.ins.replay_engine import run_replay
-    ds = load_dataset(toml)
-    flt = InsFilter(dataset_config(ds))
-    run_replay(flt, ds, [], wheel=True)
+    flt = _replayed(require_shared(SHARED_DATA) / "walk_0827" / "dataset.toml")
     assert flt.cfg.setup.platform == "pedestrian"
     assert flt.counts.get("lever_arm_excluded", 0) == 0
     assert flt.separation.peak_fault_probability < 10 * flt.separation.prior

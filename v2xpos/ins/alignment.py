@@ -7,8 +7,9 @@
    carried forward by integrating the (bias-compensated) gyro: ``C <- C exp([w dt x])``; the
    Earth and transport rates are neglected over these seconds.
 3. Heading from the GNSS course once ``|v_h| >= align_min_speed_mps``: the yaw of the carried
-   attitude is replaced by the course (a car moves along its body x axis; for a pedestrian the course is
-   only a start, with a wide sd: the device may point anywhere), i.e. ``C_nb = Rz(course - yaw(C)) C``.
+   attitude is replaced by the course (a car moves along its body x axis; for a pedestrian the
+   course is only a start, with a wide sd: the device may point anywhere), i.e.
+   ``C_nb = Rz(course - yaw(C)) C``.
 
 Without a static window the level comes from the mean specific force of the first ``level_window_s``
 (the error is the mean kinematic acceleration over that window divided by g).

@@ -229,11 +229,16 @@ class FaultTolerantSolution(FilterObserver):
         self.protection_m = math.inf
         self.t_last_test_s = -math.inf
 
+    def _anchor_turn(self, C_nb: np.ndarray) -> np.ndarray:
+        """``B = C_nb^T R_c^T C_nb``: the anchor attitude ``C_fej = R_c^T C_nb = C_nb B`` as a turn
+        on the body side of the attitude ``C_nb`` (body -> NED)."""
+        return C_nb.T @ self._R_corr.T @ C_nb
+
     def in_main_coordinates(self, C_nb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(w, P) with the lever-arm block turned from the twin's first-estimates body axes into
         the main filter's current ones (``update``): the twin's lever-arm error ``w_l`` moves the
         antenna by ``C_fej w_l = C_nb B w_l``, so in the main filter's axes it is ``B w_l``."""
-        B = C_nb.T @ self._R_corr.T @ C_nb
+        B = self._anchor_turn(C_nb)
         T = np.eye(self.P.shape[0])
         li = self.lever_index
         T[li:li + 3, li:li + 3] = B
@@ -293,7 +298,7 @@ class FaultTolerantSolution(FilterObserver):
         if C_nb_after is not None:
             phi = np.asarray(dx_main[ATT:ATT + 3], float)
             C_meas = exp_so3(-phi) @ C_nb_after
-            B = C_meas.T @ self._R_corr.T @ C_meas
+            B = self._anchor_turn(C_meas)
             H = H.copy()
             li = self.lever_index
             H[:, li:li + 3] = H[:, li:li + 3] @ B
