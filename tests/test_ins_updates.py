@@ -137,6 +137,25 @@ def test_dual_antenna_heading_residual_is_h_times_the_error(baseline_vehicle_m):
     assert m.R[0, 0] == pytest.approx(1e-4)
 
 
+@pytest.mark.parametrize("pitch_rad", [0.0, -0.08])
+def test_vehicle_level_residual_is_h_times_the_error(pitch_rad):
+    """A vehicle level about its forward axis (roll 0, on a grade or not), the IMU mounted with a
+    misalignment; the estimate's attitude off by phi and its misalignment by dm: the residual
+    (the estimate's vehicle roll as cos(pitch) sin(roll)) is H dx, and neither block nor the
+    heading error is left out or wrongly signed."""
+    R_vb = dcm_from_euler(0.03, -0.02, 0.04)
+    C_nb_true = dcm_from_euler(0.0, pitch_rad, 1.1) @ R_vb      # C_nv R_vb: the body of a level vehicle
+    dx = _error(att=[4e-3, -3e-3, 5e-3], misalignment=[-3e-3, 2e-3, -4e-3])
+    i = LAYOUT.at("misalignment")
+    for e in (dx, _error(att=dx[ATT:ATT + 3]), _error(misalignment=dx[i:i + 3])):
+        m = updates.vehicle_level(LAYOUT, exp_so3(-e[ATT:ATT + 3]) @ C_nb_true,
+                                  exp_so3(e[i:i + 3]) @ R_vb, np.radians(2.0))
+        assert abs(float((m.H @ e)[0])) > 5e-4
+        np.testing.assert_allclose(m.d, m.H @ e, atol=3e-5)
+    assert m.H[0, ATT + 2] == 0.0                              # the heading, open at a stop start, stays out
+    assert m.R[0, 0] == pytest.approx(np.sin(np.radians(2.0)) ** 2)
+
+
 def test_dual_antenna_heading_residual_wraps_at_north():
     """A baseline just east of north measured just west of it: the residual is the small angle."""
     C = dcm_from_euler(0.0, 0.0, 0.01)

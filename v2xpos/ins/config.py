@@ -104,6 +104,8 @@ class InitialUncertainty:
     """Initial state uncertainty and alignment (a start at a stop leaves the yaw open: ``_try_align``)."""
     init_vel_sd_mps: float = 0.3
     init_level_sd_rad: float = math.radians(2.0)
+    start_roll_sd_rad: float | None = math.radians(2.0)   # the vehicle's roll at a start, from level: road
+    # cross slope (docs/ins.md, Initialisation); with the misalignment state, the mounting's roll learns it (None: not used)
     init_yaw_sd_rad: float | None = None          # None: 5 deg car, 90 deg pedestrian, 20 deg otherwise
     align_min_speed_mps: float | None = None      # None: 1 m/s car, 0.5 m/s otherwise
 

@@ -21,7 +21,7 @@ import numpy as np
 from v2xpos import geo
 from v2xpos.rotation import dcm_from_euler, euler_from_dcm, rot_z, skew
 
-from .ekf import ATT, BA, BG, EFFECT_SIZES, POS, VEL
+from .ekf import ATT, BA, BG, EFFECT_SIZES, POS, VEL, kalman_update
 from .mechanization import COR_BA, COR_BG, MEM_F, MEM_VALID, MEM_W
 from . import updates
 from .updates import TIMING_STATES_POSITION, UpdateResult
@@ -141,6 +141,7 @@ class Initialization:
             self.P[BA:BA + 3, BA:BA + 3] = est.accel_cov
         if from_antenna:
             self.P = position_from_antenna_covariance(self.P, self._antenna_fix_jacobian(heading_known), pos_sd)
+        self._level_start()
         self.A[:] = 0.0
         self.mem[:] = 0.0
         if self._last_raw_f_b is not None:
@@ -158,6 +159,23 @@ class Initialization:
         self.acc_ned_mps2 = np.zeros(3)
         self.acc_strapdown_ned_mps2 = np.zeros(3)
         self._dv_corrections_mps = np.zeros(3)
+
+    def _level_start(self) -> None:
+        """Part of a start's prior: the vehicle stands or drives level about its forward axis within
+        ``initial.start_roll_sd_rad`` (``updates.vehicle_level``), applied once to the fresh
+        covariance, with the misalignment state only. The roll of a mounting is observed by no
+        motion, so without it the vehicle roll the filter reports keeps the misalignment prior
+        (10 deg) for the whole drive, and every relative position with it through the height
+        difference of the two vehicles' points. Once per start, not per epoch: the roads' cross
+        slopes along a drive are correlated, not independent draws."""
+        sd = self.cfg.initial.start_roll_sd_rad
+        if not sd or self.layout.at("misalignment") < 0:
+            return
+        H, d, R = updates.vehicle_level(self.layout, self.C_nb, self.misalignment_dcm(), float(sd))
+        dx, P, _, _, ok = kalman_update(self.P, H, d, R, None, consider=self.consider)
+        if ok:
+            self.P = P
+            self._apply(dx)
 
     def _velocity_from_positions(self, t_s, lla, sd) -> np.ndarray | None:
         """Horizontal velocity from the constant-velocity tracker when the receiver gives none;

@@ -27,6 +27,10 @@ v_b = C^T v.
   u = C R_vb^T b the baseline in NED (b in vehicle axes), h = atan2(u_E, u_N); the baseline turns
   with the attitude error as the lever arm does, du = [u x] phi, so H_phi = g^T [u x] with
   g = (-u_E, u_N, 0) / (u_N^2 + u_E^2) (level: H_phi = (0, 0, -1)); H_mis = g^T C R_vb^T [b x].
+* Level start (``vehicle_level``): the vehicle's roll at the start is that of the road it stands
+  or drives on, zero within the road's cross slope. With u = C R_vb^T e_y the vehicle's y axis in
+  NED, h = u_D = cos(pitch) sin(roll), z = 0; as above du = [u x] phi and H_mis = e_D^T C R_vb^T [e_y x],
+  so H_phi = (-u_E, u_N, 0): only the tilt, never the (possibly open) heading.
 * ZUPT: h = v, H_v = I. ZARU: h = w - C^T w_ie, H_bg = -I (Groves 2013 sec. 15.3).
 * Stop calibration (``static_calibration``): the gyro bias measured directly, h = b_g, H_bg = I.
 
@@ -218,6 +222,24 @@ def dual_antenna_heading(layout: StateLayout, C_nb: np.ndarray, R_vb: np.ndarray
         H[0, i:i + 3] = g @ CRt @ skew(b)
     d = math.remainder(math.atan2(u[1], u[0]) - heading_rad, 2.0 * math.pi)
     return Measurement(H, np.array([d]), np.array([[sd_rad ** 2]]))
+
+
+def vehicle_level(layout: StateLayout, C_nb: np.ndarray, R_vb: np.ndarray, sd_rad: float) -> Measurement:
+    """The vehicle is level about its forward axis within ``sd_rad`` (its roll is the road's
+    cross slope): a measurement of the roll of the vehicle frame, ``h = (C R_vb^T e_y)_D = cos(pitch)
+    sin(roll)``, ``z = 0``, ``R = sin(sd)^2`` (model in the module docstring). The IMU's own tilt
+    is measured by gravity; the mounting's roll about the forward axis is not observed by any
+    motion (a rotation about the direction of travel changes neither the lateral nor the vertical
+    velocity the constraints see), so this is where the filter learns it."""
+    CRt = C_nb @ R_vb.T
+    u = CRt[:, 1]
+    g = np.array([0.0, 0.0, 1.0])
+    H = np.zeros((1, layout.n))
+    H[0, ATT:ATT + 3] = g @ skew(u)
+    i = layout.at("misalignment")
+    if i >= 0:
+        H[0, i:i + 3] = g @ CRt @ skew(np.array([0.0, 1.0, 0.0]))
+    return Measurement(H, np.array([u[2]]), np.array([[math.sin(sd_rad) ** 2]]))
 
 
 def zaru(layout: StateLayout, C_nb: np.ndarray, lat_rad: float, mean_rate_body_rps: np.ndarray,
