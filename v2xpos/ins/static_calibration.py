@@ -45,10 +45,11 @@ roll and pitch errors taken as independent), is at most ``1 - level_confidence``
 to a tenth of a degree beyond the limit (a 5 % grade: 2.9 deg) is not level; an unknown one is
 not shown to be tilted and is level (a tilt sd of 10 deg gives 0.16 per axis), except when the
 prior itself makes a tilt beyond the limits likely on both axes (both mounting angles at their
-10-degree prior: 0.16 x 0.16 = 0.025; a filter with the level start, ``Initialization._level_start``,
-knows the roll to 2 deg from its start and judges such a stop at once). The mounting is constant and each stop's mean specific
-force is kept, so a stop not level is judged again at every later stop for ``level_pending_max_s`` with the filter's
-mounting and bias of then (the accelerometer bias drift over that time, <= 5e-3 m/s^2 in the
+10-degree prior: 0.16 x 0.16 = 0.025; a filter with the level start,
+``Initialization._level_start``, knows the roll to 2 deg from its start and judges such a stop at
+once). The mounting is constant and each stop's mean specific force is kept, so a stop not level
+is judged again at every later stop for ``level_pending_max_s`` with the filter's mounting and bias
+of then (the accelerometer bias drift over that time, <= 5e-3 m/s^2 in the
 default model, turns u_b by 0.03 deg), and its estimate is published when the stop is then level
 (``late``).
 
