@@ -409,6 +409,21 @@ def test_the_first_estimates_anchor_follows_corrections_outside_the_small_angle_
     assert _twin_lever_sd_after(corrected, 0.0, first_estimates=True, heading_sd_rad=FEJ_MAX_HEADING_SD_RAD) > 0.49
 
 
+def test_the_anchor_is_not_told_an_attitude_without_the_heading_sd():
+    """The first-estimates anchor needs the regime of each correction: an attitude without the
+    main filter's heading sd is rejected, not taken as the small-angle regime."""
+    from v2xpos.ins.integrity import FaultTolerantSolution
+    n, L = 12, 9
+    sep = FaultTolerantSolution(L, fault_sd_m=0.5)
+    sep.start(np.eye(n) * 1e-4, np.eye(3), np.zeros(3))
+    H = np.zeros((3, n))
+    H[:, :3] = np.eye(3)
+    with pytest.raises(ValueError, match="heading_sd_rad"):
+        sep.update(H, np.zeros(3), np.eye(3) * 1e-4, np.zeros(n), C_nb_after=np.eye(3))
+    sep.update(H, np.zeros(3), np.eye(3) * 1e-4, np.zeros(n), C_nb_after=np.eye(3), heading_sd_rad=0.01)
+    sep.update(H, np.zeros(3), np.eye(3) * 1e-4, np.zeros(n))           # no anchor: plain columns
+
+
 def test_an_exclusion_takes_the_fault_tolerant_solution():
     """RAIM exclusion: the separation test's alarm makes the filter take the twin's state and
     covariance (the estimate that never relied on the declared lever arm)."""

@@ -55,6 +55,53 @@ def test_drive_0708_self_calibration_is_physical(drive_run):
     assert c["zupt"] > 0 and c["nhc"] > 0
 
 
+def _nhc_lateral_in_turns(ds, states: tuple = ()) -> tuple:
+    """(rows, filter) of a replay of ``ds`` without outages by the services' filter with the extra
+    effect ``states``: rows (innovation [m/s], its sd, yaw rate [rad/s], speed [m/s]) of every
+    lateral NHC update at a yaw rate of 0.1 rad/s or more."""
+    from v2xpos.ins import InsFilter
+    from v2xpos.ins.profiles import dataset_config
+    from v2xpos.ins.replay_engine import ReplayHook, run_replay
+    rows = []
+
+    class Lateral(ReplayHook):
+        def on_update(self, res, f):
+            if res.kind == "nhc" and abs(f._last_w_b[2]) >= 0.1:
+                rows.append((float(res.innovation[0]), float(res.innovation_sd[0]), float(f._last_w_b[2]),
+                             float(np.linalg.norm(f.nav[3:6]))))
+
+    cfg = dataset_config(ds)
+    if states:
+        cfg = dataset_config(ds, effects={"states": tuple(cfg.effects.states) + states})
+    f = InsFilter(cfg)
+    run_replay(f, ds, [], [Lateral()])
+    return np.array(rows), f
+
+
+def test_drive_0708_turns_move_the_imu_sideways_as_the_rear_axle_model_says():
+    """Closing the loop on the real car: with a zero lateral velocity (the services' default, loosened
+    by 1 m/s per rad/s) the NHC's residuals in turns follow the rear tyres' slip, ``omega v^2``
+    (updates.nhc); with the rear-axle distance and the slip compliance as states that correlation
+    falls to less than half, the residuals shrink, the sd the model uses still covers them
+    (normalised RMS below 1), and the estimates are physical: the IMU on the car, the rear tyres
+    slipping outwards (a positive compliance under 10 deg/g), resolved by the turns."""
+    ds = _dataset("drive_0708/dataset.toml")
+    zero, _ = _nhc_lateral_in_turns(ds)
+    model, f = _nhc_lateral_in_turns(ds, ("rear_axle_distance", "rear_slip_compliance"))
+    assert len(zero) > 500 and len(model) > 500
+
+    def slip_correlation(r: np.ndarray) -> float:
+        return float(np.corrcoef(r[:, 0], r[:, 2] * r[:, 3] ** 2)[0, 1])
+
+    assert slip_correlation(zero) > 0.3, slip_correlation(zero)             # the effect the model lacked
+    assert abs(slip_correlation(model)) < 0.5 * slip_correlation(zero), (slip_correlation(model), slip_correlation(zero))
+    assert np.sqrt(np.mean(model[:, 0] ** 2)) < np.sqrt(np.mean(zero[:, 0] ** 2))
+    assert np.sqrt(np.mean((model[:, 0] / model[:, 1]) ** 2)) < 1.0
+    k = f.layout.at("rear_slip_compliance")
+    assert abs(f.fx.rear_axle_distance_m) < 3.0
+    assert 0.0 < f.fx.rear_slip_compliance < np.radians(10.0) / 9.81
+    assert np.sqrt(f.P[k, k]) < 0.2 * 0.01
+
 def test_walk_0827_pedestrian_with_float_section():
     ds = _dataset("walk_0827/dataset.toml")
     res = replay(ds, OutageSchedule(15.0, 45.0, 40.0), progress=False)

@@ -156,6 +156,42 @@ def test_vehicle_level_residual_is_h_times_the_error(pitch_rad):
     assert m.R[0, 0] == pytest.approx(np.sin(np.radians(2.0)) ** 2)
 
 
+@pytest.mark.parametrize("learn", [True, False])
+def test_nhc_sees_the_lateral_velocity_of_a_point_ahead_of_a_slipping_rear_axle(learn):
+    """A car turning left at 0.25 rad/s at 9 m/s whose IMU is 1.3 m ahead of the rear axle and whose
+    rear tyres slip 0.004 rad per m/s^2 of lateral acceleration: its IMU moves sideways at
+    omega (d - k v^2). With the true distance and compliance the lateral residual is zero; with
+    the estimates off by (dd, dk) (and the velocity and attitude off too) it is H dx. Without
+    learning (no recent GNSS) the constraint is the one without the states: a zero lateral
+    velocity, no columns for them, the loose sd."""
+    layout = StateLayout.build(("misalignment", "rear_axle_distance", "rear_slip_compliance"))
+    yaw_rate, speed, d_true, k_true = -0.25, 9.0, 1.3, 0.004
+    v_vehicle = np.array([speed, yaw_rate * (d_true - k_true * speed ** 2), 0.0])
+    assert abs(v_vehicle[1]) > 0.2                                   # the case is not the old zero
+    R_vb = dcm_from_euler(0.01, -0.02, 0.015)
+    v_true = C_NB @ R_vb.T @ v_vehicle
+    i_d, i_k = layout.at("rear_axle_distance"), layout.at("rear_slip_compliance")
+    exact = updates.nhc(layout, C_NB, R_vb, v_true, yaw_rate, rear_axle_distance_m=d_true,
+                        rear_slip_compliance=k_true, learn_rear_axle=learn)
+    if not learn:
+        np.testing.assert_allclose(exact.d, v_vehicle[1:], atol=1e-12)
+        assert not exact.H[:, [i_d, i_k]].any()
+        assert exact.R[0, 0] == pytest.approx((0.05 + updates.NHC_SD_PER_YAW_RATE_M * 0.25) ** 2)
+        return
+    np.testing.assert_allclose(exact.d, 0.0, atol=1e-12)
+    dx = np.zeros(layout.n)
+    dx[VEL:VEL + 3] = [0.02, -0.03, 0.01]
+    dx[ATT:ATT + 3] = [1e-3, -1e-3, 2e-3]
+    dx[i_d], dx[i_k] = 0.3, -0.002
+    C_est = exp_so3(-dx[ATT:ATT + 3]) @ C_NB
+    m = updates.nhc(layout, C_est, R_vb, v_true + dx[VEL:VEL + 3], yaw_rate, rear_axle_distance_m=d_true + dx[i_d],
+                    rear_slip_compliance=k_true + dx[i_k])
+    assert m.H[0, i_d] == -yaw_rate and m.H[0, i_k] == pytest.approx(yaw_rate * speed ** 2, rel=1e-2)
+    np.testing.assert_allclose(m.d, m.H @ dx, atol=2e-3)
+    assert abs(float(m.d[0])) > 0.1                              # the distance and compliance errors show
+    assert m.R[0, 0] == pytest.approx((0.05 + updates.NHC_SD_UNMODELLED_PER_YAW_RATE_M * 0.25) ** 2)
+
+
 def test_dual_antenna_heading_residual_wraps_at_north():
     """A baseline just east of north measured just west of it: the residual is the small angle."""
     C = dcm_from_euler(0.0, 0.0, 0.01)

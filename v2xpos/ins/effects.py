@@ -19,6 +19,14 @@ Conventions (shared with ``v2xpos calibrate``):
   only the vehicle constraints (NHC, odometer) and the reported vehicle attitude see it.
 * ``gyro_scale`` / ``accel_scale``: per body axis, measured = (1 + s) true.
 * ``odometer_scale``: wheel speed measured = (1 + s) true forward speed.
+* ``rear_axle_distance`` d [m]: how far the IMU is ahead of the rear axle along the vehicle's x axis.
+  A car's rear axle does not slip sideways (kinematic steering; Gillespie 1992, *Fundamentals of
+  Vehicle Dynamics*, ch. 6), so a point d ahead of it moves sideways at ``v_y = omega_z d`` in a
+  turn; the NHC measures that, not zero (``updates.nhc``).
+* ``rear_slip_compliance`` k [rad per m/s^2]: the rear tyres slip at an angle ``k a_y`` to carry the
+  lateral acceleration (a tyre's cornering force is ~0.2 of its load per degree of slip, Gillespie
+  1992 ch. 10: ~5 deg at 1 g), so the rear axle itself moves sideways at ``-k a_y v``; needs
+  ``rear_axle_distance``.
 
 Each effect is a random constant with an optional random walk (``InsConfig.effects.effect_random_walk``).
 """
@@ -42,6 +50,8 @@ DEFAULT_INITIAL_SD = {
     "gyro_scale": 0.01,
     "accel_scale": 0.01,
     "odometer_scale": 0.05,
+    "rear_axle_distance": 2.0,         # m: an IMU anywhere between behind the rear axle and past the front one
+    "rear_slip_compliance": 0.01,      # rad per m/s^2: 5.6 deg at 1 g
 }
 """Priors for the effect states (1 sigma); the lever-arm prior is the dataset's lever_arm_sd_m."""
 
@@ -55,6 +65,8 @@ DEFAULT_RANDOM_WALK = {
     "gyro_scale": 0.0,
     "accel_scale": 0.0,
     "odometer_scale": 1e-5,
+    "rear_axle_distance": 0.0,
+    "rear_slip_compliance": 0.0,
 }
 
 PLATFORM_EFFECTS = {
@@ -76,6 +88,8 @@ class EffectValues:
         self.imu_clock_drift = 0.0
         self.misalignment_rad = np.zeros(3)
         self.odometer_scale = 0.0
+        self.rear_axle_distance_m = 0.0
+        self.rear_slip_compliance = 0.0
 
     def apply_correction(self, layout: StateLayout, dx: np.ndarray, corr: np.ndarray) -> None:
         """value <- value - dx for every enabled effect (errors are estimate minus truth).
@@ -99,6 +113,10 @@ class EffectValues:
                 corr[COR_SA:COR_SA + 3] -= dx[i:i + 3]
             elif name == "odometer_scale":
                 self.odometer_scale -= dx[i]
+            elif name == "rear_axle_distance":
+                self.rear_axle_distance_m -= dx[i]
+            elif name == "rear_slip_compliance":
+                self.rear_slip_compliance -= dx[i]
 
     def as_dict(self, corr: np.ndarray) -> dict:
         return {"lever_arm_m": self.lever_arm_m.tolist(), "imu_time_offset_s": self.imu_time_offset_s,
@@ -106,4 +124,5 @@ class EffectValues:
                 "imu_clock_drift_ppm": self.imu_clock_drift * 1e6,
                 "misalignment_rad": self.misalignment_rad.tolist(),
                 "gyro_scale": corr[COR_SG:COR_SG + 3].tolist(), "accel_scale": corr[COR_SA:COR_SA + 3].tolist(),
-                "odometer_scale": self.odometer_scale}
+                "odometer_scale": self.odometer_scale, "rear_axle_distance_m": self.rear_axle_distance_m,
+                "rear_slip_compliance": self.rear_slip_compliance}

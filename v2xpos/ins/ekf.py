@@ -49,6 +49,8 @@ EFFECT_SIZES: dict[str, int] = {
     "gnss_latency": 1,       # the GNSS solution stamped t describes t - latency [s]
     "gnss_vel_latency": 1,   # the GNSS velocity stamped t describes t - latency [s] (e.g. a mean over the epoch)
     "odometer_scale": 1,     # wheel speed measured = (1 + s) true
+    "rear_axle_distance": 1, # the IMU's distance ahead of the rear axle [m]: its lateral velocity in a turn
+    "rear_slip_compliance": 1,  # the rear tyres' slip angle per lateral acceleration [rad per m/s^2]
 }
 
 

@@ -507,7 +507,14 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self._vehicle_constraints(math.sqrt(float(self.nav[3:6] @ self.nav[3:6])))
 
     def _update_nhc(self) -> None:
-        m = updates.nhc(self.layout, self.C_nb, self.misalignment_dcm(), self.nav[3:6], abs(self._last_w_b[2]))
+        R_vb = self.misalignment_dcm()
+        if self.layout.at("rear_axle_distance") < 0:
+            m = updates.nhc(self.layout, self.C_nb, R_vb, self.nav[3:6], abs(self._last_w_b[2]))
+        else:
+            learn = self.t_s - self.last_gnss_t_s <= updates.REAR_AXLE_LEARN_MAX_GNSS_AGE_S
+            m = updates.nhc(self.layout, self.C_nb, R_vb, self.nav[3:6], float((R_vb @ self._last_w_b)[2]),
+                            rear_axle_distance_m=self.fx.rear_axle_distance_m,
+                            rear_slip_compliance=self.fx.rear_slip_compliance, learn_rear_axle=learn)
         r = self._update("nhc", self.t_s, *m)
         self.counts["nhc" if r.accepted else "nhc_rejected"] += 1
 

@@ -345,7 +345,7 @@ class FaultTolerantSolution(FilterObserver):
 
     def update(self, H: np.ndarray, d: np.ndarray, R: np.ndarray, dx_main: np.ndarray,
                nis_main: float = math.nan, S_main: np.ndarray | None = None,
-               C_nb_after: np.ndarray | None = None, heading_sd_rad: float = 0.0) -> None:
+               C_nb_after: np.ndarray | None = None, heading_sd_rad: float | None = None) -> None:
         """Measurement update with the data the main filter accepted: the twin's own
         ``ekf.kalman_update`` (ungated: the main filter gated it) on its innovation d - H w, then
         the log likelihood ratio of the two filters' innovations (module docstring) when the main
@@ -353,7 +353,11 @@ class FaultTolerantSolution(FilterObserver):
         after this correction; given, the lever-arm columns are taken at the first-estimates
         anchor (module docstring), which ignores ``dx_main``'s attitude part when
         ``heading_sd_rad`` (the main filter's, after the correction) is within
-        ``FEJ_MAX_HEADING_SD_RAD`` and turns with it otherwise."""
+        ``FEJ_MAX_HEADING_SD_RAD`` and turns with it otherwise (so the two go together: an anchor
+        without the heading sd would not know which regime it is in)."""
+        if C_nb_after is not None and heading_sd_rad is None:
+            raise ValueError("FaultTolerantSolution.update: C_nb_after needs heading_sd_rad, the main filter's "
+                             "heading sd after the correction")
         if self.P is None:
             return
         d = np.asarray(d, float)

@@ -44,6 +44,8 @@ EFFECT_COLUMNS: dict[str, tuple[str, str, float, tuple[str, ...]]] = {
     "gnss_latency": ("gnss_latency", "ms", 1e3, ("",)),
     "gnss_vel_latency": ("gnss_vel_latency", "ms", 1e3, ("",)),
     "odometer_scale": ("odometer_scale", "ppm", 1e6, ("",)),
+    "rear_axle_distance": ("rear_axle_distance", "m", 1.0, ("",)),
+    "rear_slip_compliance": ("rear_slip_compliance", "deg_per_g", DEG * 9.80665, ("",)),
 }
 
 BASE_COLUMNS = ("t_gps_s", "gps_week", "gps_tow_s", "lat_deg", "lon_deg", "height_m", "vn_mps", "ve_mps", "vd_mps",
@@ -88,6 +90,10 @@ def _effect_values(f: Any, name: str) -> np.ndarray:
         return np.array([fx.gnss_vel_latency_s])
     if name == "odometer_scale":
         return np.array([fx.odometer_scale])
+    if name == "rear_axle_distance":
+        return np.array([fx.rear_axle_distance_m])
+    if name == "rear_slip_compliance":
+        return np.array([fx.rear_slip_compliance])
     raise KeyError(name)
 
 

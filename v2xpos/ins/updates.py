@@ -149,6 +149,13 @@ body pitches against the road under braking and load (docs/ins.md, Measurements)
 NHC_SD_PER_YAW_RATE_M = 1.0
 """Added to the lateral sd per rad/s of yaw rate [m]: an IMU metres from the rear axle slips sideways
 in turns."""
+NHC_SD_UNMODELLED_PER_YAW_RATE_M = 0.2
+"""Added to the lateral sd per rad/s of yaw rate [m] when the rear-axle distance is a state: what the
+kinematic model leaves out (the tyres' nonlinearity, roll steer, the road's camber)."""
+REAR_AXLE_LEARN_MAX_GNSS_AGE_S = 1.0
+"""The rear-axle states enter the NHC only while a GNSS update is at most this old: in an outage the
+NHC alone would move them to absorb the heading's drift (on drive_0708's replay the compliance
+turned negative in the first 15-s outage and the twin then excluded a right declaration)."""
 NHC_MIN_SPEED_MPS = 0.5
 """The NHC is applied above this speed (below it the vehicle frame's velocity direction is noise)."""
 ODOMETER_SD_MPS = 0.05
@@ -160,9 +167,28 @@ ZARU_SD_RPS = 2e-3
 
 
 def nhc(layout: StateLayout, C_nb: np.ndarray, R_vb: np.ndarray, v_ned_mps: np.ndarray, yaw_rate_rps: float,
-        sd_mps: tuple = NHC_SD_MPS, sd_per_yaw_rate_m: float = NHC_SD_PER_YAW_RATE_M) -> Measurement:
-    """Zero lateral and vertical velocity of the vehicle; the lateral sd grows by
-    ``sd_per_yaw_rate_m`` x |yaw rate| (an IMU ahead of the rear axle slips sideways in turns)."""
+        sd_mps: tuple = NHC_SD_MPS, sd_per_yaw_rate_m: float = NHC_SD_PER_YAW_RATE_M,
+        rear_axle_distance_m: float = 0.0, rear_slip_compliance: float = 0.0,
+        learn_rear_axle: bool = True) -> Measurement:
+    """The vehicle's lateral and vertical velocity at the IMU (vehicle frame: y right, z down).
+
+    Without the ``rear_axle_distance`` state both are zero and the lateral sd grows by
+    ``sd_per_yaw_rate_m`` x |yaw rate| (an IMU ahead of the rear axle moves sideways in turns).
+    With it, the lateral velocity is the kinematic one of a point ``d`` ahead of a rear axle that
+    slips at the angle ``k a_y`` (``k``: ``rear_slip_compliance`` [rad per m/s^2], when estimated;
+    a_y = v omega the lateral acceleration):
+
+        v_y = omega (d - k v^2),  H_d = -omega,  H_k = omega v^2
+
+    (Gillespie 1992, *Fundamentals of Vehicle Dynamics*, ch. 6: the rear axle's velocity points
+    along the car up to the rear tyres' slip angle, which is proportional to their lateral force),
+    and what remains unmodelled is ``NHC_SD_UNMODELLED_PER_YAW_RATE_M`` x |yaw rate|. With
+    ``learn_rear_axle`` False (no recent GNSS) the constraint is the one without the states: in an
+    outage the NHC is the only lateral reference, and the model's estimates used there (as an
+    offset, or with their covariance and the tight sd) made drive_0708's and convoy_dev B's
+    outages worse than the loose zero (docs/ins.md, Measurements).
+
+    yaw_rate_rps: the vehicle's yaw rate (vehicle z axis, down: positive turning right)."""
     v_v, Hv, Hphi, Hmis = vehicle_frame_rows(C_nb, R_vb, v_ned_mps)
     H = np.zeros((2, layout.n))
     H[:, VEL:VEL + 3] = Hv[1:]
@@ -170,8 +196,19 @@ def nhc(layout: StateLayout, C_nb: np.ndarray, R_vb: np.ndarray, v_ned_mps: np.n
     i = layout.at("misalignment")
     if i >= 0:
         H[:, i:i + 3] = Hmis[1:]
-    R = np.diag([(sd_mps[0] + sd_per_yaw_rate_m * yaw_rate_rps) ** 2, sd_mps[1] ** 2])
-    return Measurement(H, v_v[1:], R)
+    d = v_v[1:].copy()
+    i = layout.at("rear_axle_distance")
+    if i >= 0:
+        v2 = float(v_v[0] * v_v[0])
+        if learn_rear_axle:
+            d[0] -= yaw_rate_rps * (rear_axle_distance_m - rear_slip_compliance * v2)
+            H[0, i] = -yaw_rate_rps
+            k = layout.at("rear_slip_compliance")
+            if k >= 0:
+                H[0, k] = yaw_rate_rps * v2
+            sd_per_yaw_rate_m = NHC_SD_UNMODELLED_PER_YAW_RATE_M
+    R = np.diag([(sd_mps[0] + sd_per_yaw_rate_m * abs(yaw_rate_rps)) ** 2, sd_mps[1] ** 2])
+    return Measurement(H, d, R)
 
 
 def odometer(layout: StateLayout, C_nb: np.ndarray, R_vb: np.ndarray, v_ned_mps: np.ndarray,
