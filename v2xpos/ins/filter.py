@@ -508,13 +508,14 @@ class InsFilter(ImuPath, Initialization, Outputs):
 
     def _update_nhc(self) -> None:
         R_vb = self.misalignment_dcm()
-        if self.layout.at("rear_axle_distance") < 0:
-            m = updates.nhc(self.layout, self.C_nb, R_vb, self.nav[3:6], abs(self._last_w_b[2]))
-        else:
-            learn = self.t_s - self.last_gnss_t_s <= updates.REAR_AXLE_LEARN_MAX_GNSS_AGE_S
-            m = updates.nhc(self.layout, self.C_nb, R_vb, self.nav[3:6], float((R_vb @ self._last_w_b)[2]),
-                            rear_axle_distance_m=self.fx.rear_axle_distance_m,
-                            rear_slip_compliance=self.fx.rear_slip_compliance, learn_rear_axle=learn)
+        modelled = self.layout.at("rear_axle_distance") >= 0
+        # the rear-axle model takes the vehicle frame's yaw rate; the loose zero only its size, of
+        # the body's (as the figures were measured)
+        yaw_rate_rps = float((R_vb @ self._last_w_b)[2] if modelled else self._last_w_b[2])
+        gnss_recent = self.t_s - self.last_gnss_t_s <= updates.REAR_AXLE_LEARN_MAX_GNSS_AGE_S
+        m = updates.nhc(self.layout, self.C_nb, R_vb, self.nav[3:6], yaw_rate_rps,
+                        rear_axle_distance_m=self.fx.rear_axle_distance_m,
+                        rear_slip_compliance=self.fx.rear_slip_compliance, learn_rear_axle=modelled and gnss_recent)
         r = self._update("nhc", self.t_s, *m)
         self.counts["nhc" if r.accepted else "nhc_rejected"] += 1
 

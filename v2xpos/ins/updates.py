@@ -198,15 +198,14 @@ def nhc(layout: StateLayout, C_nb: np.ndarray, R_vb: np.ndarray, v_ned_mps: np.n
         H[:, i:i + 3] = Hmis[1:]
     d = v_v[1:].copy()
     i = layout.at("rear_axle_distance")
-    if i >= 0:
+    if i >= 0 and learn_rear_axle:
         v2 = float(v_v[0] * v_v[0])
-        if learn_rear_axle:
-            d[0] -= yaw_rate_rps * (rear_axle_distance_m - rear_slip_compliance * v2)
-            H[0, i] = -yaw_rate_rps
-            k = layout.at("rear_slip_compliance")
-            if k >= 0:
-                H[0, k] = yaw_rate_rps * v2
-            sd_per_yaw_rate_m = NHC_SD_UNMODELLED_PER_YAW_RATE_M
+        d[0] -= yaw_rate_rps * (rear_axle_distance_m - rear_slip_compliance * v2)
+        H[0, i] = -yaw_rate_rps
+        k = layout.at("rear_slip_compliance")
+        if k >= 0:
+            H[0, k] = yaw_rate_rps * v2
+        sd_per_yaw_rate_m = NHC_SD_UNMODELLED_PER_YAW_RATE_M
     R = np.diag([(sd_mps[0] + sd_per_yaw_rate_m * abs(yaw_rate_rps)) ** 2, sd_mps[1] ** 2])
     return Measurement(H, d, R)
 
@@ -239,15 +238,14 @@ def zupt(layout: StateLayout, v_ned_mps: np.ndarray, sd_mps: float = ZUPT_SD_MPS
     return Measurement(H, v_ned_mps.copy(), np.eye(3) * sd_mps ** 2)
 
 
-def _vehicle_vector_row(layout: StateLayout, C_nb: np.ndarray, R_vb: np.ndarray, b_vehicle: np.ndarray,
+def _vehicle_vector_row(layout: StateLayout, CRt: np.ndarray, b_vehicle: np.ndarray, u: np.ndarray,
                         g: np.ndarray) -> np.ndarray:
-    """H (1 x n) of a scalar ``h(u)`` of a vector fixed to the vehicle, ``u = C R_vb^T b`` in NED,
-    whose gradient in u is ``g``: ``du = [u x] phi + C R_vb^T [b x] dm`` (the attitude error turns u as
-    it turns the lever arm; with R_vb,est = (I + [dm x]) R_vb,true, the NHC rows' convention), so
-    H_phi = g^T [u x] and H_mis = g^T C R_vb^T [b x]."""
-    CRt = C_nb @ R_vb.T
+    """H (1 x n) of a scalar ``h(u)`` of a vector fixed to the vehicle, ``u = C R_vb^T b`` in NED
+    (``CRt`` = C R_vb^T), whose gradient in u is ``g``: ``du = [u x] phi + C R_vb^T [b x] dm`` (the
+    attitude error turns u as it turns the lever arm; with R_vb,est = (I + [dm x]) R_vb,true, the NHC
+    rows' convention), so H_phi = g^T [u x] and H_mis = g^T C R_vb^T [b x]."""
     H = np.zeros((1, layout.n))
-    H[0, ATT:ATT + 3] = g @ skew(CRt @ b_vehicle)
+    H[0, ATT:ATT + 3] = g @ skew(u)
     i = layout.at("misalignment")
     if i >= 0:
         H[0, i:i + 3] = g @ CRt @ skew(b_vehicle)
@@ -263,9 +261,10 @@ def dual_antenna_heading(layout: StateLayout, C_nb: np.ndarray, R_vb: np.ndarray
     NHC rows' convention) H_mis = g^T C R_vb^T [b x]. The baseline's horizontal length must be
     nonzero (checked by the caller's configuration)."""
     b = np.asarray(baseline_vehicle_m, float)
-    u = C_nb @ R_vb.T @ b
+    CRt = C_nb @ R_vb.T
+    u = CRt @ b
     h2 = u[0] * u[0] + u[1] * u[1]
-    H = _vehicle_vector_row(layout, C_nb, R_vb, b, np.array([-u[1], u[0], 0.0]) / h2)
+    H = _vehicle_vector_row(layout, CRt, b, u, np.array([-u[1], u[0], 0.0]) / h2)
     d = math.remainder(math.atan2(u[1], u[0]) - heading_rad, 2.0 * math.pi)
     return Measurement(H, np.array([d]), np.array([[sd_rad ** 2]]))
 
@@ -277,9 +276,9 @@ def vehicle_level(layout: StateLayout, C_nb: np.ndarray, R_vb: np.ndarray, sd_ra
     is measured by gravity; the mounting's roll about the forward axis is not observed by any
     motion (a rotation about the direction of travel changes neither the lateral nor the vertical
     velocity the constraints see), so this is where the filter learns it."""
-    e_y = np.array([0.0, 1.0, 0.0])
-    u = C_nb @ R_vb.T @ e_y
-    H = _vehicle_vector_row(layout, C_nb, R_vb, e_y, np.array([0.0, 0.0, 1.0]))
+    CRt = C_nb @ R_vb.T
+    u = CRt[:, 1]
+    H = _vehicle_vector_row(layout, CRt, np.array([0.0, 1.0, 0.0]), u, np.array([0.0, 0.0, 1.0]))
     return Measurement(H, np.array([u[2]]), np.array([[math.sin(sd_rad) ** 2]]))
 
 
