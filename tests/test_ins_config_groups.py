@@ -34,3 +34,16 @@ def test_overrides_apply_field_by_field_without_changing_the_base():
     out = overridden(base, {"integrity": {"alert_limit_m": 0.5}, "gnss": {"gate_probability": 1.0}})
     assert out == {"integrity": {"alert_limit_m": 0.5, "integrity_risk": 1e-5}, "gnss": {"gate_probability": 1.0}}
     assert base["integrity"]["alert_limit_m"] == 0.3
+
+
+@pytest.mark.parametrize("states, needed", [(("lever_arm", "imu_clock_drift"), "imu_time_offset"),
+                                            (("misalignment", "rear_slip_compliance"), "rear_axle_distance")])
+def test_an_effect_without_the_effect_it_acts_through_is_refused(states, needed):
+    """A clock drift acts only through the time offset, a slip compliance only through the rear-axle
+    distance (``ekf.EFFECT_NEEDS``): alone, the state would have no column in any measurement and
+    stay at its prior unseen, so the configuration is refused naming both."""
+    with pytest.raises(ValueError, match=rf"effect '{states[1]}' needs '{needed}'"):
+        InsConfig(effects={"states": states})
+    InsConfig(effects={"states": states + (needed,)})
+    with pytest.raises(ValueError, match=r"unknown effect 'lever_arms'"):
+        InsConfig(effects={"states": ("lever_arms",)})

@@ -21,6 +21,7 @@ import numpy as np
 
 from v2xpos.types import FixStatus
 
+from .ekf import check_effect_states
 from .effects import DEFAULT_INITIAL_SD, DEFAULT_RANDOM_WALK, PLATFORM_EFFECTS
 from .static_calibration import StaticCalibrationConfig
 
@@ -209,6 +210,7 @@ class InsConfig:
         s.lever_arm_m = np.asarray(s.lever_arm_m, float).reshape(3)
         if e.states is None:
             e.states = PLATFORM_EFFECTS[s.platform]
+        check_effect_states(tuple(e.states))
         if "gyro_scale" in e.states:
             self.imu.consider_gyro_scale = False
         e.effect_initial_sd = {**DEFAULT_INITIAL_SD, "lever_arm": s.lever_arm_sd_m, **e.effect_initial_sd}

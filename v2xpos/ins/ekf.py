@@ -53,6 +53,24 @@ EFFECT_SIZES: dict[str, int] = {
     "rear_slip_compliance": 1,  # the rear tyres' slip angle per lateral acceleration [rad per m/s^2]
 }
 
+EFFECT_NEEDS: dict[str, str] = {
+    "imu_clock_drift": "imu_time_offset",          # the drift moves the time offset (d(dt)/dt = drift)
+    "rear_slip_compliance": "rear_axle_distance",  # the NHC's model is v_y = omega (d - k v^2): k is a correction to d
+}
+"""Effect -> the effect it acts through; one without the other has no column in any measurement."""
+
+
+def check_effect_states(states: tuple) -> None:
+    """ValueError naming the effect when ``states`` holds an unknown effect, or one without the
+    effect it acts through (``EFFECT_NEEDS``): such a state would stay at its prior, unseen."""
+    for name in states:
+        if name not in EFFECT_SIZES:
+            raise ValueError(f"unknown effect {name!r}; choose from {sorted(EFFECT_SIZES)}")
+        needed = EFFECT_NEEDS.get(name)
+        if needed is not None and needed not in states:
+            raise ValueError(f"effect {name!r} needs {needed!r} among the states (v2xpos/ins/effects.py); "
+                             f"got {tuple(states)}")
+
 
 @dataclass
 class StateLayout:
@@ -63,10 +81,9 @@ class StateLayout:
 
     @classmethod
     def build(cls, effects: tuple | list) -> "StateLayout":
+        check_effect_states(tuple(effects))
         idx, n = {}, BASE_STATES
         for name in effects:
-            if name not in EFFECT_SIZES:
-                raise ValueError(f"unknown effect {name!r}; choose from {sorted(EFFECT_SIZES)}")
             if name in idx:
                 continue
             idx[name] = n
