@@ -197,20 +197,3 @@ def test_dual_antenna_heading_residual_wraps_at_north():
     C = dcm_from_euler(0.0, 0.0, 0.01)
     m = updates.dual_antenna_heading(LAYOUT, C, np.eye(3), np.array([1.0, 0.0, 0.0]), 2 * np.pi - 0.01, 0.01)
     assert float(m.d[0]) == pytest.approx(0.02, abs=1e-9)
-
-
-def test_position_model_carries_the_quadratic_term_of_an_epoch_shift_as_noise():
-    """``p(t - dt) = p - v dt + a dt^2 / 2``: the timing columns are the linear term; the neglected
-    quadratic one, for an epoch-shift error dt ~ N(0, sigma^2), has covariance a a^T sigma^4 / 2
-    (sampled here), and the model adds exactly that to R -- nothing without the timing columns."""
-    sigma_s = 0.2
-    args = (LAYOUT, np.array([*LLA[:2], LLA[2]]), C_NB, LEVER_M, V_NED, GAP_S, LLA, np.full(3, 0.01), 0.005)
-    plain = updates.gnss_position(*args, True)
-    second = updates.gnss_position(*args, True, ACC_NED, sigma_s ** 2)
-    dt = np.random.default_rng(3).normal(0.0, sigma_s, 400_000)
-    quad = 0.5 * np.outer(dt ** 2, ACC_NED)                          # exact shift minus the linear term
-    np.testing.assert_allclose(second.R - plain.R, np.cov(quad.T), rtol=0.02, atol=1e-9)
-    np.testing.assert_array_equal(second.H, plain.H)
-    np.testing.assert_array_equal(second.d, plain.d)
-    untimed = updates.gnss_position(*args, False, ACC_NED, sigma_s ** 2)
-    np.testing.assert_array_equal(untimed.R, updates.gnss_position(*args, False).R)

@@ -409,12 +409,6 @@ class InsFilter(ImuPath, Initialization, Outputs):
     def _gap_s(self, t_meas_s: float) -> float:
         return t_meas_s - self.fx.gnss_latency_s - self.t_s
 
-    def _timing_variance_s2(self) -> float:
-        """Variance of the GNSS epoch shift the position model's timing columns carry [s^2]: of
-        the sum of those states, which share the column ``-v``."""
-        idx = [i for i in (self.layout.at(n) for n in updates.TIMING_STATES_POSITION) if i >= 0]
-        return float(self.P[np.ix_(idx, idx)].sum()) if idx else 0.0
-
     def _timing_in_models(self, v_ned_mps: np.ndarray) -> bool:
         """Whether the GNSS models carry the timing columns at this state (``updates``: not at a
         stop and faster than ``timing_min_speed_mps``, below which the time offset is not
@@ -464,7 +458,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
         timing = self._timing_in_models(v)
         scale = c.gnss.fix_sd_scale.get(fix, 2.0)
         m = updates.gnss_position(self.layout, self.nav, C_before, self.fx.lever_arm_m, v, gap, lla, sd * scale,
-                                  c.gnss.gnss_pos_sd_floor_m, timing, self.acc_ned_mps2, self._timing_variance_s2())
+                                  c.gnss.gnss_pos_sd_floor_m, timing)
         force = self._gnss_rejections >= c.gnss.gnss_max_consecutive_rejections
         if force and float(m.d @ m.d) > GNSS_RESET_DISTANCE_M ** 2:
             return self._position_reset(t_s, lla, sd, fix, vel_ned_mps, float(np.sqrt(m.d @ m.d)))

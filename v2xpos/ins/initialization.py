@@ -287,16 +287,11 @@ class Initialization:
         correlations stayed in the axes of the arbitrary pre-turn yaw (up to 180 deg away), and
         the fault-tolerant solution missed an undeclared antenna lever arm: the rows the filter
         reported VALID after its exclusion were often outside 3 sd (tests/test_integrity_recordings.py
-        ``[lever]``; docs/ins.md, Initialisation, item 4). The models' two kinematic accelerations
-        (``imu_path._smooth_acceleration``) are NED vectors of the pre-turn heading as well and
-        turn with it: left as they were, the first GNSS velocities after a drive-off's heading
-        reset were regressed on an acceleration pointing up to 180 deg away from the true one."""
+        ``[lever]``; docs/ins.md, Initialisation, item 4)."""
         self.C_nb = turn @ self.C_nb
         T = np.eye(self.layout.n)
         T[ATT:ATT + 3, ATT:ATT + 3] = turn
         self.P = T @ self.P @ T.T
-        self.acc_ned_mps2 = turn @ self.acc_ned_mps2
-        self.acc_strapdown_ned_mps2 = turn @ self.acc_strapdown_ned_mps2
 
     def _heading_from_baseline(self, t_s: float, heading_rad: float, sd_rad: float,
                                baseline_vehicle_m: np.ndarray) -> UpdateResult:

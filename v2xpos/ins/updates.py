@@ -83,21 +83,10 @@ class Measurement(NamedTuple):
 
 def gnss_position(layout: StateLayout, nav: np.ndarray, C_nb: np.ndarray, lever_arm_m: np.ndarray,
                   v_ned_mps: np.ndarray, gap_s: float, lla_meas: np.ndarray, sd_ned_m: np.ndarray,
-                  sd_floor_m: float, timing: bool, acc_ned_mps2: np.ndarray | None = None,
-                  timing_var_s2: float = 0.0) -> Measurement:
+                  sd_floor_m: float, timing: bool) -> Measurement:
     """Antenna position fix ``lla_meas`` (lat, lon rad; h m) with 1-sigma ``sd_ned_m`` (floored at
     ``sd_floor_m``) against the IMU point ``nav[:3]``; the difference is taken in NED metres at
-    the state (curvilinear increments, Groves 2013 eq. 2.119).
-
-    The timing columns (``-v``) are the first-order term of ``p(t - dt) = p - v dt + a dt^2 / 2``.
-    With ``acc_ned_mps2`` and the variance ``timing_var_s2`` of the epoch shift they carry, the
-    neglected quadratic term enters R as its variance, ``Var(a dt^2 / 2) = a a^T sigma^4 / 2`` for
-    ``dt ~ N(0, sigma^2)`` (the second-order filter's covariance term ``1/2 tr(H_xx P H_xx P)``;
-    Gelb 1974, *Applied Optimal Estimation*, sec. 6.1; Bar-Shalom, Li & Kirubarajan 2001 sec.
-    10.3.3). It matters only while the time offset is still near its prior: at sigma = 0.3 s and a
-    drive-off's 1.5 m/s^2 it is 9.5 cm, at 30 ms 1 mm. Without it the first fixes of a drive-off
-    read the curvature of ``v dt`` as information and left the time offset several sd off with a
-    sd of ~10 ms (docs/integrity.md, What is short)."""
+    the state (curvilinear increments, Groves 2013 eq. 2.119)."""
     lat, h = nav[NAV_LAT], nav[NAV_H]
     r_m, r_n = geo.radii_m(lat)
     Cl = C_nb @ lever_arm_m
@@ -117,8 +106,6 @@ def gnss_position(layout: StateLayout, nav: np.ndarray, C_nb: np.ndarray, lever_
         if i >= 0:
             H[:, i] = timing_col
     R = np.diag(np.maximum(sd_ned_m, sd_floor_m) ** 2)
-    if timing and acc_ned_mps2 is not None and timing_var_s2 > 0.0:
-        R = R + (0.5 * timing_var_s2 ** 2) * np.outer(acc_ned_mps2, acc_ned_mps2)
     return Measurement(H, d, R)
 
 
