@@ -345,6 +345,18 @@ JOBS: tuple[Job, ...] = (
     Job("integrity-mc-calibrated", ("python", "-m", "bench.integrity_mc", "--presets", "dev_like", "--seeds", "0-9",
                                     "--verified", "--calibrate", "--work", "{out}", "--json", "{json}"), _json,
         _integrity_figures("dev_like", False, "calibrated", "the follower's calibrate --write-dataset table applied")),
+    Job("driveoff-timing", ("python", "-m", "bench.driveoff_timing", "--presets", "clean,dev_like", "--seeds", "10-18",
+                            "--work", "{out}", "--json", "{json}"), _json, (
+        Figure("driveoff_timing.after_5s.z_rms", "IMU time offset 5 s after the drive-off's heading reset, generated "
+               "followers (seeds 10-18, clean and dev_like): RMS of (estimate - truth) / sd (honest ~1)", "",
+               _get("summary", "5.0", "z_rms"), 2),
+        Figure("driveoff_timing.after_5s.z_abs_max", "the same: largest |estimate - truth| / sd", "",
+               _get("summary", "5.0", "z_abs_max"), 1),
+        Figure("driveoff_timing.after_5s.beyond_3sd", "the same: followers beyond 3 sd", "",
+               _get("summary", "5.0", "beyond_3"), 0),
+        Figure("driveoff_timing.after_10s.z_rms", "the same 10 s after the reset (after the first change of speed)", "",
+               _get("summary", "10.0", "z_rms"), 2),
+    )),
     Job("bench-calibration", ("v2xpos", "bench", "calibration", "--seeds", "20", "--fresh", "--out", "{out}"),
         _coverage, (
             Figure("calibration_mc.runs", "simulated drives fitted", "", _get("runs"), 0, "≥ 20", "#16"),

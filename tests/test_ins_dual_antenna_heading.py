@@ -76,3 +76,16 @@ def test_a_malformed_heading_is_counted_and_changes_nothing():
         assert not r.accepted
     assert f.counts["malformed_inputs"] == 4 and not f.heading_known
     np.testing.assert_array_equal(f.C_nb, C)
+
+
+def test_a_heading_turn_turns_the_models_accelerations_with_it():
+    """The models' kinematic accelerations are NED vectors of the heading they were integrated
+    with: a turn of the attitude about down (the heading reset at a drive-off, the dual-antenna
+    heading at a stop) turns them by the same rotation, as it turns the tilt error."""
+    from v2xpos.rotation import rot_z
+    f = InsFilter()
+    f.acc_ned_mps2 = np.array([1.5, 0.0, 0.1])
+    f.acc_strapdown_ned_mps2 = np.array([1.4, 0.2, 0.0])
+    f._turn_about_down(rot_z(math.pi / 2))
+    np.testing.assert_allclose(f.acc_ned_mps2, [0.0, 1.5, 0.1], atol=1e-12)
+    np.testing.assert_allclose(f.acc_strapdown_ned_mps2, [-0.2, 1.4, 0.0], atol=1e-12)

@@ -27,7 +27,7 @@ def _predicted_antenna(f: InsFilter, t_s: float, lla: np.ndarray) -> updates.Mea
     """The filter's own GNSS position model at its current state (the open yaw column kept out,
     as ``InsFilter._update`` does while the heading is unknown)."""
     v = f.nav[3:6]
-    timing = not f.static and float(v @ v) > f.cfg.gnss.timing_min_speed_mps ** 2
+    timing = f._timing_in_models(v)   # without timing columns while a drive-off alignment is pending
     m = updates.gnss_position(f.layout, f.nav, f.C_nb, f.fx.lever_arm_m, v, f._gap_s(t_s), lla,
                               np.full(3, FIX_SD_M), f.cfg.gnss.gnss_pos_sd_floor_m, timing)
     if not f.heading_known:

@@ -94,6 +94,7 @@ class EffectStates:
     states: tuple | None = None
     effect_initial_sd: dict = field(default_factory=dict)
     initial_time_offset_s: float = 0.0             # starting value of imu_time_offset (e.g. from calibrate)
+    align_time_at_drive_off: bool = True           # the time offset from a drive-off's onset (driveoff_timing)
     initial_misalignment_rad: np.ndarray = field(default_factory=lambda: np.zeros(3))
     initial_effects: dict = field(default_factory=dict)   # other starting values: imu_clock_drift [s/s],
     # gnss_latency_s, gnss_vel_latency_s, odometer_scale, gyro_scale (3), accel_scale (3)

@@ -36,6 +36,7 @@ from .config import InsConfig
 from .consistency import ConsistencyMonitor
 from .effects import DEFAULT_INITIAL_SD
 from .integrity import FaultTolerantSolution
+from .driveoff_timing import DriveOffTimer, TimeAlignment
 from .ekf import ATT, BA, BG, EFFECT_SIZES, POS, VEL, StateLayout, kalman_update
 from .effects import EffectValues
 from .imu_path import ImuPath
@@ -149,10 +150,18 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self.acc_ned_mps2 = np.zeros(3)
         self._v_prev_chunk: np.ndarray | None = None
         self._dv_corrections_mps = np.zeros(3)
+        self._free_v_prev: np.ndarray | None = None
+        self._free_corr_mps = np.zeros(3)
+        self._free_dv_mps: np.ndarray | None = None
+        self._align_pending_until_s: float | None = None
         self.acc_strapdown_ned_mps2 = np.zeros(3)
         self._t_prev_chunk = -np.inf
         self._last_raw_f_b: np.ndarray | None = None
         self._last_raw_w_b: np.ndarray | None = None
+        self.driveoff = (DriveOffTimer(c.stops.static_max_gnss_speed_mps)
+                         if self.layout.at("imu_time_offset") >= 0 and c.effects.align_time_at_drive_off else None)
+        self._driveoff_origin: np.ndarray | None = None
+        self.time_alignment: TimeAlignment | None = None
 
     # ------------------------------------------------------------------ time and state access
     @property
@@ -241,6 +250,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
         self.nav[NAV_VEL:NAV_VEL + 3] -= dx[VEL:VEL + 3]
         # kept out of the strapdown's own acceleration (``_smooth_acceleration``)
         self._dv_corrections_mps = self._dv_corrections_mps - dx[VEL:VEL + 3]
+        self._free_corr_mps = self._free_corr_mps - dx[VEL:VEL + 3]
         self.C_nb = exp_so3(dx[ATT:ATT + 3]) @ self.C_nb
         self.corr[COR_BG:COR_BG + 3] -= dx[BG:BG + 3]
         self.corr[COR_BA:COR_BA + 3] -= dx[BA:BA + 3]
@@ -415,7 +425,8 @@ class InsFilter(ImuPath, Initialization, Outputs):
         observable against the noise); the antenna-fix covariance of a start or reset follows the
         same models (``initialization.antenna_fix_inverse_jacobian``)."""
         v = np.asarray(v_ned_mps, float)
-        return not self.static and float(v @ v) > self.cfg.gnss.timing_min_speed_mps ** 2
+        return (not self.static and float(v @ v) > self.cfg.gnss.timing_min_speed_mps ** 2
+                and self._align_pending_until_s is None)
 
     # ------------------------------------------------------------------ GNSS
     def update_gnss(self, t_s: float, lla: np.ndarray, sd_ned_m: np.ndarray, fix: FixStatus | int,
@@ -447,10 +458,15 @@ class InsFilter(ImuPath, Initialization, Outputs):
             return self._try_align(t_s, lla, sd, fix, vel_ned_mps)
         if not self.heading_known:
             vel = vel_ned_mps if vel_ned_mps is not None else self._velocity_from_positions(t_s, lla, sd)
+            self._note_drive_off(t_s, lla, sd * c.gnss.fix_sd_scale.get(fix, 2.0), vel)
             if vel is not None and float(np.hypot(vel[0], vel[1])) >= c.initial.align_min_speed_mps:
                 return self._heading_reset(t_s, lla, sd, fix, vel)
             if vel is None or float(np.hypot(vel[0], vel[1])) > c.stops.static_max_gnss_speed_mps:
                 return UpdateResult("gnss_pos", t_s, False, np.nan, reason="moving, heading pending")
+        if self._align_pending_until_s is not None and t_s >= self._align_pending_until_s:
+            aligned = self._finish_drive_off_alignment(t_s, lla, sd, fix, vel_ned_mps)
+            if aligned is not None:
+                return aligned
         self._flush_covariance()
         gap = self._gap_s(t_s)
         C_before = self.C_nb
@@ -459,6 +475,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
         scale = c.gnss.fix_sd_scale.get(fix, 2.0)
         m = updates.gnss_position(self.layout, self.nav, C_before, self.fx.lever_arm_m, v, gap, lla, sd * scale,
                                   c.gnss.gnss_pos_sd_floor_m, timing)
+        m = self._timing_as_noise(m, v)
         force = self._gnss_rejections >= c.gnss.gnss_max_consecutive_rejections
         if force and float(m.d @ m.d) > GNSS_RESET_DISTANCE_M ** 2:
             return self._position_reset(t_s, lla, sd, fix, vel_ned_mps, float(np.sqrt(m.d @ m.d)))
@@ -485,6 +502,7 @@ class InsFilter(ImuPath, Initialization, Outputs):
                                       vel_sd_ned_mps * c.gnss.gnss_vel_sd_scale * scale,
                                       c.gnss.gnss_vel_sd_floor_mps, timing,
                                       acc_strapdown_ned_mps2=self.acc_strapdown_ned_mps2)
+            m = self._timing_as_noise(m, self.acc_strapdown_ned_mps2)
             rv = self._update("gnss_vel", t_s, *m)
             self.counts["gnss_vel_accepted" if rv.accepted else "gnss_vel_rejected"] += 1
         return res

@@ -126,6 +126,8 @@ class ImuPath:
             self.noise_meter.feed(t, w, f, static=self.static)
         if self.initialized:
             self._smooth_acceleration(float(t[-1]))
+            if not self.heading_known or self._align_pending_until_s is not None:
+                self._note_drive_off_ins()
         speed = math.sqrt(float(self.nav[3:6] @ self.nav[3:6])) if self.initialized else 0.0
         ests, made = self._feed_stop_calibration(t, f, w, speed)
         self.counts["static_calibrations"] += len(ests)
@@ -193,6 +195,8 @@ class ImuPath:
           Online agreement, item 4).
         """
         v_now = self.nav[3:6].copy()
+        self._free_dv_mps = None if self._free_v_prev is None else v_now - self._free_v_prev - self._free_corr_mps
+        self._free_v_prev, self._free_corr_mps = v_now, np.zeros(3)
         if self._v_prev_chunk is not None and t_end_s > self._t_prev_chunk:
             dt_c = float(t_end_s - self._t_prev_chunk)
             k = min(1.0, dt_c / ACC_SMOOTHING_TAU_S)

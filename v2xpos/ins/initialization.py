@@ -34,6 +34,9 @@ STOP_GYRO_BIAS_INIT_SD_FLOOR_RPS = 1e-3
 MIN_START_POSITION_SD_M = 0.05
 """Least initial and reset position sd [m], whatever the receiver reports."""
 GNSS_RESET_DISTANCE_M = 30.0
+# the drive-off alignment (driveoff_timing) runs at the first GNSS epoch after its wait, if that
+# epoch comes within this many seconds of it (not after an outage)
+ALIGNMENT_LATEST_S = 1.0
 """A forced GNSS fix (after ``gnss.gnss_max_consecutive_rejections``) further than this from the
 filter resets its position instead of updating it (beyond the linearisation's reach)."""
 
@@ -159,6 +162,8 @@ class Initialization:
         self.acc_ned_mps2 = np.zeros(3)
         self.acc_strapdown_ned_mps2 = np.zeros(3)
         self._dv_corrections_mps = np.zeros(3)
+        self._free_v_prev = None
+        self._free_corr_mps = np.zeros(3)
 
     def _level_start(self) -> None:
         """Part of a start's prior: the vehicle stands or drives level about its forward axis within
@@ -219,6 +224,7 @@ class Initialization:
                         from_antenna=True, heading_known=False)
             if self.separation is not None:
                 self.separation.stop()
+            self._clear_drive_off()
             self.last_fix = fix
             self.last_gnss_t_s = t_s
             return UpdateResult("gnss_pos", t_s, False, np.nan, reason="initialised at a stop, heading pending")
@@ -287,11 +293,21 @@ class Initialization:
         correlations stayed in the axes of the arbitrary pre-turn yaw (up to 180 deg away), and
         the fault-tolerant solution missed an undeclared antenna lever arm: the rows the filter
         reported VALID after its exclusion were often outside 3 sd (tests/test_integrity_recordings.py
-        ``[lever]``; docs/ins.md, Initialisation, item 4)."""
+        ``[lever]``; docs/ins.md, Initialisation, item 4). The models' two kinematic accelerations
+        (``imu_path._smooth_acceleration``) are NED vectors of the pre-turn heading as well and
+        turn with it: left as they were, the first GNSS velocities after a drive-off's heading
+        reset were regressed on an acceleration pointing up to 180 deg away from the true one."""
         self.C_nb = turn @ self.C_nb
         T = np.eye(self.layout.n)
         T[ATT:ATT + 3, ATT:ATT + 3] = turn
         self.P = T @ self.P @ T.T
+        self.acc_ned_mps2 = turn @ self.acc_ned_mps2
+        self.acc_strapdown_ned_mps2 = turn @ self.acc_strapdown_ned_mps2
+        if self._free_v_prev is not None:
+            self._free_v_prev = turn @ self._free_v_prev
+        self._free_corr_mps = turn @ self._free_corr_mps
+        if self.driveoff is not None:
+            self.driveoff.turn(turn)
 
     def _heading_from_baseline(self, t_s: float, heading_rad: float, sd_rad: float,
                                baseline_vehicle_m: np.ndarray) -> UpdateResult:
@@ -318,14 +334,87 @@ class Initialization:
         res.reason = f"heading set from the dual-antenna baseline (turned {math.degrees(turn_rad):.1f} deg)"
         return res
 
+    def _note_drive_off(self, t_s: float, lla: np.ndarray, sd_ned_m: np.ndarray, vel) -> None:
+        """Feed a GNSS epoch of the open-heading phase to the drive-off time alignment
+        (``driveoff_timing``)."""
+        d = self.driveoff
+        if d is None or vel is None:
+            return
+        if self._driveoff_origin is None:
+            self._driveoff_origin = np.asarray(lla, float).copy()
+        d.note_gnss(t_s, self._driveoff_ne(lla), float(np.hypot(sd_ned_m[0], sd_ned_m[1]) / math.sqrt(2.0)),
+                    float(np.hypot(vel[0], vel[1])))
+
+    def _driveoff_ne(self, lla: np.ndarray) -> np.ndarray:
+        """North/east metres of ``lla`` from the alignment's origin (curvilinear, Groves 2013 eq. 2.119)."""
+        o = self._driveoff_origin
+        r_m, r_n = geo.radii_m(o[0])
+        return np.array([(lla[0] - o[0]) * (r_m + o[2]), (lla[1] - o[1]) * (r_n + o[2]) * math.cos(o[0])])
+
+    def _note_drive_off_ins(self) -> None:
+        """The free strapdown's velocity change over the chunk (``driveoff_timing``)."""
+        if self.driveoff is not None and self.t_stamp_s is not None and self._free_dv_mps is not None:
+            self.driveoff.note_ins(self.t_stamp_s, self._free_dv_mps[:2], (self.C_nb @ self.fx.lever_arm_m)[:2])
+
+    def _clear_drive_off(self) -> None:
+        if self.driveoff is not None:
+            self.driveoff.clear()
+        self._driveoff_origin = None
+        self._align_pending_until_s = None
+
+    def _timing_as_noise(self, m: updates.Measurement, rate_ned: np.ndarray) -> updates.Measurement:
+        """While the drive-off alignment is pending the GNSS models carry no timing columns
+        (``InsFilter._timing_in_models``); the time offset's effect, ``-rate dt`` with ``rate`` the
+        velocity (position rows) or the acceleration (velocity rows), enters R as its variance
+        ``rate rate^T sd_dt^2`` instead (the time offset as an unestimated error, Schmidt 1966 in its
+        simplest form: the cross-covariances left out), so that the first second of a drive-off
+        neither teaches the offset through a linearisation that does not hold there nor is read as
+        errors of the other states."""
+        if self._align_pending_until_s is None:
+            return m
+        i = self.layout.at("imu_time_offset")
+        r = np.asarray(rate_ned, float)
+        return m._replace(R=m.R + float(self.P[i, i]) * np.outer(r, r))
+
+    def _finish_drive_off_alignment(self, t_s, lla, sd, fix, vel) -> UpdateResult | None:
+        """The first GNSS epoch after the alignment's wait: align the drive-off (``driveoff_timing``),
+        set the IMU time offset and its sd (no correlations: the models carried no timing columns
+        since the heading reset), and take the heading, position and velocity again from this epoch
+        at the filter's new label (``_heading_reset``). Without an epoch soon after the wait (an
+        outage) or without an answer, the timing columns come back and the filter goes on."""
+        d = self.driveoff
+        due = self._align_pending_until_s
+        i = self.layout.at("imu_time_offset")
+        res = None
+        if t_s - due <= ALIGNMENT_LATEST_S and vel is not None:
+            bias_sd = float(np.sqrt(np.mean(np.diag(self.P)[BA:BA + 2])))
+            res = d.align(self.fx.imu_time_offset_s, math.sqrt(float(self.P[i, i])), bias_sd)
+        self._clear_drive_off()
+        if res is None:
+            return None
+        self._smoothing_boundary()
+        self.time_alignment = res
+        self.fx.imu_time_offset_s = res.offset_s
+        self.P[i, :] = 0.0
+        self.P[:, i] = 0.0
+        self.P[i, i] = res.sd_s ** 2
+        return self._heading_reset(t_s, lla, sd, fix, vel)
+
     def _heading_reset(self, t_s, lla, sd, fix, vel) -> UpdateResult:
         """First epoch fast enough for a course: turn the attitude about down so that the body x axis
         points along the course, take position and velocity from GNSS, and reset their covariance
         (biases and level keep what the stop taught them)."""
         self._smoothing_boundary()
         c = self.cfg
+        d = self.driveoff
+        if (d is not None and not self.heading_known and d.starts_at_rest()
+                and self._align_pending_until_s is None):
+            i = self.layout.at("imu_time_offset")
+            self._align_pending_until_s = float(t_s) + d.needed_wait_s(math.sqrt(float(self.P[i, i])))
         yaw_now = float(euler_from_dcm(self.C_nb)[2])
-        self._turn_about_down(rot_z(float(np.arctan2(vel[1], vel[0])) - yaw_now))
+        turn = rot_z(float(np.arctan2(vel[1], vel[0])) - yaw_now)
+        self._turn_about_down(turn)
+        self._free_corr_mps = self._free_corr_mps + (vel - turn @ self.nav[3:6])
         self.nav[:3] = self._imu_point_at_label(t_s, lla, vel, self.C_nb)
         self.nav[3:6] = vel
         self._v_prev_chunk = None
