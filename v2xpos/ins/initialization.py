@@ -34,11 +34,11 @@ STOP_GYRO_BIAS_INIT_SD_FLOOR_RPS = 1e-3
 MIN_START_POSITION_SD_M = 0.05
 """Least initial and reset position sd [m], whatever the receiver reports."""
 GNSS_RESET_DISTANCE_M = 30.0
-# the drive-off alignment (driveoff_timing) runs at the first GNSS epoch after its wait, if that
-# epoch comes within this many seconds of it (not after an outage)
-ALIGNMENT_LATEST_S = 1.0
 """A forced GNSS fix (after ``gnss.gnss_max_consecutive_rejections``) further than this from the
 filter resets its position instead of updating it (beyond the linearisation's reach)."""
+ALIGNMENT_LATEST_S = 1.0
+"""The drive-off alignment (``driveoff_timing``) runs at the first GNSS epoch after its wait if that
+epoch comes within this many seconds of it [s]; after an outage it is given up."""
 
 
 def antenna_fix_inverse_jacobian(layout, C_nb: np.ndarray, lever_arm_m: np.ndarray, v_ned_mps: np.ndarray,
