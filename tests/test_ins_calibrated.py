@@ -72,8 +72,9 @@ def test_applied_in_the_filter_equals_rewriting_the_recording():
     (``ins_config`` through the vehicle's profile) navigates through GNSS outages as well as (or
     better than, its effect states start at the truth with tight sds) the filter on the recording
     rewritten by ``inject.correct``, in both profiles. The plain filter with the declared values
-    alone is far worse; the services' one much less so: it estimates the gyro scale (the largest
-    effect here, -0.7 % about z on figure eights) online from its prior."""
+    alone is far worse; the services' one is not: it estimates the gyro scale (the largest
+    effect here, -0.7 % about z on figure eights) online from its prior and the time offset at the
+    drive-off."""
     import copy
     from sim.calibration_drive import simulated_recording
     from v2xpos.diagnose.inject import EffectSet, correct
@@ -98,7 +99,11 @@ def test_applied_in_the_filter_equals_rewriting_the_recording():
                                          profile=profile).summary["outage_h_rms_m"]
     for profile in ("plain", "service"):
         assert rms[profile, "ins_config"] < rms[profile, "rewritten"] + 0.05, rms
-        assert rms[profile, "ins_config"] < rms[profile, "declared"], rms
+    assert rms["plain", "ins_config"] < rms["plain", "declared"], rms
+    # the services' filter finds this drive's time offset at its drive-off (driveoff_timing: -19 +- 10
+    # ms against the true -30) and its gyro scale online: with the declared values alone it is now
+    # as good as with the true table (0.092 against 0.099 m; 0.106 before the drive-off alignment)
+    assert rms["service", "ins_config"] < rms["service", "declared"] + 0.02, rms
     assert rms["plain", "ins_config"] < 0.5 * rms["plain", "declared"], rms
 
 

@@ -154,4 +154,6 @@ def test_recorder_on_the_services_filter():
     assert "gyro_scale" in r.filter.layout.effects
     assert rec.phi_full == {} and rec.nodes > 1000
     assert len(rec.resets) == c.get("static_calibration_resets", 0)
-    assert len(rec.segments) == 1 + c.get("lever_arm_excluded", 0) + c["position_resets"]
+    # the drive-off alignment takes the heading again (Initialization._finish_drive_off_alignment)
+    aligned = int(r.filter.time_alignment is not None)
+    assert len(rec.segments) == 1 + c.get("lever_arm_excluded", 0) + c["position_resets"] + aligned
