@@ -127,7 +127,7 @@ class DriveOffTimer:
         hold a stop followed by enough motion, or does not cover the grid."""
         if len(self._gnss) < MIN_MOVING_EPOCHS + 2 or len(self._ins) < 4 or not (prior_sd_s > 0):
             return None
-        half = GRID_HALF_WIDTH_SD * prior_sd_s
+        half = self.needed_wait_s(prior_sd_s)
         grid = prior_offset_s + np.arange(-half, half + GRID_STEP_S / 2, GRID_STEP_S)
         g = np.asarray(self._gnss)
         g = g[g[:, 0] <= self._ins[-1][0] + grid[0]]     # epochs the strapdown has passed at every shift

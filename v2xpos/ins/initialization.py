@@ -24,6 +24,7 @@ from v2xpos.rotation import dcm_from_euler, euler_from_dcm, rot_z, skew
 from .ekf import ATT, BA, BG, EFFECT_SIZES, POS, VEL, kalman_update
 from .mechanization import COR_BA, COR_BG, MEM_F, MEM_VALID, MEM_W
 from . import updates
+from .driveoff_timing import TimeAlignment
 from .updates import TIMING_STATES_POSITION, UpdateResult
 
 if TYPE_CHECKING:
@@ -392,20 +393,23 @@ class Initialization:
         self._clear_drive_off()
         if res is None:
             return None
-        self._smoothing_boundary()
-        self.time_alignment = res
-        self.fx.imu_time_offset_s = res.offset_s
-        self.P[i, :] = 0.0
-        self.P[:, i] = 0.0
-        self.P[i, i] = res.sd_s ** 2
-        return self._heading_reset(t_s, lla, sd, fix, vel)
+        return self._heading_reset(t_s, lla, sd, fix, vel, alignment=res)
 
-    def _heading_reset(self, t_s, lla, sd, fix, vel) -> UpdateResult:
+    def _heading_reset(self, t_s, lla, sd, fix, vel, alignment: TimeAlignment | None = None) -> UpdateResult:
         """First epoch fast enough for a course: turn the attitude about down so that the body x axis
         points along the course, take position and velocity from GNSS, and reset their covariance
-        (biases and level keep what the stop taught them)."""
+        (biases and level keep what the stop taught them). With a drive-off ``alignment``
+        (``_finish_drive_off_alignment``) the IMU time offset and its sd are set first, without
+        correlations, and the filter's label moves with them."""
         self._smoothing_boundary()
         c = self.cfg
+        if alignment is not None:
+            i = self.layout.at("imu_time_offset")
+            self.time_alignment = alignment
+            self.fx.imu_time_offset_s = alignment.offset_s
+            self.P[i, :] = 0.0
+            self.P[:, i] = 0.0
+            self.P[i, i] = alignment.sd_s ** 2
         d = self.driveoff
         if (d is not None and not self.heading_known and d.starts_at_rest()
                 and self._align_pending_until_s is None):
