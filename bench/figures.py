@@ -186,6 +186,13 @@ def _integrity_figures(preset: str, targets: bool, mode: str = "", what: str = "
                _mc(preset, min, lambda b: b.get("valid_moving"), 100.0), 1, "≥ 90" if targets else "", "#27"),
         Figure(f"{k}.valid_moving_median_pct", f"{label}: median VALID share while both move", "%",
                _mc(preset, _median, lambda b: b.get("valid_moving"), 100.0), 1),
+    ) + ((
+        Figure(f"{k}.after_turn_max_pct", f"{label}: largest share of the time both move after both have turned "
+               "by 1° (the most a never-verified set-up can be VALID)", "%",
+               _mc(preset, max, lambda b: b.get("after_turn"), 100.0), 1),
+        Figure(f"{k}.after_turn_median_pct", f"{label}: median share of the time both move after both have turned", "%",
+               _mc(preset, _median, lambda b: b.get("after_turn"), 100.0), 1),
+    ) if not mode else ()) + (
         Figure(f"{k}.first_valid_max_s", f"{label}: longest time to the first VALID row", "s",
                _mc(preset, max, lambda b: b.get("first_valid_s")), 1),
         Figure(f"{k}.h_rms_median_m", f"{label}: median h RMS while both move", "m",

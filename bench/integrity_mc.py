@@ -5,7 +5,10 @@ kind (cached under ``--work``), the pair goes through ``v2xpos convoy --in-proce
 pipeline in one process, ``master.convoy.run_in_process``) and the results are scored
 against the truth (``v2xpos.diagnose.truth``). One line per case and the pooled figures:
 
-* VALID fraction, h RMS while both move, the largest |mean| per axis (a bias);
+* VALID fraction; its share of the time both cars move, next to the share of that time after both
+  have turned (``v2xpos.diagnose.truth.HEADING_CHANGE_DEG``: the most a set-up never verified can
+  be VALID, since before a heading change no data depends on its lever arm);
+* h RMS while both move, the largest |mean| per axis (a bias);
 * within 3 sd x / y, normalised RMS x / y (1 for an honest sigma);
 * median sigma_h over the h RMS (issue 15: <= 3 on a clean pair; the summary gives its largest);
 * violations: VALID rows with h error > max(0.3 m, 4 sigma_h) (issue 15: none).
@@ -103,7 +106,8 @@ def brief(s: dict) -> dict:
     mv = s["moving"]
     bias = max(abs(mv["x_mean_m"] or 0.0), abs(mv["y_mean_m"] or 0.0)) if mv["n"] else None
     return {"valid": s["valid_fraction"], "valid_moving": s.get("moving_valid_fraction"),
-            "first_valid_s": s.get("time_to_first_valid_s"), "n_moving": mv["n"], "h_rms_m": mv["h_rms_m"], "bias_m": bias,
+            "first_valid_s": s.get("time_to_first_valid_s"), "after_turn": s.get("moving_after_turn_fraction"),
+            "turn_s": s.get("time_to_turn_s"), "n_moving": mv["n"], "h_rms_m": mv["h_rms_m"], "bias_m": bias,
             "in3x": s.get("within_3sd_x"), "in3y": s.get("within_3sd_y"), "nrms_x": s.get("normalised_rms_x"),
             "nrms_y": s.get("normalised_rms_y"), "sig_ratio": s.get("median_sigma_h_over_h_rms"),
             "sigma_h_m": s.get("median_sigma_h_m"), "violations": s.get("violations", 0),
@@ -114,8 +118,13 @@ def _f(v, d: int = 3) -> str:
     return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{d}f}"
 
 
+def _pct(v: float | None) -> str:
+    return _f(100 * v, 1) if v is not None else "-"
+
+
 def line(name: str, b: dict) -> str:
-    return (f"{name:34s} VALID {_f(100 * b['valid'], 1):>5s} % (moving {_f(100 * b['valid_moving'], 1) if b['valid_moving'] is not None else '-':>5s} %, "
+    return (f"{name:34s} VALID {_pct(b['valid']):>5s} % (moving {_pct(b['valid_moving']):>5s} % of "
+            f"{_pct(b.get('after_turn')):>5s} % after both turned at {_f(b.get('turn_s'), 1):>5s} s, "
             f"first after {_f(b['first_valid_s'], 1):>5s} s)  hRMS {_f(b['h_rms_m'])}  bias {_f(b['bias_m'])}  "
             f"in3sd {_f(b['in3x'])}/{_f(b['in3y'])}  nRMS {_f(b['nrms_x'], 2)}/{_f(b['nrms_y'], 2)}  "
             f"sig_h {_f(b['sigma_h_m'])} ({_f(b['sig_ratio'], 1)}x)  viol {b['violations']}")
@@ -158,6 +167,7 @@ def main(argv: list[str] | None = None) -> int:
         ratios = [b["sig_ratio"] for b in bs if b["sig_ratio"]]
         mvs = [b["valid_moving"] for b in bs if b["valid_moving"] is not None]
         fv = [b["first_valid_s"] for b in bs if b["first_valid_s"] is not None]
+        turned = [b["after_turn"] for b in bs if b.get("after_turn") is not None]
         print(f"{preset}: cases {len(bs)}, h RMS median {_f(float(np.median(h)) if h else None)} max "
               f"{_f(max(h) if h else None)}, min in3sd {_f(min(min(b['in3x'] or 0, b['in3y'] or 0) for b in bs))}, "
               f"sigma ratio median {_f(float(np.median(ratios)) if ratios else None, 1)} "
@@ -165,7 +175,8 @@ def main(argv: list[str] | None = None) -> int:
               f"violations {sum(b['violations'] for b in bs)}, VALID median "
               f"{_f(100 * float(np.median([b['valid'] for b in bs])), 1)} % min {_f(100 * min(b['valid'] for b in bs), 1)} %, "
               f"VALID while moving median {_f(100 * float(np.median(mvs)) if mvs else None, 1)} % "
-              f"min {_f(100 * min(mvs) if mvs else None, 1)} %, first VALID after max "
+              f"min {_f(100 * min(mvs) if mvs else None, 1)} % (after both turned: largest "
+              f"{_f(100 * max(turned) if turned else None, 1)} %), first VALID after max "
               f"{_f(max(fv) if fv else None, 1)} s")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))

@@ -73,6 +73,9 @@ def test_clean_pair_sigma_is_honest_and_not_inflated(scores):
     # verified within the first turn: the first VALID row no later than the follower's first 45 deg
     # of heading change (issue 27; from a parked start the lever arm needs a turn unless verified)
     assert s["first_valid_gps_s"] is not None and s["first_valid_gps_s"] <= s["first_turn_end_gps_s"], s
+    # and not before: a set-up never verified is not vouched for before both vehicles have turned
+    # (no data depends on a lever arm before a heading change; diagnose.truth.HEADING_CHANGE_DEG)
+    assert s["moving_valid_fraction"] <= s["moving_after_turn_fraction"], s
     # nothing undeclared: neither filter's consistency or separation test fires
     assert not [r for r in s["reasons"] if ":TEST_" in r], s["reasons"]
 

@@ -36,6 +36,14 @@ from v2xpos.timebase import SECONDS_PER_WEEK
 MOVING_SPEED_MPS = 0.5
 VIOLATION_FLOOR_M = 0.3
 VIOLATION_SIGMAS = 4.0
+HEADING_CHANGE_DEG = 1.0
+"""A vehicle has "turned" once its course differs from its drive-off course by this much. A
+horizontal lever-arm error ``dl`` moves the antenna against the IMU point by ``C_nb dl``, which
+changes only with the heading: by ``|dl| dpsi`` after a heading change ``dpsi`` (Groves 2013
+§14.2.7). Before a vehicle's first heading change no measurement depends on ``dl``, so a set-up
+never verified cannot be vouched for there. 1° is generous (a 0.3 m error moves by 5 mm, below
+RTK noise), so the share of the moving time after it is an upper bound on what such a set-up can
+be VALID without trusting an untested declaration."""
 
 
 @dataclass
@@ -88,6 +96,21 @@ def week_of(t_gps_s: np.ndarray) -> int:
     return int(t[0] // SECONDS_PER_WEEK)
 
 
+def first_heading_change_s(track: TruthTrack, moving_speed_mps: float = MOVING_SPEED_MPS,
+                           heading_change_deg: float = HEADING_CHANGE_DEG) -> float | None:
+    """GPS time at which the course over ground ``atan2(ve, vn)`` first differs from the course of
+    the first moving sample by more than ``heading_change_deg`` (only samples faster than
+    ``moving_speed_mps``: the course of a car at rest is undefined). The course, not the IMU's yaw,
+    so that a mounting (an IMU z-up, x backward) does not matter. None: it never turns."""
+    speed = track.cols["speed_mps"]
+    moving = np.flatnonzero(speed > moving_speed_mps)
+    if len(moving) == 0:
+        return None
+    course = np.arctan2(track.cols["ve"][moving], track.cols["vn"][moving])
+    turned = np.abs(np.angle(np.exp(1j * (course - course[0])))) > math.radians(heading_change_deg)
+    return float(track.t_s[moving][np.argmax(turned)]) if turned.any() else None
+
+
 def _rms(x: np.ndarray) -> float | None:
     return float(np.sqrt(np.mean(x ** 2))) if len(x) else None
 
@@ -133,6 +156,12 @@ def score_target(rows: dict, target: str, truth_rel: TruthTrack, master_truth: T
         first_valid = t[valid & both]
         out["time_to_first_valid_s"] = (float(first_valid[0] - t[both][0]) if both.any() and len(first_valid)
                                         else None)
+        # the share of that time after both vehicles' first heading change (HEADING_CHANGE_DEG): the
+        # most a set-up never verified can be VALID without vouching for a lever arm no data tested
+        turns = [first_heading_change_s(master_truth, moving_speed_mps), first_heading_change_s(target_truth, moving_speed_mps)]
+        t_turned = math.inf if None in turns else max(turns)
+        out["moving_after_turn_fraction"] = float(np.mean(t[both] >= t_turned)) if both.any() else None
+        out["time_to_turn_s"] = float(t_turned - t[both][0]) if both.any() and math.isfinite(t_turned) else None
     out["standstill"] = block(~moving)
     # the computed kinematics of every status that carries them (VALID or flagged), while both move:
     # the accuracy of the computation itself, e.g. to compare two runs whose flags differ
