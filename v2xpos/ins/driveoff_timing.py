@@ -9,16 +9,23 @@ moved the estimate by hundreds of ms and left it several sd from the truth with 
 
 What: from a stop the filter runs with its heading open (``Initialization._try_align``) and, once
 moving, uses no GNSS until the heading is set (``InsFilter.update_gnss``): the strapdown runs free
-there. Its horizontal displacement since the stop is known in length and shape, only not in
-direction; so is the GNSS antenna's. Along each one's own direction of travel the two are the same
-curve ``d(t)`` (a straight drive-off: the lever arm does not turn), the strapdown's on the IMU
-stamps, the receiver's on GPS time. The offset is the shift that lays one onto the other:
+there. Its horizontal track since the stop (the antenna's: the IMU point's plus the change of
+``C_nb l``, which turns with the car) is known in length and shape, only not in direction; so is
+the GNSS antenna's. The two are the same plane curve turned by the strapdown's unknown heading
+error ``theta``, the strapdown's on the IMU stamps, the receiver's on GPS time. The offset is the
+shift that lays one onto the other:
 
-    J(dt) = min_d0  sum_k (d_gnss(t_k) - d0 - d_ins(t_k - dt))^2 / s_k^2  +  (dt - dt_prior)^2 / sd_prior^2
+    J(dt) = min_{d0, theta}  sum_k |p_gnss(t_k) - d0 - R(theta) p_ins(t_k - dt)|^2 / s_k^2
+            +  (dt - dt_prior)^2 / sd_prior^2
 
 over the GNSS epochs ``t_k`` of the drive-off, evaluated exactly on a grid of ``dt`` over the prior's
 +-``GRID_HALF_WIDTH_SD`` sd (the strapdown is interpolated, not linearised, so the ramp's curvature is
-used, not misread). ``d0`` takes up the error of the common anchor at the stop. The estimate is the
+used, not misread). ``d0`` takes up the error of the common anchor at the stop; the inner minimum is
+the weighted orthogonal Procrustes problem in the plane, in closed form (``_procrustes_cost``;
+Umeyama 1991, IEEE TPAMI 13(4), without the scale). Fitting the rotation, rather than projecting
+each track on its own direction of travel, keeps a drive-off that curves (out of a parking space)
+right: with the projections the estimate was 5.6 sd off on average at 0.2 rad/s of yaw rate and
+13 sd at 0.3 (``test_a_drive_off_that_curves_gives_the_time_offset``). The estimate is the
 grid minimum refined by a parabola, its variance ``2 / J''`` (J is a chi-square, minus twice the log
 posterior: the Laplace approximation; Bar-Shalom, Li & Kirubarajan 2001 sec. 2.7). ``s_k`` is the
 receiver's sd along the track with the strapdown's own drift added, ``(b t^2 / 2)`` for an
@@ -120,7 +127,22 @@ class DriveOffTimer:
         s = np.where(h > 0, (stamps_s - t[k]) / np.where(h > 0, h, 1.0), 0.0)
         h00, h10 = 2 * s ** 3 - 3 * s ** 2 + 1, s ** 3 - 2 * s ** 2 + s
         h01, h11 = -2 * s ** 3 + 3 * s ** 2, s ** 3 - s ** 2
+        if p.ndim == 2:
+            h00, h10, h01, h11, h = (x[:, None] for x in (h00, h10, h01, h11, h))
         return h00 * p[k] + h10 * h * v[k] + h01 * p[k + 1] + h11 * h * v[k + 1]
+
+    @staticmethod
+    def _procrustes_cost(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> float:
+        """``min_{d0, theta} sum_k w_k |a_k - d0 - R(theta) b_k|^2`` for plane points (n, 2): with
+        the weighted centroids removed (``A``, ``B``) the best rotation makes ``R B`` parallel to
+        ``A`` on (weighted) average, and the minimum is ``sum w |A|^2 + sum w |B|^2 - 2 |sum w
+        (B . A, B x A)|``."""
+        wn = w / w.sum()
+        A = a - wn @ a
+        B = b - wn @ b
+        dot = float(w @ np.einsum("ij,ij->i", B, A))
+        cross = float(w @ (B[:, 0] * A[:, 1] - B[:, 1] * A[:, 0]))
+        return float(w @ np.einsum("ij,ij->i", A, A) + w @ np.einsum("ij,ij->i", B, B)) - 2.0 * math.hypot(dot, cross)
 
     def align(self, prior_offset_s: float, prior_sd_s: float, accel_bias_sd_mps2: float) -> TimeAlignment | None:
         """The time offset from the drive-off (module docstring), or None when the record does not
@@ -145,8 +167,6 @@ class DriveOffTimer:
         g = g[keep]
         anchor = g[g[:, 4] <= self.static_max_speed_mps, 1:3].mean(axis=0)
         disp = g[:, 1:3] - anchor
-        u_g = disp[-1] / max(float(np.linalg.norm(disp[-1])), 1e-9)
-        d_gnss = disp @ u_g
         # the free strapdown from rest: integrated from a stamp at which the vehicle stands still for
         # every shift on the grid (the receiver's last second at rest, moved by the largest shift)
         ins = np.asarray(self._ins)
@@ -162,19 +182,17 @@ class DriveOffTimer:
         v = v + np.gradient(lever, ins[:, 0], axis=0)
         if float(np.linalg.norm(p[-1])) < 1e-3:
             return None
-        u_i = p[-1] / float(np.linalg.norm(p[-1]))
-        track = (ins[:, 0], p @ u_i, v @ u_i)
+        track = (ins[:, 0], p, v)
         t_rel = np.maximum(g[:, 0] - t_onset, 0.0)
+        # per horizontal axis: the receiver's sd and the free strapdown's drift
         var = g[:, 3] ** 2 + (0.5 * accel_bias_sd_mps2 * t_rel ** 2) ** 2
         w = 1.0 / var
         cost = np.full(len(grid), np.inf)
         for n, dt in enumerate(grid):
-            d_ins = self._ins_at(track, g[:, 0] - dt)
-            if d_ins is None:
+            p_ins = self._ins_at(track, g[:, 0] - dt)
+            if p_ins is None:
                 continue
-            r = d_gnss - d_ins
-            r0 = float(w @ r) / float(w.sum())
-            cost[n] = float(w @ (r - r0) ** 2) + ((dt - prior_offset_s) / prior_sd_s) ** 2
+            cost[n] = self._procrustes_cost(disp, p_ins, w) + ((dt - prior_offset_s) / prior_sd_s) ** 2
         if not np.isfinite(cost).all():
             return None                   # the strapdown has not run past every shift yet
         n = int(np.argmin(cost))
