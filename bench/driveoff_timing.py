@@ -15,7 +15,8 @@ offset to add is its negative). One line per case and, per instant, the pooled n
   should leave its sd wide until the acceleration changes.
 
     python -m bench.driveoff_timing --presets clean,dev_like --seeds 10-18 [--mounting B=x-backward/z-up]
-        [--effect B.imu_stamp_extra_delay_s=0.028] [--json out.json]
+        [--effect B.imu_stamp_extra_delay_s=0.028] [--route drive_off_radius_m=12 --vehicle A]
+        [--json out.json]
 
 About 2 s of CPU per case once the recording exists (generating one takes ~1 s).
 """
@@ -69,6 +70,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", default="10-18")
     ap.add_argument("--mounting", action="append", default=[])
     ap.add_argument("--effect", action="append", default=[])
+    ap.add_argument("--route", action="append", default=[],
+                    help="a route override: drive_off_radius_m=12 makes the leader (--vehicle A) drive off turning")
     ap.add_argument("--vehicle", default="B")
     ap.add_argument("--work", type=Path, default=Path("build/driveoff_timing"))
     ap.add_argument("--json", type=Path)
@@ -76,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for preset in args.presets.split(","):
         for seed in _seeds(args.seeds):
-            rec = make_recording(args.work / "rec", preset, seed, args.mounting, args.effect, [])
+            rec = make_recording(args.work / "rec", preset, seed, args.mounting, args.effect, [], args.route)
             r = time_offset_after_reset(rec, args.vehicle)
             r["case"] = f"{preset} s{seed}"
             rows.append(r)

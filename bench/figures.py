@@ -176,9 +176,12 @@ def _demo_figures() -> tuple[Figure, ...]:
 
 
 # ------------------------------------------------------------------------------------ the jobs
-def _integrity_figures(preset: str, targets: bool, mode: str = "", what: str = "") -> tuple[Figure, ...]:
+def _integrity_figures(preset: str, targets: bool, mode: str = "", what: str = "",
+                       bound: bool | None = None) -> tuple[Figure, ...]:
     """The integrity Monte-Carlo's figures of one preset; ``mode`` / ``what``: a run whose set-ups
-    were verified (or calibrated) on an earlier drive, in the key and the label."""
+    were verified (or calibrated) on an earlier drive, or whose routes differ, in the key and the
+    label; ``bound``: with the share of the moving time after both cars turned (default: runs whose
+    set-ups were never verified, ``mode`` empty)."""
     k = f"integrity_mc.{preset}" + (f"_{mode}" if mode else "")
     label = f"{preset} pairs" + (f", {what}" if what else "")
     return (
@@ -192,7 +195,7 @@ def _integrity_figures(preset: str, targets: bool, mode: str = "", what: str = "
                _mc(preset, max, lambda b: b.get("after_turn"), 100.0), 1),
         Figure(f"{k}.after_turn_median_pct", f"{label}: median share of the time both move after both have turned", "%",
                _mc(preset, _median, lambda b: b.get("after_turn"), 100.0), 1),
-    ) if not mode else ()) + (
+    ) if (not mode if bound is None else bound) else ()) + (
         Figure(f"{k}.first_valid_max_s", f"{label}: longest time to the first VALID row", "s",
                _mc(preset, max, lambda b: b.get("first_valid_s")), 1),
         Figure(f"{k}.h_rms_median_m", f"{label}: median h RMS while both move", "m",
@@ -352,6 +355,11 @@ JOBS: tuple[Job, ...] = (
     Job("integrity-mc-calibrated", ("python", "-m", "bench.integrity_mc", "--presets", "dev_like", "--seeds", "0-9",
                                     "--verified", "--calibrate", "--work", "{out}", "--json", "{json}"), _json,
         _integrity_figures("dev_like", False, "calibrated", "the follower's calibrate --write-dataset table applied")),
+    Job("integrity-mc-parking-exit", ("python", "-m", "bench.integrity_mc", "--presets", "clean,dev_like", "--seeds", "0-9",
+                                      "--route", "drive_off_radius_m=16", "--route", "drive_off_turn_s=3",
+                                      "--work", "{out}", "--json", "{json}"), _json,
+        _integrity_figures("clean", False, "parking_exit", "the leader drives off on a 16 m circle", True)
+        + _integrity_figures("dev_like", False, "parking_exit", "the leader drives off on a 16 m circle", True)),
     Job("driveoff-timing", ("python", "-m", "bench.driveoff_timing", "--presets", "clean,dev_like", "--seeds", "10-18",
                             "--work", "{out}", "--json", "{json}"), _json, (
         Figure("driveoff_timing.after_5s.z_rms", "IMU time offset 5 s after the drive-off's heading reset, generated "

@@ -14,7 +14,8 @@ against the truth (``v2xpos.diagnose.truth``). One line per case and the pooled 
 * violations: VALID rows with h error > max(0.3 m, 4 sigma_h) (issue 15: none).
 
     python -m bench.integrity_mc --presets clean,dev_like --seeds 0-9 [--mounting B=x-backward/z-up]
-        [--effect B.lever_arm_error_m=0.8,0,0] [--real ../shared/data/convoy_dev] [--json out.json]
+        [--effect B.lever_arm_error_m=0.8,0,0] [--route drive_off_radius_m=12]
+        [--real ../shared/data/convoy_dev] [--json out.json]
 
 Run it with ``nice -n 10`` on a shared machine (about 15 s of CPU per case).
 """
@@ -40,14 +41,15 @@ def _seeds(text: str) -> list[int]:
 
 
 def make_recording(work: Path, preset: str, seed: int, mountings: list[str], effects: list[str],
-                   floats: list[str]) -> Path:
+                   floats: list[str], routes: list[str] = ()) -> Path:
     """The recording of one case (generated once, then reused)."""
     from sim.recordings import apply_overrides, draw_params, simulate, write
-    tag = "_".join(x.replace("/", "-").replace("=", "-").replace(",", "_") for x in mountings + effects + floats)
+    tag = "_".join(x.replace("/", "-").replace("=", "-").replace(",", "_")
+                   for x in [*mountings, *effects, *floats, *routes])
     d = work / f"{preset}_s{seed}{'_' + tag if tag else ''}"
     if not (d / "truth_rel.csv").is_file():
         p = draw_params(seed, preset)
-        apply_overrides(p, mountings, effects, floats)
+        apply_overrides(p, mountings, effects, floats, routes)
         write(simulate(p), d)
     return d
 
@@ -137,6 +139,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--mounting", action="append", default=[])
     ap.add_argument("--effect", action="append", default=[])
     ap.add_argument("--float", action="append", default=[])
+    ap.add_argument("--route", action="append", default=[], help="a route override, e.g. drive_off_radius_m=12")
     ap.add_argument("--real", action="append", default=[], help="a recording folder with A/, B/, truth_rel.csv")
     ap.add_argument("--work", default="/tmp/v2xpos-integrity-mc")
     ap.add_argument("--json", help="write every case's figures here")
@@ -150,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     for preset in [p for p in args.presets.split(",") if p]:
         for seed in _seeds(args.seeds):
             cases.append((f"{preset} s{seed}", make_recording(work / "rec", preset, seed, args.mounting,
-                                                              args.effect, args.float)))
+                                                              args.effect, args.float, args.route)))
     rows = {}
     for name, rec in cases:
         t0 = time.time()

@@ -319,6 +319,7 @@ def truth_effects(rec: ConvoyRecording) -> dict:
         "route_blocks": [[round(t, 2), n] for t, n in rec.route_blocks],
         "max_speed_mps": p.route.max_speed_mps, "max_grade_rad": p.route.max_grade_rad,
         "roll_per_lat_acc_rad": p.route.roll_per_lat_acc_rad,
+        "drive_off_radius_m": p.route.drive_off_radius_m, "drive_off_turn_s": p.route.drive_off_turn_s,
         "gnss": asdict(p.gnss),
     }
     return out
@@ -362,9 +363,21 @@ def _parse_vec(text: str, n: int, what: str) -> tuple:
 _EFFECT_KEYS = {"misalignment_deg": 3, "imu_stamp_extra_delay_s": 1, "gyro_scale": 3, "lever_arm_error_m": 3}
 
 
-def apply_overrides(p: ConvoyParams, mountings: list[str], effects: list[str], floats: list[str]) -> None:
+_ROUTE_KEYS = ("drive_off_radius_m", "drive_off_turn_s")
+
+
+def apply_overrides(p: ConvoyParams, mountings: list[str], effects: list[str], floats: list[str],
+                    routes: list[str] = ()) -> None:
     """CLI overrides: ``V=MOUNTING`` (a name of ``axis_mountings``), ``V.KEY=VALUES`` (a field of
-    ``Effects``), ``V=START:END[,START:END]`` float spells (``V=none``: no spell)."""
+    ``Effects``), ``V=START:END[,START:END]`` float spells (``V=none``: no spell), ``KEY=VALUE`` a
+    field of the route (``_ROUTE_KEYS``)."""
+    import dataclasses
+    for item in routes:
+        key, _, val = item.partition("=")
+        if key not in _ROUTE_KEYS:
+            from v2xpos.schema import did_you_mean
+            raise ValueError(f"--route {item!r}: unknown key {key!r}{did_you_mean(key, _ROUTE_KEYS)}; one of {list(_ROUTE_KEYS)}")
+        p.route = dataclasses.replace(p.route, **{key: _parse_vec(val, 1, f"--route {item!r}")[0]})
     by_name = {v.name: v for v in p.vehicles}
     mounts = axis_mountings()
 
@@ -427,6 +440,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="declared mounting, e.g. B=x-backward/z-up (default: drawn from the 24 axis-aligned)")
     parser.add_argument("--float", action="append", default=[], metavar="V=START:END",
                         help="float spells in s from the start, e.g. A=70:73 or B=none (default: one drawn per car)")
+    parser.add_argument("--route", action="append", default=[], metavar="KEY=VALUE",
+                        help=f"route override, KEY one of {', '.join(_ROUTE_KEYS)} (e.g. drive_off_radius_m=12)")
     parser.add_argument("--no-float", action="store_true", help="RTK fixed throughout")
     parser.add_argument("--imu-grade", default="mems_automotive", choices=sorted(IMU_GRADES))
     parser.add_argument("--imu-rate", type=float, default=100.0, help="IMU sample rate [Hz] of its own clock")
@@ -461,7 +476,7 @@ def run(args: argparse.Namespace) -> int:
             body_roll=args.body_roll, max_speed_mps=args.max_speed, imu_clock_drift_ppm=args.imu_clock_drift_ppm,
             gps_week=args.week, start_tow_s=args.tow,
             origin_lla=origin)
-        apply_overrides(p, args.mounting, args.effect, args.float)
+        apply_overrides(p, args.mounting, args.effect, args.float, args.route)
     except ValueError as exc:
         print(f"v2xpos simulate: {exc}", file=sys.stderr)
         return 2

@@ -9,7 +9,8 @@ speeds, sweeping curves at road speeds, lane changes (a yaw-rate doublet), cruis
 trajectory's first-order lag) and the whole list is integrated by ``sim.trajectory.generate``,
 so the leader's truth and ideal inertial outputs are exactly those of that module. The first
 moving segment is a straight acceleration: the heading at rest is the direction the car drives
-off in. Turns only start above 3 m/s and are followed by >= 2 s straight so that the lagged yaw
+off in; with ``RouteSpec.drive_off_radius_m`` it turns from its onset instead (out of a parking
+space). Turns only start above 3 m/s and are followed by >= 2 s straight so that the lagged yaw
 rate has died out (< 0.2 %) before any stop.
 
 Followers. The leader's path defines a road: heading psi(sigma), curvature kappa = dpsi/dsigma
@@ -66,6 +67,12 @@ class RouteSpec:
     smooth_tau_s: float = 0.3
     blocks: tuple[str, ...] = BLOCKS
     min_dwell_s: float = 3.0
+    drive_off_radius_m: float = 0.0
+    """The leader drives off on a circle of this radius (out of a parking space; + right, - left)
+    for its first ``drive_off_turn_s`` of motion, accelerating at the lowest of ``accel_mps2``; 0:
+    straight. A radius, not a yaw rate, so that a follower passing the same spot faster meets the
+    same path at a lateral acceleration ``v^2 / R`` a car can take."""
+    drive_off_turn_s: float = 2.0
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.blocks) - set(BLOCKS))
@@ -73,6 +80,9 @@ class RouteSpec:
             raise ValueError(f"unknown route block(s) {unknown}; choose from {list(BLOCKS)}")
         if self.duration_s < 20.0:
             raise ValueError(f"duration_s {self.duration_s} too short (>= 20 s: static start, a drive, a stop)")
+        if (self.drive_off_radius_m and abs(self.drive_off_radius_m) < 5.0) or not 0.0 < self.drive_off_turn_s <= 10.0:
+            raise ValueError(f"drive-off turn of radius {self.drive_off_radius_m} m for {self.drive_off_turn_s} s: "
+                             f"need |radius| >= 5 m (0: straight) and 0 < duration <= 10 s")
 
 
 @dataclass
@@ -181,6 +191,16 @@ def leader_route(spec: RouteSpec, rng: np.random.Generator) -> Route:
     b.segs.append(Segment(t_static, pitch_rad=0.0))
     b.t = t_static
     b.log.append((0.0, "static"))
+    if spec.drive_off_radius_m:
+        a = spec.accel_mps2[0]
+        n = max(1, int(round(spec.drive_off_turn_s / 0.1)))
+        step = spec.drive_off_turn_s / n
+        # yaw rate = speed / radius, piecewise constant at each step's mid speed
+        b.segs += [Segment(step, accel_mps2=a, yaw_rate_rps=a * (k + 0.5) * step / spec.drive_off_radius_m)
+                   for k in range(n)]
+        b.log.append((b.t, "drive_off_turn"))
+        b.t += spec.drive_off_turn_s
+        b.v = a * spec.drive_off_turn_s
     required = [n for n in REQUIRED_BLOCKS if n in spec.blocks]
     rest = [n for n in required[1:]]
     rng.shuffle(rest)

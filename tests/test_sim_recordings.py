@@ -301,6 +301,34 @@ def test_route_starts_and_ends_at_rest_and_the_follower_follows(dev_like):
     assert lane is not None and lane["offset_m"] != 0
 
 
+def test_a_leader_can_drive_off_turning_out_of_a_parking_space(tmp_path, capsys):
+    """``--route drive_off_radius_m=R``: the leader drives off on a circle of radius R for
+    ``drive_off_turn_s``; the follower, on the road behind, drives off straight. A bad key or a
+    radius too tight for a car is refused with what and where."""
+    from v2xpos.cli import main
+    out = tmp_path / "rec"
+    assert main(["simulate", "convoy", "--out", str(out), "--seed", "3", "--duration", "60", "--preset", "clean",
+                 "--route", "drive_off_radius_m=-8"]) == 0
+    meta = _meta(out)
+    assert meta["generator"]["drive_off_radius_m"] == -8 and meta["generator"]["route_blocks"][1][1] == "drive_off_turn"
+    a, b = _truth(out / "A" / "truth.csv"), _truth(out / "B" / "truth.csv")
+
+    def course_change_deg(t: np.ndarray, after_s: float) -> float:
+        speed = np.hypot(t[:, 4], t[:, 5])
+        k0 = np.flatnonzero(speed > 0.5)[0]
+        k1 = np.searchsorted(t[:, 0], t[k0, 0] + after_s)
+        c = np.degrees(np.arctan2(t[[k0, k1], 5], t[[k0, k1], 4]))
+        return float((c[1] - c[0] + 180) % 360 - 180)
+
+    # 2 s from rest at 1.2 m/s^2 is 2.4 m of a left circle of 8 m: -17 deg, less the lag's share
+    assert -20.0 < course_change_deg(a, 2.5) < -10.0
+    assert abs(course_change_deg(b, 2.5)) < 0.5
+    assert main(["simulate", "convoy", "--out", str(tmp_path / "x"), "--route", "drive_off_rate=12"]) == 2
+    assert "unknown key 'drive_off_rate'" in capsys.readouterr().err
+    assert main(["simulate", "convoy", "--out", str(tmp_path / "y"), "--route", "drive_off_radius_m=2"]) == 2
+    assert "|radius| >= 5 m" in capsys.readouterr().err
+
+
 def test_followers_drive_the_leaders_road_with_their_lane_offset():
     """Each follower's IMU point is on the leader's path at its progress, offset sideways by its
     lane offset, to < 5 mm (sim.routes: progress = the car ahead's delayed by lag, minus gap)."""

@@ -24,8 +24,9 @@ used, not misread). ``d0`` takes up the error of the common anchor at the stop; 
 the weighted orthogonal Procrustes problem in the plane, in closed form (``_procrustes_cost``;
 Umeyama 1991, IEEE TPAMI 13(4), without the scale). Fitting the rotation, rather than projecting
 each track on its own direction of travel, keeps a drive-off that curves (out of a parking space)
-right: with the projections the estimate was 5.6 sd off on average at 0.2 rad/s of yaw rate and
-13 sd at 0.3 (``test_a_drive_off_that_curves_gives_the_time_offset``). The estimate is the
+right: with the projections, on a circle of 6 m (full lock) the normalised error's RMS was 1.6
+(mean -1.2) and on 4 m 3.3 (mean -3.1) over simulated drive-offs, the two chords pointing along
+different parts of the curve (``test_a_drive_off_that_curves_gives_the_time_offset``). The estimate is the
 grid minimum refined by a parabola, its variance ``2 / J''`` (J is a chi-square, minus twice the log
 posterior: the Laplace approximation; Bar-Shalom, Li & Kirubarajan 2001 sec. 2.7). ``s_k`` is the
 receiver's sd along the track with the strapdown's own drift added, ``(b t^2 / 2)`` for an
