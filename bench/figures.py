@@ -177,11 +177,11 @@ def _demo_figures() -> tuple[Figure, ...]:
 
 # ------------------------------------------------------------------------------------ the jobs
 def _integrity_figures(preset: str, targets: bool, mode: str = "", what: str = "",
-                       bound: bool | None = None) -> tuple[Figure, ...]:
+                       bound: bool = False) -> tuple[Figure, ...]:
     """The integrity Monte-Carlo's figures of one preset; ``mode`` / ``what``: a run whose set-ups
     were verified (or calibrated) on an earlier drive, or whose routes differ, in the key and the
-    label; ``bound``: with the share of the moving time after both cars turned (default: runs whose
-    set-ups were never verified, ``mode`` empty)."""
+    label; ``bound``: with the share of the moving time after both cars turned (the runs whose
+    set-ups were never verified)."""
     k = f"integrity_mc.{preset}" + (f"_{mode}" if mode else "")
     label = f"{preset} pairs" + (f", {what}" if what else "")
     return (
@@ -195,7 +195,7 @@ def _integrity_figures(preset: str, targets: bool, mode: str = "", what: str = "
                _mc(preset, max, lambda b: b.get("after_turn"), 100.0), 1),
         Figure(f"{k}.after_turn_median_pct", f"{label}: median share of the time both move after both have turned", "%",
                _mc(preset, _median, lambda b: b.get("after_turn"), 100.0), 1),
-    ) if (not mode if bound is None else bound) else ()) + (
+    ) if bound else ()) + (
         Figure(f"{k}.first_valid_max_s", f"{label}: longest time to the first VALID row", "s",
                _mc(preset, max, lambda b: b.get("first_valid_s")), 1),
         Figure(f"{k}.h_rms_median_m", f"{label}: median h RMS while both move", "m",
@@ -342,7 +342,7 @@ JOBS: tuple[Job, ...] = (
     )),
     Job("integrity-mc", ("python", "-m", "bench.integrity_mc", "--presets", "clean,dev_like", "--seeds", "0-9",
                          "--real", CONVOY, "--work", "{out}", "--json", "{json}"), _json,
-        _integrity_figures("clean", True) + _integrity_figures("dev_like", False) + (
+        _integrity_figures("clean", True, bound=True) + _integrity_figures("dev_like", False, bound=True) + (
             Figure("integrity_mc.convoy_dev.valid_pct", "convoy_dev as declared: VALID share of rows", "%",
                    _get("convoy_dev", "valid", scale=100.0), 1),
             Figure("integrity_mc.convoy_dev.h_rms_m", "convoy_dev as declared: h RMS while both move", "m",
@@ -358,8 +358,8 @@ JOBS: tuple[Job, ...] = (
     Job("integrity-mc-parking-exit", ("python", "-m", "bench.integrity_mc", "--presets", "clean,dev_like", "--seeds", "0-9",
                                       "--route", "drive_off_radius_m=16", "--route", "drive_off_turn_s=3",
                                       "--work", "{out}", "--json", "{json}"), _json,
-        _integrity_figures("clean", False, "parking_exit", "the leader drives off on a 16 m circle", True)
-        + _integrity_figures("dev_like", False, "parking_exit", "the leader drives off on a 16 m circle", True)),
+        _integrity_figures("clean", False, "parking_exit", "the leader drives off on a 16 m circle", bound=True)
+        + _integrity_figures("dev_like", False, "parking_exit", "the leader drives off on a 16 m circle", bound=True)),
     Job("driveoff-timing", ("python", "-m", "bench.driveoff_timing", "--presets", "clean,dev_like", "--seeds", "10-18",
                             "--work", "{out}", "--json", "{json}"), _json, (
         Figure("driveoff_timing.after_5s.z_rms", "IMU time offset 5 s after the drive-off's heading reset, generated "
